@@ -1,0 +1,14 @@
+"""File formats: the thesis' model and motion files, and torchhand's model assets."""
+
+from .assets import (  # noqa: F401
+    FINGER_NAMES,
+    HAND_KEYPOINT_NAMES,
+    THESIS_MODEL_NAMES,
+    ModelAssets,
+    assets_from_thesis,
+    available_models,
+    find_model,
+    load_assets,
+    save_assets,
+)
+from .thesis import *  # noqa: F401,F403

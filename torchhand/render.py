@@ -1,0 +1,249 @@
+"""Depth and id rendering of posed triangle soups by ray casting.
+
+Ray casting uses open3d's Embree-backed :class:`open3d.t.geometry.RaycastingScene` on
+the CPU: inputs on other devices are copied to the CPU for the cast and the results
+are returned on the input device. Rendering is not differentiable (inputs are detached).
+
+Units are millimetres; the camera frame is x right, y down, z forward; there is one
+ray per pixel centre (integer pixel coordinates, OpenCV convention).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import numpy as np
+import open3d as o3d
+import torch
+import torch.nn.functional as F
+
+from torchhand.camera import Camera, _check_tensor, _fmt_shape, _transform
+
+__all__ = ["RenderResult", "render", "silhouette_edges", "visible_vertices", "DEFAULT_EDGE_THRESHOLD_MM"]
+
+#: Depth jump (mm) between neighbouring pixels that counts as a silhouette edge.
+DEFAULT_EDGE_THRESHOLD_MM = 10.0
+
+_INVALID_ID = int(o3d.t.geometry.RaycastingScene.INVALID_ID)
+
+
+class RenderResult(NamedTuple):
+    """Per-pixel render outputs, all on the device of the rendered vertices.
+
+    Attributes:
+        depth: (B, H, W) float32 camera-frame z in mm; 0 where nothing is hit.
+        face_id: (B, H, W) int64 index of the hit triangle; -1 where empty.
+        model_id: (B, H, W) int64 ``face_model_id`` of the hit triangle; -1 where empty.
+        bone_id: (B, H, W) int64 ``face_bone_id`` of the hit triangle; -1 where empty.
+        normals: (B, H, W, 3) float32 camera-frame unit normals of the hit triangle,
+            oriented towards the camera; 0 where empty.
+        silhouette_edges: (B, H, W) bool, see :func:`silhouette_edges`.
+        barycentric: (B, H, W, 2) float32 ``(u, v)`` of the hit, i.e. the hit point is
+            ``(1 - u - v) * v0 + u * v1 + v * v2`` of the face's vertices; 0 where empty.
+    """
+
+    depth: torch.Tensor
+    face_id: torch.Tensor
+    model_id: torch.Tensor
+    bone_id: torch.Tensor
+    normals: torch.Tensor
+    silhouette_edges: torch.Tensor
+    barycentric: torch.Tensor
+
+
+def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESHOLD_MM) -> torch.Tensor:
+    """Occluding-contour pixels of a depth map.
+
+    A pixel is an edge if it is foreground (depth > 0) and one of its 8 neighbours is
+    background or farther away by more than ``threshold``; i.e. only the near
+    (occluding) side of a discontinuity is marked. Implemented as a torch morphological
+    comparison: a flat 3x3 grey-scale dilation (``max_pool2d``) of the depth map with
+    background set to +inf. Pixels outside the image do not count as background.
+
+    Args:
+        depth: (B, H, W) depth in mm, 0 (or negative) where empty.
+        threshold: depth jump in mm that counts as a discontinuity.
+
+    Returns:
+        (B, H, W) bool edge mask.
+    """
+    _check_tensor("depth", depth, (None, None, None), "(B, H, W)", exact_ndim=True)
+    foreground = depth > 0
+    far = torch.where(foreground, depth, torch.full_like(depth, float("inf")))
+    # max_pool2d pads with -inf, so the image border is not mistaken for background.
+    neighbour_max = F.max_pool2d(far[:, None], kernel_size=3, stride=1, padding=1)[:, 0]
+    return foreground & (neighbour_max - depth > threshold)
+
+
+@functools.lru_cache(maxsize=16)
+def _camera_rays(key: tuple) -> o3d.core.Tensor:
+    """World-frame rays (H, W, 6) through pixel centres, cached per camera.
+
+    Directions are scaled to unit camera-frame z so open3d's ``t_hit`` (in units of the
+    direction length) equals the z depth directly.
+    """
+    K_flat, T_flat, width, height = key
+    K = np.asarray(K_flat, dtype=np.float64).reshape(3, 3)
+    T = np.asarray(T_flat, dtype=np.float64).reshape(4, 4)
+    v, u = np.meshgrid(np.arange(height, dtype=np.float64), np.arange(width, dtype=np.float64), indexing="ij")
+    yn = (v - K[1, 2]) / K[1, 1]
+    xn = (u - K[0, 2] - K[0, 1] * yn) / K[0, 0]
+    d_cam = np.stack([xn, yn, np.ones_like(xn)], axis=-1)
+    R, t = T[:3, :3], T[:3, 3]
+    d_world = d_cam @ R  # row-vector form of R^T d
+    origin = np.broadcast_to(-R.T @ t, d_world.shape)
+    rays = np.concatenate([origin, d_world], axis=-1).astype(np.float32)
+    return o3d.core.Tensor(np.ascontiguousarray(rays))
+
+
+def _rays_for(camera: Camera) -> o3d.core.Tensor:
+    key = (
+        tuple(camera.K.detach().cpu().double().flatten().tolist()),
+        tuple(camera.T_cw.detach().cpu().double().flatten().tolist()),
+        camera.width,
+        camera.height,
+    )
+    return _camera_rays(key)
+
+
+def _check_ids(name: str, ids: torch.Tensor | None, num_faces: int, like: torch.Tensor) -> torch.Tensor:
+    if ids is None:
+        return like.new_zeros(num_faces, dtype=torch.int64)
+    _check_tensor(name, ids, (num_faces,), f"(F,) with F={num_faces}", exact_ndim=True, floating=False)
+    if ids.dtype in (torch.bool,) or ids.is_floating_point() or ids.is_complex():
+        raise TypeError(f"{name} must have an integer dtype (int64), got {ids.dtype}")
+    if ids.device != like.device:
+        raise ValueError(f"{name} is on {ids.device} but vertices is on {like.device}; they must match")
+    return ids.long()
+
+
+def render(
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    camera: Camera,
+    face_model_id: torch.Tensor | None = None,
+    face_bone_id: torch.Tensor | None = None,
+    *,
+    edge_threshold: float = DEFAULT_EDGE_THRESHOLD_MM,
+) -> RenderResult:
+    """Ray-cast depth, ids, normals and silhouette edges of a posed triangle soup.
+
+    Args:
+        vertices: (B, V, 3) or (V, 3) world-frame vertices in mm (float).
+        faces: (F, 3) integer (int64) vertex indices; F may be 0.
+        camera: the camera to render from (its size gives H, W).
+        face_model_id: (F,) int64 model index per face; zeros if None.
+        face_bone_id: (F,) int64 bone index per face; zeros if None.
+        edge_threshold: depth jump (mm) for :func:`silhouette_edges`.
+
+    Returns:
+        RenderResult with (B, H, W) maps on ``vertices.device``.
+    """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a torchhand.camera.Camera, got {type(camera).__name__}")
+    _check_tensor("vertices", vertices, (None, 3), "(B, V, 3) or (V, 3)")
+    if vertices.ndim == 2:
+        vertices = vertices[None]
+    elif vertices.ndim != 3:
+        raise ValueError(f"vertices must have shape (B, V, 3) or (V, 3), got {_fmt_shape(vertices.shape)}")
+    _check_tensor("faces", faces, (None, 3), "(F, 3)", exact_ndim=True, floating=False)
+    if faces.dtype == torch.bool or faces.is_floating_point() or faces.is_complex():
+        raise TypeError(f"faces must have an integer dtype (int64), got {faces.dtype}")
+    if faces.device != vertices.device:
+        raise ValueError(f"faces is on {faces.device} but vertices is on {vertices.device}; they must match")
+    vertices = vertices.detach()
+    faces = faces.detach().long()
+    B, V = vertices.shape[:2]
+    num_faces = faces.shape[0]
+    if not bool(torch.isfinite(vertices).all()):
+        raise ValueError("vertices must be finite, got NaN or inf values")
+    if num_faces > 0 and (int(faces.min()) < 0 or int(faces.max()) >= V):
+        raise ValueError(f"faces must index vertices in [0, {V}), got range [{int(faces.min())}, {int(faces.max())}]")
+    model_ids = _check_ids("face_model_id", face_model_id, num_faces, faces)
+    bone_ids = _check_ids("face_bone_id", face_bone_id, num_faces, faces)
+
+    H, W = camera.height, camera.width
+    device = vertices.device
+    t_hit = np.full((B, H, W), np.inf, dtype=np.float32)
+    prim = np.full((B, H, W), _INVALID_ID, dtype=np.uint32)
+    uvs = np.zeros((B, H, W, 2), dtype=np.float32)
+    if num_faces > 0:
+        rays = _rays_for(camera)
+        verts_np = np.ascontiguousarray(vertices.to("cpu", torch.float32).numpy())
+        faces_o3d = o3d.core.Tensor(faces.cpu().numpy().astype(np.uint32))
+        # open3d builds one BVH per scene, so each batch element needs its own scene.
+        for b in range(B):
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(verts_np[b]), faces_o3d)
+            hit = scene.cast_rays(rays)
+            t_hit[b] = hit["t_hit"].numpy()
+            prim[b] = hit["primitive_ids"].numpy()
+            uvs[b] = hit["primitive_uvs"].numpy()
+
+    hit_mask = torch.from_numpy(np.isfinite(t_hit)).to(device)
+    # Rays have unit camera-frame z, so t_hit already is the z depth.
+    depth = torch.from_numpy(np.where(np.isfinite(t_hit), t_hit, 0.0).astype(np.float32)).to(device)
+    face_id = torch.from_numpy(prim.astype(np.int64)).to(device)
+    face_id = torch.where(hit_mask, face_id, face_id.new_full((), -1))
+    safe_id = face_id.clamp(min=0)
+    empty = face_id.new_full((), -1)
+    if num_faces > 0:
+        model_id = torch.where(hit_mask, model_ids[safe_id], empty)
+        bone_id = torch.where(hit_mask, bone_ids[safe_id], empty)
+        normals = _pixel_normals(vertices, faces, camera, safe_id, hit_mask)
+    else:
+        model_id = torch.full_like(face_id, -1)
+        bone_id = torch.full_like(face_id, -1)
+        normals = depth.new_zeros(B, H, W, 3)
+    barycentric = torch.from_numpy(uvs).to(device) * hit_mask[..., None]
+    edges = silhouette_edges(depth, edge_threshold)
+    return RenderResult(depth, face_id, model_id, bone_id, normals, edges, barycentric)
+
+
+def _pixel_normals(
+    vertices: torch.Tensor, faces: torch.Tensor, camera: Camera, safe_id: torch.Tensor, hit_mask: torch.Tensor
+) -> torch.Tensor:
+    """(B, H, W, 3) float32 camera-frame face normals facing the camera, 0 where empty."""
+    T = camera.T_cw.to(device=vertices.device, dtype=vertices.dtype)
+    v_cam = _transform(T, vertices)  # (B, V, 3)
+    tri = v_cam[:, faces]  # (B, F, 3, 3)
+    n = F.normalize(torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1), dim=-1)
+    # The camera sits at the origin: a plane faces it iff n . v0 < 0, the same for every point on it.
+    facing = (n * tri[:, :, 0]).sum(-1, keepdim=True)
+    n = torch.where(facing > 0, -n, n).float()
+    B = n.shape[0]
+    flat = torch.gather(n, 1, safe_id.reshape(B, -1, 1).expand(-1, -1, 3))
+    return flat.view(*safe_id.shape, 3) * hit_mask[..., None]
+
+
+def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """Vertices of triangles hit by at least one pixel.
+
+    Args:
+        render_result: output of :func:`render`; only ``face_id`` (B, H, W) is used.
+        faces: (F, 3) int64 faces that were rendered.
+        num_vertices: V, the number of rendered vertices.
+
+    Returns:
+        (B, V) bool visibility mask on the device of ``render_result.face_id``.
+    """
+    face_id = render_result.face_id
+    _check_tensor("render_result.face_id", face_id, (None, None, None), "(B, H, W)", exact_ndim=True, floating=False)
+    _check_tensor("faces", faces, (None, 3), "(F, 3)", exact_ndim=True, floating=False)
+    if isinstance(num_vertices, bool) or not isinstance(num_vertices, int) or num_vertices < 0:
+        raise ValueError(f"num_vertices must be a non-negative int, got {num_vertices!r}")
+    B, num_faces = face_id.shape[0], faces.shape[0]
+    if num_faces > 0 and int(faces.max()) >= num_vertices:
+        raise ValueError(f"faces index vertex {int(faces.max())} but num_vertices is {num_vertices}")
+    if face_id.numel() > 0 and int(face_id.max()) >= num_faces:
+        raise ValueError(f"render_result.face_id references face {int(face_id.max())} but faces has {num_faces} rows")
+    faces = faces.long().to(face_id.device)
+    face_hit = face_id.new_zeros(B, num_faces + 1, dtype=torch.bool)
+    # Empty pixels (-1) land in the spare last column, which is dropped.
+    face_hit.scatter_(1, torch.where(face_id < 0, num_faces, face_id).flatten(1), True)
+    face_hit = face_hit[:, :num_faces]
+    visible = face_id.new_zeros(B, num_vertices, dtype=torch.bool)
+    b_idx, f_idx = face_hit.nonzero(as_tuple=True)
+    visible[b_idx[:, None], faces[f_idx]] = True
+    return visible

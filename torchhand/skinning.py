@@ -1,0 +1,109 @@
+"""Linear blend skinning (thesis Eq. 4.1) and its analytic Jacobian.
+
+``V(theta) = sum_j kappa_Vj T_j(theta) T_j(0)^-1 V(0) = sum_j kappa_Vj G_j V(0)``.
+
+Because the rest vertices are fixed, the sum is linear in the entries of the bone
+motions ``G``: with the static *skinning matrix* ``P[v, 4j + c] = kappa_vj V_c(0)``
+(homogeneous coordinate c), all posed vertices of a batch are one product
+``P @ G`` of a (V, 4J) matrix with a (4J, 3B) matrix. Sparse weights make ``P``
+sparse; it is stored as a sparse CSR tensor when that pays off (see
+:func:`skinning_matrix`) and as a dense one otherwise, so the dominant cost is one
+GEMM (or SpMM) in the forward pass and one in the backward pass.
+
+Weights are stored compactly as ``skin_index: (V, K)`` / ``skin_weight: (V, K)``
+(K = the largest number of non-zero weights of a vertex, padded with weight 0).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .kinematics import point_jacobian
+
+__all__ = ["skinning_matrix", "lbs", "lbs_dense_reference", "lbs_jacobian", "dense_weights"]
+
+# Below this fraction of non-zeros a CSR product beats a dense GEMM on CPU
+# (measured with eval/bench_lbs.py; the thesis hands are ~45 % dense, the rope ~19 %).
+SPARSE_DENSITY = 0.2
+
+
+def dense_weights(skin_index: torch.Tensor, skin_weight: torch.Tensor, num_bones: int) -> torch.Tensor:
+    """(V, K) ids and weights -> (V, J) dense weight matrix."""
+    W = skin_weight.new_zeros(skin_index.shape[0], num_bones)
+    return W.scatter_add(1, skin_index, skin_weight)
+
+
+def skinning_matrix(
+    vertices: torch.Tensor, skin_index: torch.Tensor, skin_weight: torch.Tensor, num_bones: int,
+    sparse: bool | None = None,
+) -> torch.Tensor:
+    """Static matrix P with ``lbs(G, P) = sum_j w_j G_j v``.
+
+    Args:
+        vertices: (V, 3) rest vertices.
+        skin_index: (V, K) int64 bone ids; skin_weight: (V, K) weights.
+        num_bones: J.
+        sparse: force a sparse CSR (True) or dense (False) result; by default sparse
+            when the density is below ``SPARSE_DENSITY``.
+    Returns:
+        (V, 4 J) matrix, dense or sparse CSR.
+    """
+    V = vertices.shape[0]
+    W = dense_weights(skin_index, skin_weight, num_bones)  # (V, J)
+    vh = torch.cat([vertices, vertices.new_ones(V, 1)], 1)  # (V, 4)
+    P = (W[:, :, None] * vh[:, None, :]).reshape(V, 4 * num_bones)
+    density = (W != 0).float().mean().item() if V else 1.0
+    if sparse is None:
+        sparse = density < SPARSE_DENSITY
+    return P.to_sparse_csr() if sparse else P
+
+
+def lbs(G: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """Posed vertices by linear blend skinning (Eq. 4.1).
+
+    Args:
+        G: (B, J, 4, 4) bone motions relative to the rigging pose.
+        P: (V, 4 J) skinning matrix from :func:`skinning_matrix` (dense or CSR).
+    Returns:
+        (B, V, 3) posed vertices.
+    """
+    B, J = G.shape[:2]
+    # Gm[4j + c, 3b + r] = G[b, j, r, c]
+    Gm = G[:, :, :3, :].permute(1, 3, 0, 2).reshape(4 * J, 3 * B)
+    out = torch.sparse.mm(P, Gm) if P.layout != torch.strided else P @ Gm  # (V, 3B)
+    return out.reshape(-1, B, 3).transpose(0, 1)
+
+
+def lbs_dense_reference(G: torch.Tensor, vertices: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Slow, obviously-correct LBS: sum_j w_vj (G_j [v; 1]). (B,J,4,4),(V,3),(V,J) -> (B,V,3)."""
+    vh = torch.cat([vertices, vertices.new_ones(vertices.shape[0], 1)], 1)
+    per_bone = torch.einsum("bjrc,vc->bvjr", G[:, :, :3, :], vh)
+    return torch.einsum("vj,bvjr->bvr", weights, per_bone)
+
+
+def lbs_jacobian(
+    G: torch.Tensor,
+    twists: torch.Tensor,
+    vertices: torch.Tensor,
+    skin_index: torch.Tensor,
+    skin_weight: torch.Tensor,
+    dof_bone: torch.Tensor,
+    descendants: torch.Tensor,
+) -> torch.Tensor:
+    """Analytic Jacobian d V(theta) / d theta of skinned points.
+
+    Args:
+        G: (B, J, 4, 4) and twists: (B, D, 6) from ``forward_kinematics``.
+        vertices: (N, 3) rest positions of the points (a subset of the mesh, or
+            keypoints with one-hot weights).
+        skin_index, skin_weight: (N, K).
+        dof_bone: (D,) bone of each DoF; descendants: (J, J) bool (see KinematicTree).
+    Returns:
+        (B, N, 3, D).
+    """
+    Gk = G[:, skin_index, :3, :]  # (B, N, K, 3, 4)
+    x = (Gk[..., :3] @ vertices[None, :, None, :, None])[..., 0] + Gk[..., 3]  # (B, N, K, 3)
+    drives = descendants[skin_index][..., dof_bone].to(skin_weight.dtype)  # (N, K, D)
+    wA = skin_weight[..., None] * drives
+    S = torch.einsum("nkd,bnkc->bndc", wA, x)
+    return point_jacobian(twists, S, wA.sum(1))
