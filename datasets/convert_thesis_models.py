@@ -33,6 +33,8 @@ def main(argv=None) -> None:
     ap.add_argument("--hia-root", required=True, type=Path)
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--force", action="store_true", help="replace existing model files")
+    ap.add_argument("--demo-sequence", default="16", help="sequence whose motion the demo plays")
+    ap.add_argument("--demo-frames", type=int, default=60)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     for thesis_name, seq in SOURCES.items():
@@ -43,6 +45,34 @@ def main(argv=None) -> None:
                                     fingertips=tips)
         path = save_assets(assets, args.out / f"{THESIS_MODEL_NAMES[thesis_name]}.npz", overwrite=args.force)
         print(f"{path}: {assets.num_bones} bones, {len(assets.dof_names)} DoF, {len(assets.vertices)} vertices")
+    write_demo_motion(args.hia_root, args.demo_sequence, args.demo_frames, args.out / "demo_motion.npz", args.force)
+
+
+def write_demo_motion(hia_root: Path, seq: str, frames: int, path: Path, force: bool) -> None:
+    """A short excerpt of a thesis motion as theta of the shipped models, for the demo."""
+    import json
+
+    import numpy as np
+    import torch
+
+    from torchhand import load_model
+    from torchhand.io import sequence_models
+    from torchhand.motion import motion_to_theta
+
+    if path.exists() and not force:
+        raise FileExistsError(f"{path} exists; pass --force to replace it")
+    names, bounds = sequence_models(hia_root, seq)
+    thetas, models = [], []
+    rows = np.arange(frames) + bounds.motion_offset
+    for thesis_name in names:
+        model = load_model(THESIS_MODEL_NAMES[thesis_name], dtype=torch.float64)
+        motion = read_thesis_model(hia_root / "Models" / seq, thesis_name).motion
+        thetas.append(motion_to_theta(model, {b: m[rows] for b, m in motion.items()}))
+        models.append(model.name)
+    meta = {"models": models, "source": f"Hands in Action (MIT), sequence {seq}, frames 0-{frames - 1}"}
+    np.savez_compressed(path, theta=torch.cat(thetas, 1).numpy().astype(np.float32),
+                        meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))
+    print(f"{path}: {frames} frames of {models}")
 
 
 if __name__ == "__main__":

@@ -181,17 +181,17 @@ def render(
             prim[b] = hit["primitive_ids"].numpy()
             uvs[b] = hit["primitive_uvs"].numpy()
 
-    hit_mask = torch.from_numpy(np.isfinite(t_hit)).to(device)
+    t_hit_t = torch.from_numpy(t_hit).to(device)
+    hit_mask = torch.isfinite(t_hit_t)
     # Rays have unit camera-frame z, so t_hit already is the z depth.
-    depth = torch.from_numpy(np.where(np.isfinite(t_hit), t_hit, 0.0).astype(np.float32)).to(device)
-    face_id = torch.from_numpy(prim.astype(np.int64)).to(device)
-    face_id = torch.where(hit_mask, face_id, face_id.new_full((), -1))
-    safe_id = face_id.clamp(min=0)
-    empty = face_id.new_full((), -1)
+    depth = torch.where(hit_mask, t_hit_t, 0.0)
+    empty = torch.tensor(-1, dtype=torch.int64, device=device)
+    face_id = torch.where(hit_mask, torch.from_numpy(prim.astype(np.int64)).to(device), empty)
     if num_faces > 0:
+        safe_id = face_id.clamp(min=0)
         model_id = torch.where(hit_mask, model_ids[safe_id], empty)
         bone_id = torch.where(hit_mask, bone_ids[safe_id], empty)
-        normals = _pixel_normals(vertices, faces, camera, safe_id, hit_mask)
+        normals = _pixel_normals(vertices, faces, camera, face_id, hit_mask)
     else:
         model_id = torch.full_like(face_id, -1)
         bone_id = torch.full_like(face_id, -1)
@@ -202,7 +202,7 @@ def render(
 
 
 def _pixel_normals(
-    vertices: torch.Tensor, faces: torch.Tensor, camera: Camera, safe_id: torch.Tensor, hit_mask: torch.Tensor
+    vertices: torch.Tensor, faces: torch.Tensor, camera: Camera, face_id: torch.Tensor, hit_mask: torch.Tensor
 ) -> torch.Tensor:
     """(B, H, W, 3) float32 camera-frame face normals facing the camera, 0 where empty."""
     T = camera.T_cw.to(device=vertices.device, dtype=vertices.dtype)
@@ -212,9 +212,14 @@ def _pixel_normals(
     # The camera sits at the origin: a plane faces it iff n . v0 < 0, the same for every point on it.
     facing = (n * tri[:, :, 0]).sum(-1, keepdim=True)
     n = torch.where(facing > 0, -n, n).float()
-    B = n.shape[0]
-    flat = torch.gather(n, 1, safe_id.reshape(B, -1, 1).expand(-1, -1, 3))
-    return flat.view(*safe_id.shape, 3) * hit_mask[..., None]
+    B, num_faces = n.shape[:2]
+    # Gather only at hit pixels: usually a small part of the image.
+    pixel = hit_mask.flatten().nonzero()[:, 0]
+    batch = torch.div(pixel, hit_mask[0].numel(), rounding_mode="floor")
+    rows = batch * num_faces + face_id.flatten().index_select(0, pixel)
+    out = n.new_zeros(hit_mask.numel(), 3)
+    out.index_copy_(0, pixel, n.reshape(-1, 3).index_select(0, rows))
+    return out.view(*hit_mask.shape, 3)
 
 
 def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_vertices: int) -> torch.Tensor:

@@ -1,0 +1,123 @@
+"""The ``torchhand`` command line: argument parsing only; the work lives in the library."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _demo(args) -> int:
+    from .demo import run_demo
+
+    summary = run_demo(args.out, frames=args.frames, force=args.force, device=args.device)
+    print(f"rendered {summary['frames']} frames of {', '.join(summary['models'])} "
+          f"({summary['dofs']} DoF, {summary['render_ms_per_frame']:.1f} ms/frame to render)")
+    print(f"wrote {args.out}/overlays/*.png, {args.out}/demo.mp4, {args.out}/summary.json")
+    return 0
+
+
+def _frames_slice(text: str | None) -> slice | None:
+    if not text:
+        return None
+    try:
+        a, b = (int(x) if x else None for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--frames must look like A:B (e.g. 0:100), got {text!r}") from None
+    return slice(a, b)
+
+
+def _synth(args) -> int:
+    from .data.synth import random_poses, thesis_motion, write_synthetic_sequence
+
+    if args.random:
+        if args.sequence or args.hia_root:
+            raise ValueError("--random renders random poses; do not combine it with --hia-root/--sequence")
+        n = args.frames.stop if args.frames is not None and args.frames.stop else 100
+        frames = random_poses(args.models.split(","), n, seed=args.seed)
+    else:
+        if not (args.hia_root and args.sequence):
+            raise ValueError("give --hia-root and --sequence (or --random)")
+        frames = thesis_motion(args.hia_root, args.sequence, args.frames)
+    out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
+                                   rgb=not args.no_rgb)
+    print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
+          f"(noise: {args.noise}; ground truth in {out / 'gt'})")
+    return 0
+
+
+def _eval(args) -> int:
+    from .evaluation import evaluate_many
+
+    if len(args.pred) != len(args.gt):
+        raise ValueError(f"give one --gt folder per prediction: {len(args.pred)} predictions, {len(args.gt)} --gt")
+    result = evaluate_many(list(zip(args.pred, args.gt)), workers=args.workers,
+                           with_penetration=not args.no_penetration)
+    print(f"{result['frames']} frames: 2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
+          f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
+          f"AUC 0-50 mm {result['auc_0_50mm']:.3f}")
+    if "penetration" in result:
+        p = result["penetration"]
+        print(f"penetration: {p['pairs_per_frame']} intersecting triangle pairs per frame, max depth {p['max_depth_mm']:.1f} mm")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json}")
+    if args.plot:
+        from .viz import plot_curves
+
+        seqs = result.get("sequences", [result])
+        curves = {r["sequence"]: (r["pck"]["thresholds_mm"], r["pck"]["fraction"]) for r in seqs}
+        plot_curves(curves, args.plot, "3D error threshold (mm)", "fraction of keypoints")
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("demo", help="pose, render and draw the default scene through a short motion")
+    p.add_argument("--out", type=Path, required=True, help="output folder (created; must be new or empty)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default: all 60)")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    p.set_defaults(func=_demo)
+
+    p = sub.add_parser("synth", help="render a thesis motion or random poses into a sequence folder")
+    p.add_argument("--hia-root", type=Path, help="Hands-in-Action data root (Configs/, Models/, Calibration/)")
+    p.add_argument("--sequence", help="thesis sequence id, e.g. 16")
+    p.add_argument("--random", action="store_true", help="random poses within the limits, random viewpoints")
+    p.add_argument("--models", default="hand_right", help="with --random: comma-separated model names")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--frames", type=_frames_slice, default=None, help="A:B frame range (with --random: :N frames)")
+    p.add_argument("--noise", default="kinect", choices=["none", "kinect"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-rgb", action="store_true", help="depth only")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    p.set_defaults(func=_synth)
+
+    p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)")
+    p.add_argument("pred", nargs="+", type=Path, help="prediction folder(s) in the gt/ layout")
+    p.add_argument("--gt", nargs="+", type=Path, required=True, help="ground truth folder(s), one per prediction")
+    p.add_argument("--json", type=Path, help="write all scores to this JSON file")
+    p.add_argument("--plot", type=Path, help="write the PCK curves (0-50 mm) to this PNG")
+    p.add_argument("--workers", type=int, default=1, help="parallel processes over sequences")
+    p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
+    p.set_defaults(func=_eval)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError) as err:
+        print(f"torchhand {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

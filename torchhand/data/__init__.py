@@ -1,0 +1,1 @@
+"""Sequences on disk, synthetic RGB-D, sensor noise and torch Datasets."""

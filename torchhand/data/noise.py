@@ -1,0 +1,538 @@
+"""Structured-light (Kinect v1 / Primesense Carmine) depth-sensor noise.
+
+Turns clean ray-cast depth (:func:`torchhand.render.render`) into sensor-like depth:
+lateral jitter, axial noise growing with depth squared and with the incidence angle,
+disparity quantisation, projector shadows beside occluding edges, dropout at grazing
+angles, a few small random holes and range clipping. The model, its parameters and
+their sources are described in ``docs/noise.md``.
+
+All steps are vectorised torch operations on the input's device (no OpenCV, no Python
+loops over pixels or frames). Random numbers are drawn on the device of ``generator``
+and copied to the input's device, so a seeded CPU generator makes the output
+reproducible for inputs on any device.
+
+Units are millimetres; the camera frame is x right, y down, z forward (OpenCV); pixel
+centres are at integer coordinates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Dict, Optional
+
+import torch
+
+__all__ = ["KinectNoise", "apply_kinect_noise", "NOISE_MODELS", "noise_model"]
+
+
+@dataclass(frozen=True)
+class KinectNoise:
+    """Parameters of the Kinect-v1-type structured-light noise model.
+
+    Every effect can be switched off on its own (see each attribute). Defaults describe
+    a Kinect v1 / Primesense Carmine 1.08-1.09 at 640x480 (VGA).
+
+    Disparity model (Khoshelham & Elberink 2012, "Accuracy and resolution of Kinect
+    depth data for indoor mapping applications", Sensors 12(2):1437-1454; Smisek,
+    Jancosek & Pajdla 2011, "3D with Kinect", ICCV Workshops). Depth is triangulated
+    from the disparity ``d = f * b / z`` between the projected speckle pattern and the
+    IR image, measured to 1/8 px, so depth comes in steps of ``z**2 / (f * b) / 8``:
+
+    Attributes:
+        baseline_mm: projector-camera baseline ``b``, 75 mm (Khoshelham & Elberink
+            2012, sec. 2; Smisek et al. 2011 report about 75 mm as well). Also sets the
+            width of the projector shadows.
+        focal_px: focal length ``f`` (px) of the disparity model. None (default) uses
+            ``fx`` of the ``K`` passed to :func:`apply_kinect_noise` (525 px for the
+            thesis camera), so quantisation steps are consistent with the image. The
+            Kinect's own IR camera has ``f`` of about 580-585 px (Khoshelham & Elberink
+            2012; Smisek et al. 2011); set it to model that camera exactly.
+        disparity_resolution_px: sub-pixel disparity resolution, 1/8 px (Khoshelham &
+            Elberink 2012, sec. 3: the normalised disparity is stored in 1/8 px units;
+            Smisek et al. 2011). 0 disables quantisation.
+        compensate_quantisation: Nguyen et al.'s axial sigma was measured on real,
+            already quantised depth. If True (default) the Gaussian noise added before
+            quantisation has variance ``sigma_z**2 - q**2 / 12`` (q the local
+            quantisation step; floored at ``(sigma_z / 2)**2``), so that the *total*
+            standard deviation after quantisation is about ``sigma_z``. If False the
+            Gaussian has ``sigma_z`` and the output is slightly noisier.
+
+    Axial noise (Nguyen, Izadi & Lovell 2012, "Modeling Kinect sensor noise for improved
+    3D reconstruction and tracking", 3DIMPVT, eq. for ``sigma_z``), with ``z`` in metres
+    and ``theta`` the angle between the surface normal and the viewing ray::
+
+        sigma_z [mm] = 1.2 + 1.9 (z - 0.4)**2 + 0.1 / sqrt(z) * theta**2 / (pi/2 - theta)**2
+
+    Attributes:
+        axial_sigma0_mm: constant term, 1.2 mm (Nguyen et al. 2012).
+        axial_sigma_quad_mm: quadratic coefficient, 1.9 mm/m^2 (Nguyen et al. 2012).
+        axial_z0_m: depth of the quadratic's vertex, 0.4 m (Nguyen et al. 2012).
+        axial_sigma_angle_mm: angular coefficient, 0.1 mm*sqrt(m) (Nguyen et al.
+            2012). All three sigma coefficients 0 disables axial noise.
+
+    Lateral noise (Nguyen et al. 2012, eq. for ``sigma_L``)::
+
+        sigma_L [px] = 0.8 + 0.035 * theta / (pi/2 - theta)
+
+    (i.e. ``sigma_L [mm] = sigma_L [px] * z / f``). It is applied as an independent
+    per-pixel, per-axis Gaussian shift of the position where the clean depth is
+    sampled, rounded to whole pixels (nearest-neighbour sampling), so edges become
+    jagged but no depth value that was not in the input is invented.
+
+    Attributes:
+        lateral_sigma0_px: constant term, 0.8 px (Nguyen et al. 2012). Both lateral
+            coefficients 0 disables lateral noise.
+        lateral_sigma_angle_px: angular coefficient, 0.035 px (Nguyen et al. 2012).
+
+    Projector shadows: the projector sits ``baseline_mm`` beside the IR camera, so
+    surfaces the camera sees but the projector does not (a band on the far side of an
+    occluding edge, ``f * b * (1/z_near - 1/z_far)`` px wide) get no pattern and no
+    depth. Qualitatively documented by Khoshelham & Elberink 2012 and Smisek et al.
+    2011; modelled here exactly per image row (see :func:`apply_kinect_noise`).
+
+    Attributes:
+        shadows: enable projector shadows.
+        projector_on_right: True (default) if the projector is at ``+x`` of the camera
+            (to the right in the image). On the Kinect v1 the IR emitter and IR camera
+            are at opposite ends of the bar, the emitter at the sensor's own right
+            (the viewer's left when facing the device), which puts the shadows on the
+            *left* side of foreground objects in the (un-mirrored) depth image.
+        shadow_tolerance_px: a pixel is shadowed only if the occluder overlaps its
+            projector ray by more than this (px); absorbs ray-casting round-off.
+
+    Grazing-angle dropout: the reflected pattern becomes too weak and too stretched to
+    correlate at grazing incidence. Nguyen et al. 2012 fit their model only up to about
+    70 degrees and report that measurements beyond become unreliable or missing; the
+    ramp below is a heuristic on top of that.
+
+    Attributes:
+        grazing_start_deg: angle (deg) at which dropout begins, 70.
+        grazing_full_deg: angle (deg) from which every pixel is dropped, 85; the drop
+            probability ramps linearly in between. ``grazing_start_deg >= 90`` disables.
+
+    Random holes (heuristic, no measured source: small blobs of missing data from
+    specular or dark spots and pattern-matching failures, as seen in Kinect v1 frames):
+
+    Attributes:
+        holes_per_frame: mean (Poisson) number of holes per frame, 4. 0 disables.
+        hole_radius_min_px: smallest hole radius, 1 px.
+        hole_radius_max_px: largest hole radius, 3 px (radii uniform in between).
+
+    Range (Kinect v1 "near mode" minimum and default-mode maximum, Microsoft Kinect for
+    Windows documentation; Khoshelham & Elberink 2012 use 0.5-5 m; the Carmine 1.09
+    datasheet gives 0.35-1.4 m, set ``max_depth_mm=1400`` to model it):
+
+    Attributes:
+        min_depth_mm: nearer measurements become 0, 400 mm.
+        max_depth_mm: farther measurements become 0, 4000 mm.
+    """
+
+    baseline_mm: float = 75.0
+    focal_px: Optional[float] = None
+    disparity_resolution_px: float = 1.0 / 8.0
+    compensate_quantisation: bool = True
+    axial_sigma0_mm: float = 1.2
+    axial_sigma_quad_mm: float = 1.9
+    axial_z0_m: float = 0.4
+    axial_sigma_angle_mm: float = 0.1
+    lateral_sigma0_px: float = 0.8
+    lateral_sigma_angle_px: float = 0.035
+    shadows: bool = True
+    projector_on_right: bool = True
+    shadow_tolerance_px: float = 0.25
+    grazing_start_deg: float = 70.0
+    grazing_full_deg: float = 85.0
+    holes_per_frame: float = 4.0
+    hole_radius_min_px: int = 1
+    hole_radius_max_px: int = 3
+    min_depth_mm: float = 400.0
+    max_depth_mm: float = 4000.0
+
+    def __post_init__(self) -> None:
+        def finite(name: str, lo: float = 0.0, strict: bool = False) -> None:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"KinectNoise.{name} must be a finite number, got {value!r}")
+            if value < lo or (strict and value == lo):
+                raise ValueError(f"KinectNoise.{name} must be {'>' if strict else '>='} {lo}, got {value!r}")
+
+        finite("baseline_mm", strict=True)
+        if self.focal_px is not None:
+            finite("focal_px", strict=True)
+        for name in (
+            "disparity_resolution_px",
+            "axial_sigma0_mm",
+            "axial_sigma_quad_mm",
+            "axial_z0_m",
+            "axial_sigma_angle_mm",
+            "lateral_sigma0_px",
+            "lateral_sigma_angle_px",
+            "shadow_tolerance_px",
+            "grazing_start_deg",
+            "holes_per_frame",
+            "min_depth_mm",
+        ):
+            finite(name)
+        finite("grazing_full_deg")
+        if self.grazing_full_deg <= self.grazing_start_deg and self.grazing_start_deg < 90.0:
+            raise ValueError(
+                f"KinectNoise.grazing_full_deg ({self.grazing_full_deg}) must exceed grazing_start_deg "
+                f"({self.grazing_start_deg})"
+            )
+        for name in ("hole_radius_min_px", "hole_radius_max_px"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"KinectNoise.{name} must be an int >= 0, got {value!r}")
+        if self.hole_radius_max_px < self.hole_radius_min_px:
+            raise ValueError(
+                f"KinectNoise.hole_radius_max_px ({self.hole_radius_max_px}) must be >= hole_radius_min_px "
+                f"({self.hole_radius_min_px})"
+            )
+        finite("max_depth_mm", strict=True)
+        if self.max_depth_mm <= self.min_depth_mm:
+            raise ValueError(
+                f"KinectNoise.max_depth_mm ({self.max_depth_mm}) must exceed min_depth_mm ({self.min_depth_mm})"
+            )
+
+    # ------------------------------------------------------------------ model terms
+
+    def axial_sigma(self, z_mm, angle=0.0):
+        """Axial standard deviation (mm) at depth ``z_mm`` (mm) and incidence ``angle`` (rad).
+
+        Works on floats and tensors (Nguyen et al. 2012). Angles are clamped just
+        below pi/2 so the result stays finite.
+        """
+        z_m = z_mm / 1000.0
+        if isinstance(z_m, torch.Tensor) or isinstance(angle, torch.Tensor):
+            z_m = torch.as_tensor(z_m)
+            angle = torch.as_tensor(angle, dtype=z_m.dtype, device=z_m.device).clamp(0.0, _MAX_ANGLE)
+            ratio = angle / (math.pi / 2 - angle)
+            return (
+                self.axial_sigma0_mm
+                + self.axial_sigma_quad_mm * (z_m - self.axial_z0_m) ** 2
+                + self.axial_sigma_angle_mm * ratio**2 / z_m.clamp_min(1e-6).sqrt()
+            )
+        angle = min(max(float(angle), 0.0), _MAX_ANGLE)
+        ratio = angle / (math.pi / 2 - angle)
+        return (
+            self.axial_sigma0_mm
+            + self.axial_sigma_quad_mm * (z_m - self.axial_z0_m) ** 2
+            + self.axial_sigma_angle_mm * ratio**2 / math.sqrt(max(z_m, 1e-6))
+        )
+
+    def lateral_sigma_px(self, angle=0.0):
+        """Lateral standard deviation (px) at incidence ``angle`` (rad), Nguyen et al. 2012."""
+        if isinstance(angle, torch.Tensor):
+            angle = angle.clamp(0.0, _MAX_ANGLE)
+            return self.lateral_sigma0_px + self.lateral_sigma_angle_px * angle / (math.pi / 2 - angle)
+        angle = min(max(float(angle), 0.0), _MAX_ANGLE)
+        return self.lateral_sigma0_px + self.lateral_sigma_angle_px * angle / (math.pi / 2 - angle)
+
+    def quantisation_step(self, z_mm, focal_px: float):
+        """Depth step (mm) between neighbouring disparity levels at ``z_mm``: ``z^2 / (f b) * res``."""
+        f = self.focal_px if self.focal_px is not None else focal_px
+        return z_mm**2 / (f * self.baseline_mm) * self.disparity_resolution_px
+
+
+#: Angles are clamped to this (rad) inside the sigma formulas (89.5 deg).
+_MAX_ANGLE = math.radians(89.5)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _fmt(shape) -> str:
+    return "(" + ", ".join(str(int(s)) for s in shape) + ")"
+
+
+def _check_inputs(depth, normals, K, params, generator):
+    if not isinstance(depth, torch.Tensor):
+        raise TypeError(f"depth must be a torch.Tensor of shape (B, H, W), got {type(depth).__name__}")
+    if depth.ndim != 3:
+        raise ValueError(f"depth must have shape (B, H, W), got {_fmt(depth.shape)}")
+    if not depth.is_floating_point():
+        raise TypeError(f"depth must have a floating point dtype (float32 mm), got {depth.dtype}; use depth.float()")
+    B, H, W = depth.shape
+    if normals is not None:
+        if not isinstance(normals, torch.Tensor):
+            raise TypeError(f"normals must be a torch.Tensor of shape (B, H, W, 3) or None, got {type(normals).__name__}")
+        if tuple(normals.shape) != (B, H, W, 3):
+            raise ValueError(f"normals must have shape (B, H, W, 3) = {_fmt((B, H, W, 3))}, got {_fmt(normals.shape)}")
+        if not normals.is_floating_point():
+            raise TypeError(f"normals must have a floating point dtype, got {normals.dtype}")
+        if normals.device != depth.device:
+            raise ValueError(f"normals is on {normals.device} but depth is on {depth.device}; they must match")
+    if not isinstance(K, torch.Tensor):
+        raise TypeError(f"K must be a torch.Tensor of shape (3, 3) or (B, 3, 3), got {type(K).__name__}")
+    if not (K.shape == (3, 3) or (K.ndim == 3 and K.shape[1:] == (3, 3) and K.shape[0] in (1, B))):
+        raise ValueError(f"K must have shape (3, 3) or (B, 3, 3) with B={B}, got {_fmt(K.shape)}")
+    if not K.is_floating_point():
+        raise TypeError(f"K must have a floating point dtype, got {K.dtype}")
+    if not isinstance(params, KinectNoise):
+        raise TypeError(f"params must be a KinectNoise, got {type(params).__name__}")
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
+    # Value checks (one host sync each; cheap next to the model).
+    if depth.numel() and not bool(torch.isfinite(depth).all()):
+        raise ValueError("depth contains NaN or inf; use 0 for missing pixels")
+    if depth.numel() and bool((depth < 0).any()):
+        raise ValueError("depth contains negative values; use 0 for missing pixels")
+    if normals is not None and normals.numel() and not bool(torch.isfinite(normals).all()):
+        raise ValueError("normals contains NaN or inf")
+    if not bool(torch.isfinite(K).all()):
+        raise ValueError("K contains NaN or inf")
+    Kd = K.detach().reshape(-1, 3, 3)
+    if bool((Kd[:, 0, 0] <= 0).any()) or bool((Kd[:, 1, 1] <= 0).any()):
+        raise ValueError("K must have positive focal lengths fx = K[..., 0, 0] and fy = K[..., 1, 1]")
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def _incidence_angle(depth, normals, K):
+    """(B, H, W) angle (rad) between the surface normal and the viewing ray, 0 where empty.
+
+    With ``normals`` None the angle is estimated from the depth map: for a surface
+    ``z(u, v)`` seen through a pinhole with zero skew, ``n ~ (-fx z_u, -fy z_v,
+    fx z_u x + fy z_v y + z)`` with ``(x, y, 1)`` the pixel's viewing ray, and
+    ``cos(angle) = z / (|n| |ray|)``. The derivatives ``z_u, z_v`` are one-sided
+    differences, taking per pixel the side with the smaller jump among valid
+    neighbours (so depth discontinuities do not read as grazing surfaces).
+    """
+    B, H, W = depth.shape
+    dev, dt = depth.device, depth.dtype
+    fx, fy, s = K[:, 0, 0].view(-1, 1, 1), K[:, 1, 1].view(-1, 1, 1), K[:, 0, 1].view(-1, 1, 1)
+    cx, cy = K[:, 0, 2].view(-1, 1, 1), K[:, 1, 2].view(-1, 1, 1)
+    v = torch.arange(H, device=dev, dtype=dt).view(1, H, 1)
+    u = torch.arange(W, device=dev, dtype=dt).view(1, 1, W)
+    ry = (v - cy) / fy
+    rx = (u - cx - s * ry) / fx
+    valid = depth > 0
+    if normals is not None:
+        n = normals.to(dt)
+        dot = (n[..., 0] * rx + n[..., 1] * ry + n[..., 2]).abs()
+        norm = n.norm(dim=-1) * torch.sqrt(rx * rx + ry * ry + 1.0)
+        cos = torch.where(norm > 1e-12, dot / norm.clamp_min(1e-12), torch.ones_like(dot))
+    else:
+        z_u = _one_sided_derivative(depth, valid, dim=2)
+        z_v = _one_sided_derivative(depth, valid, dim=1)
+        a, c = fx * z_u, fy * z_v
+        nz = a * rx + c * ry + depth
+        norm = torch.sqrt(a * a + c * c + nz * nz) * torch.sqrt(rx * rx + ry * ry + 1.0)
+        cos = torch.where(norm > 1e-12, depth / norm.clamp_min(1e-12), torch.ones_like(depth))
+    angle = torch.acos(cos.clamp(0.0, 1.0))
+    return torch.where(valid, angle, torch.zeros_like(angle))
+
+
+def _one_sided_derivative(depth, valid, dim):
+    """Forward or backward difference along ``dim``, whichever is smaller; 0 if neither is valid."""
+    n = depth.shape[dim]
+    if n < 2:
+        return torch.zeros_like(depth)
+    d = depth.diff(dim=dim)  # d[i] = z[i+1] - z[i]
+    ok = valid.narrow(dim, 1, n - 1) & valid.narrow(dim, 0, n - 1)
+    big = torch.full_like(d, float("inf"))
+    d = torch.where(ok, d, big)
+    pad_shape = list(depth.shape)
+    pad_shape[dim] = 1
+    pad = torch.full(pad_shape, float("inf"), dtype=depth.dtype, device=depth.device)
+    fwd = torch.cat([d, pad], dim=dim)
+    bwd = torch.cat([pad, d], dim=dim)
+    out = torch.where(fwd.abs() <= bwd.abs(), fwd, bwd)
+    return torch.where(torch.isfinite(out), out, torch.zeros_like(out))
+
+
+def _projector_shadow(depth, fx, params):
+    """(B, H, W) bool: pixels the camera sees but the projector does not.
+
+    With the projector at ``+x`` (baseline ``b``) and disparity ``D(u) = f b / z(u)``
+    in image pixels, a point seen at column ``u`` lies on the projector ray with
+    coordinate ``p(u) = u - D(u)``; along an image row (an epipolar line) it is
+    occluded from the projector iff a nearer surface to its right crosses that ray,
+    i.e. ``min_{u' > u} p(u') < p(u)``. This is a suffix minimum per row
+    (``torch.cummin`` on the flipped row). The shadow therefore is a band on the left
+    of an occluding edge, ``f b (1/z_near - 1/z_far)`` px wide (at most ``f b / z_far``),
+    and surfaces tilted away from the projector so steeply that ``p`` decreases are
+    self-shadowed. Empty pixels (depth 0) count as infinitely far and never occlude.
+    For the projector on the left the image is mirrored.
+    """
+    if not params.projector_on_right:
+        return _projector_shadow(depth.flip(-1), fx, _projector_right(params)).flip(-1)
+    W = depth.shape[-1]
+    valid = depth > 0
+    disparity = torch.where(valid, fx * params.baseline_mm / depth.clamp_min(1e-6), torch.zeros_like(depth))
+    p = torch.arange(W, device=depth.device, dtype=depth.dtype) - disparity
+    # suffix minimum over u' > u: cummin over the flipped row, shifted by one pixel.
+    suffix = p.flip(-1).cummin(dim=-1).values.flip(-1)
+    after = torch.cat([suffix[..., 1:], torch.full_like(suffix[..., :1], float("inf"))], dim=-1)
+    return valid & (after < p - params.shadow_tolerance_px)
+
+
+def _projector_right(params):
+    return dataclasses.replace(params, projector_on_right=True)
+
+
+def _randn(shape, generator, device, dtype):
+    if generator is None:
+        return torch.randn(shape, device=device, dtype=dtype)
+    return torch.randn(shape, generator=generator, device=generator.device, dtype=dtype).to(device)
+
+
+def _rand(shape, generator, device, dtype):
+    if generator is None:
+        return torch.rand(shape, device=device, dtype=dtype)
+    return torch.rand(shape, generator=generator, device=generator.device, dtype=dtype).to(device)
+
+
+def _random_holes(B, H, W, params, generator, device):
+    """(B, H, W) bool mask of a Poisson number of random disks per frame."""
+    gdev = generator.device if generator is not None else device
+    rates = torch.full((B,), float(params.holes_per_frame), device=gdev)
+    counts = torch.poisson(rates, generator=generator)
+    M = int(counts.max().item()) if B else 0
+    mask = torch.zeros(B * H * W, dtype=torch.bool, device=device)
+    if M == 0:
+        return mask.view(B, H, W)
+    centre = _rand((B, M, 2), generator, device, torch.float32)
+    cu = (centre[..., 0] * W).long().clamp_(0, W - 1)
+    cv = (centre[..., 1] * H).long().clamp_(0, H - 1)
+    r_lo, r_hi = params.hole_radius_min_px, params.hole_radius_max_px
+    radius = (_rand((B, M), generator, device, torch.float32) * (r_hi - r_lo + 1)).long().clamp_(max=r_hi - r_lo) + r_lo
+    offs = torch.arange(-r_hi, r_hi + 1, device=device)
+    dv, du = torch.meshgrid(offs, offs, indexing="ij")
+    du, dv = du.reshape(1, 1, -1), dv.reshape(1, 1, -1)
+    uu, vv = cu[..., None] + du, cv[..., None] + dv
+    keep = (du * du + dv * dv <= (radius * radius)[..., None]) & (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
+    keep &= (torch.arange(M, device=device).view(1, M) < counts.to(device).view(B, 1))[..., None]
+    b = torch.arange(B, device=device).view(B, 1, 1)
+    flat = (b * H + vv) * W + uu
+    mask[flat[keep]] = True
+    return mask.view(B, H, W)
+
+
+# --------------------------------------------------------------------------- public API
+
+
+@torch.no_grad()
+def apply_kinect_noise(
+    depth: torch.Tensor,
+    normals: Optional[torch.Tensor],
+    K: torch.Tensor,
+    params: KinectNoise = KinectNoise(),
+    generator: Optional[torch.Generator] = None,
+) -> torch.Tensor:
+    """Clean depth -> Kinect-v1-like depth (see :class:`KinectNoise` and ``docs/noise.md``).
+
+    Steps, in order (each vectorised over the batch and all pixels):
+
+    1. incidence angle per pixel, from ``normals`` or estimated from ``depth``;
+    2. projector shadows on the clean depth (exact per-row visibility test);
+    3. lateral noise: each pixel takes depth (and angle) from the pixel at a random
+       integer offset ``round(sigma_L(angle) * N(0, 1))`` per axis (clamped to the
+       image), so empty/shadowed pixels spread into edges and vice versa;
+    4. axial Gaussian noise ``sigma_z(z, angle)``;
+    5. disparity quantisation to ``disparity_resolution_px`` (``z = f b / d``);
+    6. dropout with probability ramping from ``grazing_start_deg`` to
+       ``grazing_full_deg`` of incidence;
+    7. a Poisson number of random small disk-shaped holes per frame;
+    8. range clipping to ``[min_depth_mm, max_depth_mm]``.
+
+    Args:
+        depth: (B, H, W) clean depth in mm (float), 0 where empty. Not modified.
+        normals: (B, H, W, 3) camera-frame surface normals (any orientation, need not
+            be unit), e.g. ``RenderResult.normals``; or None to estimate the incidence
+            angle from ``depth`` (assumes zero skew in ``K``).
+        K: (3, 3) or (B, 3, 3) intrinsics of the depth image.
+        params: the noise parameters.
+        generator: a seeded ``torch.Generator`` makes the output deterministic. Random
+            numbers are drawn on the generator's device and copied to ``depth.device``,
+            so a CPU generator works for inputs on any device. None uses torch's global
+            RNG on ``depth.device``.
+
+    Returns:
+        (B, H, W) float32 depth in mm on ``depth.device``, 0 where no measurement.
+
+    Raises:
+        TypeError / ValueError: naming the offending argument for wrong types, shapes
+        or dtypes, NaN/inf or negative depth, non-positive focal lengths.
+    """
+    _check_inputs(depth, normals, K, params, generator)
+    B, H, W = depth.shape
+    device = depth.device
+    dt = torch.float32
+    if depth.numel() == 0:
+        return torch.zeros((B, H, W), dtype=dt, device=device)
+    z = depth.detach().to(dt)
+    Kb = K.detach().to(device=device, dtype=dt).reshape(-1, 3, 3).expand(B, 3, 3)
+    fx = Kb[:, 0, 0].view(B, 1, 1)
+    f_disp = fx if params.focal_px is None else torch.full_like(fx, float(params.focal_px))
+
+    # 1. incidence angle
+    angle = _incidence_angle(z, None if normals is None else normals.detach(), Kb)
+
+    # 2. projector shadows (geometry: computed on the clean depth)
+    if params.shadows:
+        z = torch.where(_projector_shadow(z, fx, params), torch.zeros_like(z), z)
+
+    # 3. lateral noise: nearest-neighbour resampling at a random integer offset
+    if params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0:
+        sigma_l = params.lateral_sigma_px(angle)
+        shift = torch.round(_randn((2, B, H, W), generator, device, dt) * sigma_l).to(torch.int64)
+        vs = (torch.arange(H, device=device).view(1, H, 1) + shift[0]).clamp_(0, H - 1)
+        us = (torch.arange(W, device=device).view(1, 1, W) + shift[1]).clamp_(0, W - 1)
+        idx = (vs * W + us).view(B, H * W)
+        z = torch.gather(z.view(B, H * W), 1, idx).view(B, H, W)
+        angle = torch.gather(angle.view(B, H * W), 1, idx).view(B, H, W)
+    valid = z > 0
+
+    # 4. axial noise (5. with quantisation compensation)
+    res = params.disparity_resolution_px
+    if params.axial_sigma0_mm > 0 or params.axial_sigma_quad_mm > 0 or params.axial_sigma_angle_mm > 0:
+        sigma = params.axial_sigma(z, angle)
+        if res > 0 and params.compensate_quantisation:
+            q = z * z / (f_disp * params.baseline_mm) * res
+            sigma = torch.sqrt(torch.maximum(sigma * sigma - q * q / 12.0, 0.25 * sigma * sigma))
+        z = z + sigma * _randn((B, H, W), generator, device, dt)
+        valid &= z > 0
+
+    # 5. disparity quantisation
+    if res > 0:
+        fb = f_disp * params.baseline_mm
+        d = torch.round(fb / z.clamp_min(1e-3) / res) * res
+        valid &= d > 0
+        z = fb / d.clamp_min(res)
+
+    # 6. grazing-angle dropout
+    if params.grazing_start_deg < 90.0:
+        a0, a1 = math.radians(params.grazing_start_deg), math.radians(params.grazing_full_deg)
+        p_drop = ((angle - a0) / (a1 - a0)).clamp_(0.0, 1.0)
+        valid &= _rand((B, H, W), generator, device, dt) >= p_drop
+
+    # 7. random holes
+    if params.holes_per_frame > 0:
+        valid &= ~_random_holes(B, H, W, params, generator, device)
+
+    # 8. range clipping
+    valid &= (z >= params.min_depth_mm) & (z <= params.max_depth_mm)
+    return torch.where(valid, z, torch.zeros_like(z))
+
+
+#: Named noise models; ``None`` means clean depth.
+NOISE_MODELS: Dict[str, Optional[KinectNoise]] = {"none": None, "kinect": KinectNoise()}
+
+
+def noise_model(name: str) -> Optional[KinectNoise]:
+    """The noise parameters registered as ``name`` in :data:`NOISE_MODELS` (None for "none").
+
+    Raises:
+        ValueError: for unknown names, listing the valid ones.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"noise model name must be a str, got {type(name).__name__}")
+    try:
+        return NOISE_MODELS[name]
+    except KeyError:
+        valid = ", ".join(repr(k) for k in NOISE_MODELS)
+        raise ValueError(f"unknown noise model {name!r}; valid names: {valid}") from None

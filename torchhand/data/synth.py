@@ -1,0 +1,198 @@
+"""Synthetic RGB-D sequences: the thesis motions (or random poses) rendered with a
+sensor noise model into the sequence layout of :mod:`torchhand.data.layout`.
+
+Synthesis uses the same scene, skinning and renderer as tracking, so the ground
+truth (theta, keypoints, per-pixel ids) is exact for the rendered images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..camera import Camera, kinect_camera
+from ..io.assets import THESIS_MODEL_NAMES
+from ..io.thesis import FormatError, read_calibration, read_thesis_model, sequence_models
+from ..kinematics import so3_exp, so3_log
+from ..motion import motion_to_theta
+from ..render import RenderResult, render
+from ..scene import Scene
+from ..workspace import prepare_output_dir
+from .layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
+from .noise import apply_kinect_noise, noise_model
+
+__all__ = ["SyntheticFrames", "thesis_motion", "random_poses", "write_synthetic_sequence", "shade_rgb"]
+
+# Albedo per model kind (RGB, 0..1): skin for hands, the thesis objects' colours.
+_COLORS = {"hand": (0.87, 0.67, 0.55), "ball": (0.85, 0.2, 0.15), "cube": (0.2, 0.45, 0.85),
+           "pipe": (0.55, 0.55, 0.55), "rope": (0.2, 0.7, 0.3)}
+
+
+@dataclass
+class SyntheticFrames:
+    """What to render: a scene, its poses (N, D), the cameras, provenance."""
+
+    scene: Scene
+    theta: torch.Tensor
+    cameras: List[Camera]
+    name: str
+    source: dict
+
+
+def thesis_motion(hia_root, sequence: str, frames: Optional[slice] = None, dtype=torch.float64) -> SyntheticFrames:
+    """Poses of a thesis sequence as theta of the shipped models.
+
+    Video frame k uses MOTION row k + MotionnOffset (data README). Raises
+    FormatError for a sequence without MOTION files.
+    """
+    hia_root = Path(hia_root)
+    names, bounds = sequence_models(hia_root, sequence)
+    rows = np.arange(bounds.total_aligned) + bounds.motion_offset
+    rows = rows[frames] if frames is not None else rows
+    if len(rows) == 0:
+        raise ValueError(f"--frames selects no frame of sequence {sequence} ({bounds.total_aligned} frames)")
+    models = [THESIS_MODEL_NAMES.get(n, n) for n in names]
+    scene = Scene.from_names(models, dtype=dtype)
+    thetas = []
+    for thesis_name, model in zip(names, scene.models):
+        files = read_thesis_model(hia_root / "Models" / sequence, thesis_name)
+        if files.motion is None:
+            raise FormatError(f"{hia_root / 'Models' / sequence / (thesis_name + '.MOTION')}: not found; sequence "
+                              f"{sequence} has no MOTION files, so there is no motion to render")
+        n_rows = len(next(iter(files.motion.values())))
+        if rows.max() >= n_rows:
+            raise FormatError(f"sequence {sequence}: frame rows up to {rows.max()} requested, MOTION has {n_rows}")
+        thetas.append(motion_to_theta(model, {b: m[rows] for b, m in files.motion.items()}))
+    calib = read_calibration(hia_root / "Calibration" / "Cameras.txt")[0]
+    T = np.eye(4)
+    T[:3] = calib.Rt
+    K = calib.K
+    cam = Camera.from_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480, T_cw=torch.as_tensor(T), name="kinect")
+    source = {"format": "hands-in-action MOTION", "sequence": sequence,
+              "video_frames": [int(rows[0] - bounds.motion_offset), int(rows[-1] - bounds.motion_offset)]}
+    return SyntheticFrames(scene, torch.cat(thetas, 1), [cam], f"hia_{sequence}", source)
+
+
+def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(400.0, 800.0),
+                 dtype=torch.float64) -> SyntheticFrames:
+    """Independent random poses within the joint limits, seen from random viewpoints.
+
+    Joint angles are uniform within their limits; each model gets a uniformly random
+    orientation and a position in the camera's view cone at ``distance`` mm (models
+    of one frame are placed side by side around a common centre). For detector
+    training; the frames are not a motion.
+    """
+    g = torch.Generator().manual_seed(seed)
+    scene = Scene.from_names(models, dtype=dtype)
+    cam = kinect_camera(dtype=dtype)
+    lo, hi = scene.lower, scene.upper
+    finite = torch.isfinite(lo) & torch.isfinite(hi)
+    u = torch.rand(frames, scene.num_dofs, generator=g, dtype=dtype)
+    theta = torch.where(finite, lo.nan_to_num(0) + u * (hi - lo).nan_to_num(0), torch.zeros_like(u))
+    z = distance[0] + torch.rand(frames, generator=g, dtype=dtype) * (distance[1] - distance[0])
+    centre = torch.stack([(torch.rand(frames, generator=g, dtype=dtype) - 0.5) * 0.4 * z,
+                          (torch.rand(frames, generator=g, dtype=dtype) - 0.5) * 0.3 * z, z], 1)
+    for k, (name, model) in enumerate(zip(scene.names, scene.models)):
+        s = scene.slices[name]
+        q = torch.randn(frames, 4, generator=g, dtype=dtype)
+        q = q / q.norm(dim=1, keepdim=True)
+        rotvec = so3_log(_quat_to_matrix(q))
+        # Place the model's vertex centroid (not its root joint) at its target position.
+        offset = torch.tensor([(k - (len(models) - 1) / 2) * 120.0, 0.0, 0.0], dtype=dtype)
+        c_rest = model.vertices_rest.mean(0)
+        root = model.rest_transforms[0, :3, 3]
+        R = so3_exp(rotvec)
+        # position of the centroid after rotating about the root joint: R (c - root) + root + t
+        t = centre + offset - ((R @ (c_rest - root)[:, None])[..., 0] + root)
+        theta[:, s.start:s.start + 3] = t
+        theta[:, s.start + 3:s.start + 6] = rotvec
+    source = {"format": "random poses", "seed": seed, "models": list(models)}
+    return SyntheticFrames(scene, theta, [cam], f"random_{seed}", source)
+
+
+def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
+
+
+def shade_rgb(result: RenderResult, albedo: torch.Tensor, light=(0.3, -0.4, -1.0), ambient: float = 0.35) -> torch.Tensor:
+    """Plain Lambertian shading of a render. albedo: (M, 3) per model id.
+
+    Returns (B, H, W, 3) uint8 RGB, a grey background where nothing is hit.
+    """
+    l = torch.as_tensor(light, dtype=result.normals.dtype, device=result.normals.device)
+    l = l / l.norm()
+    lambert = (result.normals @ l).clamp_min(0)  # light direction points to the camera side (-z)
+    hit = result.model_id >= 0
+    col = albedo.to(result.normals)[result.model_id.clamp_min(0)]
+    rgb = col * (ambient + (1 - ambient) * lambert)[..., None]
+    rgb = torch.where(hit[..., None], rgb, torch.full_like(rgb, 0.25))
+    return (rgb.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def write_synthetic_sequence(
+    frames: SyntheticFrames,
+    out,
+    noise: str = "kinect",
+    seed: int = 0,
+    force: bool = False,
+    rgb: bool = True,
+    batch_size: int = 8,
+    progress: bool = True,
+) -> Path:
+    """Render ``frames`` into a new sequence folder (see datasets/README.md).
+
+    Depth (with the named noise model), optional shaded RGB, and ground truth under
+    ``gt/``. An existing non-empty ``out`` is refused unless ``force``.
+    """
+    params = noise_model(noise)  # validates the name before anything is written
+    out = prepare_output_dir(out, force)
+    scene, theta, cams = frames.scene, frames.theta, frames.cameras
+    N = len(theta)
+    g = torch.Generator().manual_seed(seed)
+    kinds = [m.name if m.kind == "object" else "hand" for m in scene.models]
+    albedo = torch.tensor([_COLORS.get(k, (0.7, 0.7, 0.7)) for k in kinds])
+    for c in range(len(cams)):
+        for sub in ["depth"] + (["rgb"] if rgb else []):
+            (camera_dir(out, c) / sub).mkdir(parents=True, exist_ok=True)
+    (out / "gt" / "ids").mkdir(parents=True)
+    kp3d = np.zeros((N, len(cams), len(scene.keypoint_names), 3))
+    kp2d = np.zeros((N, len(cams), len(scene.keypoint_names), 2))
+    bar = tqdm(total=N, desc=f"synth {frames.name}", unit="frame", disable=not progress)
+    for s in range(0, N, batch_size):
+        th = theta[s : s + batch_size].to(scene.lower.dtype)
+        with torch.no_grad():
+            posed = scene(th)
+        for c, cam in enumerate(cams):
+            camd = cam.to(dtype=posed.vertices.dtype)
+            res = render(posed.vertices, scene.faces, camd, scene.face_model_id, scene.face_bone_id)
+            depth = res.depth
+            if params is not None:
+                depth = apply_kinect_noise(depth, res.normals, camd.K.float(), params, generator=g)
+            kp3d[s : s + len(th), c] = camd.to_camera(posed.keypoints).cpu().numpy()
+            kp2d[s : s + len(th), c] = camd.project(posed.keypoints).cpu().numpy()
+            colour = shade_rgb(res, albedo) if rgb else None
+            for b in range(len(th)):
+                k = s + b
+                write_depth(camera_dir(out, c) / "depth" / frame_name(k), depth[b].cpu().numpy())
+                if rgb:
+                    write_rgb(camera_dir(out, c) / "rgb" / frame_name(k), colour[b].cpu().numpy())
+                if c == 0:
+                    ids = (res.model_id[b] + 1).clamp(0, 255).to(torch.uint8).cpu().numpy()
+                    cv2.imwrite(str(out / "gt" / "ids" / frame_name(k)), ids)
+        bar.update(len(th))
+    bar.close()
+    info = SequenceInfo(frames.name, cams, list(scene.names), N, has_rgb=rgb,
+                        source={**frames.source, "noise": noise, "seed": seed})
+    write_sequence_info(out, info, init_theta=theta[0].cpu().numpy())
+    write_poses(out / "gt", Poses(theta.cpu().numpy(), kp3d, kp2d, list(scene.names), scene.dof_names,
+                                  scene.keypoint_names))
+    return out

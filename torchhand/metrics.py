@@ -1,0 +1,97 @@
+"""Error measures: keypoint errors in px and mm, PCK curves and their AUC, and
+interpenetration of posed meshes.
+
+The 2D measure is the thesis' (Table 4.6): the mean Euclidean distance in pixels
+between projected keypoints and ground truth. The 3D measure is the same in mm in
+the camera frame. The curve is the fraction of keypoints within a 3D threshold.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional, Sequence
+
+import numpy as np
+
+__all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "PCK_THRESHOLDS_MM"]
+
+#: thresholds of the PCK curve, 0..50 mm in 1 mm steps
+PCK_THRESHOLDS_MM = np.arange(0.0, 50.0 + 1e-9, 1.0)
+
+
+def keypoint_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Euclidean distances. pred, gt: (..., P, d) -> (..., P)."""
+    return np.linalg.norm(np.asarray(pred, np.float64) - np.asarray(gt, np.float64), axis=-1)
+
+
+def pck_curve(errors: np.ndarray, thresholds: np.ndarray = PCK_THRESHOLDS_MM) -> np.ndarray:
+    """Fraction of errors <= each threshold. errors: any shape -> (T,)."""
+    e = np.sort(np.asarray(errors, np.float64).ravel())
+    if e.size == 0:
+        return np.zeros(len(thresholds))
+    return np.searchsorted(e, thresholds, side="right") / e.size
+
+
+def auc(thresholds: np.ndarray, curve: np.ndarray) -> float:
+    """Area under a PCK curve, normalised by the threshold range (1 = all within the first)."""
+    span = thresholds[-1] - thresholds[0]
+    area = np.sum((curve[1:] + curve[:-1]) / 2 * np.diff(thresholds))
+    return float(area / span) if span > 0 else float(curve[-1])
+
+
+class Penetration(NamedTuple):
+    """pairs: intersecting triangle pairs between different models (None when
+    python-fcl is not installed); max_depth_mm: deepest vertex of one model inside
+    another (0 when none)."""
+
+    pairs: Optional[int]
+    max_depth_mm: float
+
+
+def penetration(meshes: Sequence[tuple]) -> Penetration:
+    """Interpenetration between the meshes of different models of one frame.
+
+    Args:
+        meshes: list of (vertices (V, 3) mm, faces (F, 3)) numpy arrays, one per model.
+    Returns:
+        :class:`Penetration`. The depth is the largest negative signed distance of a
+        vertex of one model to another model's surface (open3d; the thesis meshes are
+        closed, so inside is well defined). Pairs are counted with python-fcl.
+    """
+    import open3d as o3d
+
+    depth = 0.0
+    for a, (va, fa) in enumerate(meshes):
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(va, np.float32)), o3d.core.Tensor(np.asarray(fa, np.uint32)))
+        lo, hi = va.min(0), va.max(0)
+        for b, (vb, _) in enumerate(meshes):
+            if a == b:
+                continue
+            near = np.all((vb >= lo) & (vb <= hi), axis=1)  # only vertices inside a's box can be inside a
+            if not near.any():
+                continue
+            sd = scene.compute_signed_distance(o3d.core.Tensor(np.asarray(vb[near], np.float32))).numpy()
+            depth = max(depth, float(-sd.min()) if sd.min() < 0 else 0.0)
+    return Penetration(_fcl_pairs(meshes), depth)
+
+
+def _fcl_pairs(meshes) -> Optional[int]:
+    try:
+        import fcl
+    except ImportError:
+        return None
+    objs = []
+    for v, f in meshes:
+        m = fcl.BVHModel()
+        m.beginModel(len(v), len(f))
+        m.addSubModel(np.asarray(v, np.float64), np.asarray(f, np.int32))
+        m.endModel()
+        objs.append(fcl.CollisionObject(m, fcl.Transform()))
+    total = 0
+    for a in range(len(objs)):
+        for b in range(a + 1, len(objs)):
+            req = fcl.CollisionRequest(num_max_contacts=1_000_000, enable_contact=True)
+            res = fcl.CollisionResult()
+            fcl.collide(objs[a], objs[b], req, res)
+            total += len({(c.b1, c.b2) for c in res.contacts})
+    return total

@@ -1,0 +1,130 @@
+"""Preprocessing of depth frames for tracking (thesis Ch. 4.2.2.1-4.2.2.3).
+
+Per frame: remove what cannot be the hands or objects (depth range, optionally a
+fitted support plane or a user mask), smooth with a bilateral filter, back-project
+to points with normals, and find the depth discontinuities (Canny on the depth map;
+their depth is the 3x3 average of the thesis because single pixels at
+discontinuities are unreliable).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import cv2
+import numpy as np
+import torch
+
+from .camera import Camera, depth_to_normals, depth_to_points
+
+__all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError"]
+
+
+class EmptyFrameError(ValueError):
+    """A frame has no valid depth inside the working range."""
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """near, far: working depth range in mm (thesis: thresholding the depth values).
+    remove_plane: fit and remove a dominant plane (a table) with RANSAC (open3d).
+    bilateral: (diameter px, sigma depth mm, sigma space px) of the smoothing filter;
+        None disables it.
+    canny: (low, high) thresholds of Canny on the depth map quantised to
+        ``canny_mm_per_level`` mm per 8-bit level.
+    """
+
+    near: float = 200.0
+    far: float = 1500.0
+    remove_plane: bool = False
+    plane_distance: float = 8.0
+    bilateral: Optional[tuple] = (5, 15.0, 3.0)
+    canny: tuple = (20, 60)
+    canny_mm_per_level: float = 2.0
+
+
+class DepthFrame(NamedTuple):
+    """A preprocessed frame (one camera), tensors on the tracker's device.
+
+    depth: (H, W) mm after masking and smoothing (0 = invalid); mask: (H, W) bool;
+    points: (H, W, 3) camera-frame points; normals: (H, W, 3) camera-frame normals
+    facing the camera; edges: (E, 2) int64 (row, col) of the depth-discontinuity
+    pixels on the near side; edge_depth: (E,) mm, the 3x3 average depth at them.
+    """
+
+    depth: torch.Tensor
+    mask: torch.Tensor
+    points: torch.Tensor
+    normals: torch.Tensor
+    edges: torch.Tensor
+    edge_depth: torch.Tensor
+
+
+def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig = PreprocessConfig(),
+                     mask: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32) -> DepthFrame:
+    """Preprocess one depth map.
+
+    Args:
+        depth: (H, W) float depth in mm (0 = invalid).
+        camera: its camera (intrinsics used for back-projection).
+        mask: optional (H, W) bool, True where the hands/objects may be.
+    Raises:
+        EmptyFrameError: when no pixel remains.
+    """
+    depth = np.asarray(depth, np.float32)
+    if depth.ndim != 2 or depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth must have shape ({camera.height}, {camera.width}), got {depth.shape}")
+    d = np.where(np.isfinite(depth) & (depth >= config.near) & (depth <= config.far), depth, 0).astype(np.float32)
+    if mask is not None:
+        if mask.shape != d.shape:
+            raise ValueError(f"mask must have shape {d.shape}, got {mask.shape}")
+        d = np.where(mask, d, 0).astype(np.float32)
+    if config.remove_plane:
+        d = _remove_plane(d, camera, config.plane_distance)
+    valid = d > 0
+    if not valid.any():
+        raise EmptyFrameError(f"no valid depth between {config.near} and {config.far} mm")
+    if config.bilateral is not None:
+        dia, s_depth, s_space = config.bilateral
+        smooth = cv2.bilateralFilter(d, int(dia), float(s_depth), float(s_space))
+        d = np.where(valid, smooth, 0).astype(np.float32)
+
+    # Depth discontinuities: Canny on the quantised depth, kept on the near side only.
+    q = np.clip(np.where(valid, d, config.far) / config.canny_mm_per_level, 0, 255 * 64)
+    q8 = cv2.convertScaleAbs(q - np.median(q[valid]) + 128)
+    canny = cv2.Canny(q8, config.canny[0], config.canny[1], L2gradient=True) > 0
+    # near side = a valid pixel next to background or to a pixel > 10 mm farther
+    far_neighbour = cv2.dilate(np.where(valid, d, 1e9).astype(np.float32), np.ones((3, 3))) > d + 10.0
+    touches_background = ~cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    edges = canny & valid & (far_neighbour | touches_background)
+    # 3x3 average over valid pixels (thesis: depth at discontinuities is unreliable).
+    s = cv2.blur(d, (3, 3))
+    n = cv2.blur(valid.astype(np.float32), (3, 3))
+    avg = np.where(n > 0, s / np.maximum(n, 1e-6), 0)
+    rc = np.argwhere(edges)
+
+    dt = torch.as_tensor(d, dtype=dtype, device=device)
+    K = camera.K.to(device=device, dtype=dtype)
+    points = depth_to_points(dt[None], K)[0]
+    normals = depth_to_normals(dt[None], K)[0]
+    return DepthFrame(dt, torch.as_tensor(valid, device=device), points, normals,
+                      torch.as_tensor(rc, dtype=torch.int64, device=device),
+                      torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device))
+
+
+def _remove_plane(d: np.ndarray, camera: Camera, distance: float) -> np.ndarray:
+    """Zero the pixels of the dominant plane (RANSAC, open3d) when it covers > 20 %."""
+    import open3d as o3d
+
+    K = camera.K.double().numpy()
+    v, u = np.nonzero(d > 0)
+    z = d[v, u].astype(np.float64)
+    pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], 1)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    _, inliers = pc.segment_plane(distance, 3, 200)
+    if len(inliers) > 0.2 * len(pts):
+        out = d.copy()
+        out[v[inliers], u[inliers]] = 0
+        return out
+    return d
