@@ -28,7 +28,8 @@ the bone transforms agree; it exits with an error otherwise.
 
 Each cell (batch size x method) is warmed up, then timed with ``time.perf_counter``
 over ``--repeats`` forward + backward steps (default: enough for ~1.5 s per cell);
-the median is reported. Writes::
+the methods of one batch size are timed round-robin, so that load from other
+processes hits all of them alike; the median is reported (the minimum too). Writes::
 
     {"B1": {"torchhand_ms": a, "smplx_ms": b, "speedup": b / a, "torchhand_dense_ms": ...,
             "torchhand_sparse_ms": ..., "smplx_full_lbs_ms": ..., ...},
@@ -121,22 +122,41 @@ def local_rotations(G: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------- timing
-def time_cell(step: Callable[[], object], repeats: int | None, warmup: int = 3, target_s: float = 1.5) -> Dict:
-    """Median wall time (ms) of ``step`` after ``warmup`` calls; ``repeats`` None picks
-    enough repeats for ~target_s seconds."""
-    for _ in range(warmup):
-        step()
-    if repeats is None:
-        t0 = time.perf_counter()
-        step()
-        one = time.perf_counter() - t0
-        repeats = int(min(2000, max(5, math.ceil(target_s / max(one, 1e-6)))))
-    times: List[float] = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - t0)
-    return {"median_ms": 1e3 * statistics.median(times), "min_ms": 1e3 * min(times), "repeats": repeats}
+def time_cells(steps: Dict[str, Callable[[], object]], repeats: int | None, bar: tqdm,
+               warmup: int = 3, target_s: float = 1.5) -> Dict[str, Dict]:
+    """Median wall time (ms) of every step (one cell each) after ``warmup`` calls.
+
+    The steps are timed round-robin (one call of each in turn) so that a change in
+    the machine's load hits all of them alike. ``repeats`` None gives each step
+    enough repeats for ~target_s seconds of its own time. ``bar`` advances by one
+    per finished cell (fractionally while it runs).
+    """
+    need: Dict[str, int] = {}
+    for name, step in steps.items():
+        bar.set_postfix_str(f"warm-up {name}")
+        for _ in range(warmup):
+            step()
+        if repeats is None:
+            t0 = time.perf_counter()
+            step()
+            one = time.perf_counter() - t0
+            need[name] = int(min(2000, max(5, math.ceil(target_s / max(one, 1e-6)))))
+        else:
+            need[name] = repeats
+    times: Dict[str, List[float]] = {name: [] for name in steps}
+    bar.set_postfix_str("timing " + ", ".join(steps))
+    while any(len(times[n]) < need[n] for n in steps):
+        for name, step in steps.items():
+            if len(times[name]) >= need[name]:
+                continue
+            t0 = time.perf_counter()
+            step()
+            times[name].append(time.perf_counter() - t0)
+            bar.update(1.0 / need[name])
+    return {
+        n: {"median_ms": 1e3 * statistics.median(t), "min_ms": 1e3 * min(t), "repeats": len(t)}
+        for n, t in times.items()
+    }
 
 
 def main(argv=None) -> int:
@@ -179,7 +199,8 @@ def main(argv=None) -> int:
     methods = ["torchhand_dense", "torchhand_sparse", "smplx"] + ([] if args.no_full_lbs else ["smplx_full_lbs"])
     results: Dict[str, Dict] = {}
     failures: List[str] = []
-    bar = tqdm(total=len(batch_sizes) * len(methods), desc="lbs bench", unit="cell")
+    bar = tqdm(total=len(batch_sizes) * len(methods), desc="lbs bench",
+               bar_format="{l_bar}{bar}| {n:.1f}/{total} cells [{elapsed}<{remaining}{postfix}]")
     for B in batch_sizes:
         # ------------------------------------------------------------ inputs
         theta = model.zero_pose(B)
@@ -242,12 +263,9 @@ def main(argv=None) -> int:
         del out, ref_v, ref_g
 
         # ------------------------------------------------------------ timing
-        cell = {}
-        for m in methods:
-            gc.collect()
-            bar.set_postfix_str(f"B={B} {m}")
-            cell[m] = time_cell(lambda: run(m), args.repeats)
-            bar.update(1)
+        gc.collect()
+        bar.set_description(f"lbs bench B={B}")
+        cell = time_cells({m: (lambda m=m: run(m)) for m in methods}, args.repeats, bar)
         row = {
             "torchhand_ms": cell[f"torchhand_{default_layout}"]["median_ms"],
             "smplx_ms": cell["smplx"]["median_ms"],
@@ -258,6 +276,7 @@ def main(argv=None) -> int:
         if "smplx_full_lbs" in cell:
             row["smplx_full_lbs_ms"] = cell["smplx_full_lbs"]["median_ms"]
             row["speedup_vs_full_lbs"] = row["smplx_full_lbs_ms"] / row["torchhand_ms"]
+        row["min_ms"] = {m: cell[m]["min_ms"] for m in methods}
         row["repeats"] = {m: cell[m]["repeats"] for m in methods}
         results[f"B{B}"] = row
     bar.close()

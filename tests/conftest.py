@@ -25,6 +25,10 @@ import torch
 # torch warns once that sparse CSR support is in beta (the rope's skinning matrix is CSR).
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
 
+
+def pytest_configure(config):
+    config.addinivalue_line("filterwarnings", "ignore:Sparse CSR tensor support is in beta state:UserWarning")
+
 HIA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "hands_in_action"
 SHIPPED_MODELS = ("hand_right", "hand_left", "ball", "cube", "pipe", "rope")
 
@@ -102,6 +106,33 @@ def random_theta(model, batch: int, generator: torch.Generator, root_translation
     lo[6:], hi[6:] = lo[6:] + margin, hi[6:] - margin
     u = torch.rand(batch, model.num_dofs, generator=generator, dtype=torch.float64)
     return (lo.double().cpu() + (hi - lo).double().cpu() * u).to(lo)
+
+
+def orthonormalised(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrices (polar decomposition) of (..., 3, 3) arrays."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
+
+
+@pytest.fixture(scope="session")
+def rigid_model64(model64):
+    """``rigid_model64(name)``: a float64 shipped model whose rest transforms are
+    re-orthonormalised (the thesis stores rotations with 6 digits)."""
+    import dataclasses
+
+    from torchhand.model import ArticulatedModel
+
+    cache = {}
+
+    def get(name: str):
+        if name not in cache:
+            a = model64(name).assets
+            rest = a.rest_transforms.copy()
+            rest[:, :3, :3] = orthonormalised(rest[:, :3, :3])
+            cache[name] = ArticulatedModel(dataclasses.replace(a, rest_transforms=rest), dtype=torch.float64)
+        return cache[name]
+
+    return get
 
 
 # ----------------------------------------------------------- tiny thesis model
@@ -197,3 +228,11 @@ def tmp_thesis_model(tmp_path) -> TinyThesisModel:
     """A tiny valid thesis model (3-bone chain Root-B1-B2, 14 vertices, 12 triangles,
     9 DoF) with OFF/SKEL/SKIN/LIMITS/ZONES/MOTION files in ``tmp_path / "Models"``."""
     return _write_tiny_model(tmp_path / "Models")
+
+
+@pytest.fixture(scope="session")
+def real_right_hand(hia_root):
+    """Parsed thesis files of ``Models/01/Model_Hand_R`` (read once per session)."""
+    from torchhand.io import read_thesis_model
+
+    return read_thesis_model(hia_root / "Models" / "01", "Model_Hand_R")

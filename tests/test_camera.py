@@ -136,7 +136,8 @@ def test_depth_to_normals_tilted_plane():
 def test_plucker_residual_on_and_off_ray(gen):
     K = _K()
     T_cw = _rigid([0.3, -1, 0.2], 0.9, [40.0, -15.0, 250.0])
-    pixels = torch.rand(3, 20, 2, generator=gen, dtype=torch.float64) * torch.tensor([640.0, 480.0], dtype=torch.float64)
+    size = torch.tensor([640.0, 480.0], dtype=torch.float64)
+    pixels = torch.rand(3, 20, 2, generator=gen, dtype=torch.float64) * size
     rays = pixel_rays(pixels, K, T_cw)
     assert isinstance(rays, PluckerRays)
     assert rays.direction.shape == rays.moment.shape == (3, 20, 3)
@@ -186,7 +187,9 @@ def test_camera_backproject_matches_project():
     world = cam.backproject(depth)
     assert world.shape == (2, 24, 32, 3)
     assert (world[0, 0, 0] == 0).all()
-    v, u = torch.meshgrid(torch.arange(24.0, dtype=torch.float64), torch.arange(32.0, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(24.0, dtype=torch.float64), torch.arange(32.0, dtype=torch.float64), indexing="ij"
+    )
     grid = torch.stack([u, v], -1).reshape(1, -1, 2)
     pixels = cam.project(world[1].reshape(1, -1, 3))
     torch.testing.assert_close(pixels, grid)
@@ -242,7 +245,10 @@ def test_camera_rig(gen):
         (lambda: project_points(torch.zeros(2, 5, 3), torch.eye(3).expand(3, 3, 3)), r"do not broadcast"),
         (lambda: unproject_pixels(torch.zeros(5, 2), torch.zeros(4), torch.eye(3)), r"do not broadcast"),
         (lambda: depth_to_points(torch.zeros(4, 4), torch.eye(3)), r"depth must have shape \(B, H, W\), got \(4, 4\)"),
-        (lambda: kinect_camera().project(torch.zeros(4, 3)), r"points_world must have shape \(B, N, 3\), got \(4, 3\)"),
+        (
+            lambda: kinect_camera().project(torch.zeros(4, 3)),
+            r"points_world must have shape \(B, N, 3\), got \(4, 3\)",
+        ),
         (lambda: kinect_camera().rays(torch.zeros(1, 4, 3)), r"pixels must have shape \(B, N, 2\)"),
         (lambda: Camera(K=torch.eye(4), T_cw=None, width=4, height=4), r"K must have shape \(3, 3\)"),
         (lambda: Camera(K=torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 1, 1]]), T_cw=None, width=4, height=4), r"K must be"),

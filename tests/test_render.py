@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 import trimesh
@@ -38,7 +37,8 @@ def _box(centre, extents):
 
 def _analytic_sphere_depth(camera: Camera) -> torch.Tensor:
     """(H, W) z depth of the exact sphere, 0 where missed (camera at the origin)."""
-    v, u = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64), torch.arange(camera.width, dtype=torch.float64), indexing="ij")
+    rows = torch.arange(camera.height, dtype=torch.float64)
+    v, u = torch.meshgrid(rows, torch.arange(camera.width, dtype=torch.float64), indexing="ij")
     d = torch.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, torch.ones_like(u)], -1)
     # |t d - c|^2 = r^2 with c = (0, 0, Z): a t^2 - 2 Z t + Z^2 - r^2 = 0, nearer root.
     a = (d * d).sum(-1)
@@ -118,13 +118,15 @@ def test_two_boxes_ids_and_occlusion():
     bone = torch.arange(faces.shape[0])
     cam = kinect_camera()
     r = render(vertices, faces, cam, face_model_id=model, face_bone_id=bone)
-    pixels = cam.project(torch.tensor([[[-60.0, 0.0, 390.0], [0.0, 0.0, 390.0], [70.0, 0.0, 590.0], [0.0, 200.0, 500.0]]]))
+    probes = [[-60.0, 0.0, 390.0], [0.0, 0.0, 390.0], [70.0, 0.0, 590.0], [0.0, 200.0, 500.0]]
+    pixels = cam.project(torch.tensor([probes]))
     cols, rows = pixels[0].round().long().unbind(-1)
     ids, depth = r.model_id[0, rows, cols], r.depth[0, rows, cols]
     assert ids.tolist() == [3, 3, 7, -1]  # second point: boxes overlap there, the near one wins
     torch.testing.assert_close(depth[:3], torch.tensor([390.0, 390.0, 590.0]), atol=1e-3, rtol=0)
     assert (r.bone_id == torch.where(r.face_id >= 0, r.face_id, -1)).all()
-    assert (r.face_id[0, rows[:2], cols[:2]] < near_f.shape[0]).all() and r.face_id[0, rows[2], cols[2]] >= near_f.shape[0]
+    assert (r.face_id[0, rows[:2], cols[:2]] < near_f.shape[0]).all()
+    assert r.face_id[0, rows[2], cols[2]] >= near_f.shape[0]
     # The near box's border over the far box is an occluding edge; the far box is not marked there.
     row = int(rows[0])
     edge_cols = r.silhouette_edges[0, row].nonzero()[:, 0]

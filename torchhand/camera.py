@@ -479,7 +479,8 @@ class Camera:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Camera:
         """Return a copy with tensors on ``device`` and/or cast to floating ``dtype``."""
-        return dataclasses.replace(self, K=self.K.to(device=device, dtype=dtype), T_cw=self.T_cw.to(device=device, dtype=dtype))
+        K = self.K.to(device=device, dtype=dtype)
+        return dataclasses.replace(self, K=K, T_cw=self.T_cw.to(device=device, dtype=dtype))
 
     # ---------------------------------------------------------------- geometry
 
@@ -518,8 +519,8 @@ class Camera:
         """Lift a depth map to world points.
 
         Args:
-            depth: (B, H, W) camera-frame z in mm, ``<= 0`` invalid. H, W need not equal
-                the camera's size (e.g. a crop whose K was not adjusted is the caller's problem).
+            depth: (B, H, W) camera-frame z in mm, ``<= 0`` invalid. H, W are not checked
+                against the camera's size.
 
         Returns:
             (B, H, W, 3) world points; zero at invalid pixels.
@@ -564,7 +565,9 @@ def kinect_camera(
         T_cw: optional (4, 4) world-to-camera transform; identity if None.
         dtype, device: of the stored tensors.
     """
-    return Camera.from_intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480, T_cw=T_cw, name="kinect", dtype=dtype, device=device)
+    return Camera.from_intrinsics(
+        525.0, 525.0, 319.5, 239.5, 640, 480, T_cw=T_cw, name="kinect", dtype=dtype, device=device
+    )
 
 
 # --------------------------------------------------------------------------- CameraRig

@@ -76,6 +76,21 @@ def _eval(args) -> int:
     return 0
 
 
+def _track(args) -> int:
+    from .tracker import TrackerConfig, track_sequences
+
+    cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
+                        first_frame_iterations=args.first_iterations)
+    from .energies import parse_energy
+
+    parse_energy(args.energy)  # reject unknown energies before reading any data
+    summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force)
+    for s in summaries:
+        print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
+              f"{s['flagged_frames']} flagged -> {s['out']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -107,6 +122,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1, help="parallel processes over sequences")
     p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
     p.set_defaults(func=_eval)
+
+    p = sub.add_parser("track", help="track sequences from their first-frame pose (never reads gt/)")
+    p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--energy", default="LO", help="energy terms: LO (model-to-data + data-to-model)")
+    p.add_argument("--metric", default="point-to-point", choices=["point-to-point", "point-to-plane"])
+    p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
+    p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--viz", action="store_true", help="write overlay PNGs and an MP4 per sequence")
+    p.add_argument("--force", action="store_true", help="replace existing output folders")
+    p.set_defaults(func=_track)
     return ap
 
 

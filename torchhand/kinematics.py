@@ -259,11 +259,11 @@ def point_jacobian(
     Args:
         twists: (B, D, 6) from :func:`forward_kinematics`.
         weighted_points: (B, N, D, 3) S_d for every point and DoF.
-        weight_sums: (N, D) W_d.
+        weight_sums: (N, D) or (B, N, D) W_d.
     Returns:
         (B, N, 3, D).
     """
     u, omega = twists[..., :3], twists[..., 3:]
     J = torch.cross(omega[:, None].expand_as(weighted_points), weighted_points, dim=-1)
-    J = J + weight_sums[None, ..., None] * u[:, None]
+    J = J + weight_sums[..., None] * u[:, None]
     return J.transpose(-1, -2)

@@ -184,9 +184,10 @@ class ArticulatedModel(nn.Module):
         """Analytic Jacobian of posed vertices w.r.t. theta.
 
         Args:
-            theta: (B, D).
-            vertex_ids: (N,) int64 subset of vertices (default: all; that is
-                B x V x 3 x D numbers, so pass a subset for large batches).
+            theta: (B, D) (may be None when ``fk`` is given).
+            vertex_ids: (N,) int64 subset of vertices, or (B, N) for a different subset
+                per batch element (default: all; that is B x V x 3 x D numbers, so
+                pass a subset for large batches).
             fk: kinematics already computed for theta, to avoid recomputing it.
         Returns:
             (B, N, 3, D).

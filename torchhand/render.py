@@ -76,7 +76,7 @@ def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESH
     return foreground & (neighbour_max - depth > threshold)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=8)  # ~7 MB per 640x480 camera
 def _camera_rays(key: tuple) -> o3d.core.Tensor:
     """World-frame rays (H, W, 6) through pixel centres, cached per camera.
 
@@ -215,7 +215,7 @@ def _pixel_normals(
     B, num_faces = n.shape[:2]
     # Gather only at hit pixels: usually a small part of the image.
     pixel = hit_mask.flatten().nonzero()[:, 0]
-    batch = torch.div(pixel, hit_mask[0].numel(), rounding_mode="floor")
+    batch = torch.div(pixel, hit_mask.shape[1] * hit_mask.shape[2], rounding_mode="floor")
     rows = batch * num_faces + face_id.flatten().index_select(0, pixel)
     out = n.new_zeros(hit_mask.numel(), 3)
     out.index_copy_(0, pixel, n.reshape(-1, 3).index_select(0, rows))

@@ -95,15 +95,22 @@ def lbs_jacobian(
     Args:
         G: (B, J, 4, 4) and twists: (B, D, 6) from ``forward_kinematics``.
         vertices: (N, 3) rest positions of the points (a subset of the mesh, or
-            keypoints with one-hot weights).
-        skin_index, skin_weight: (N, K).
+            keypoints with one-hot weights), or (B, N, 3) for a different subset per
+            batch element.
+        skin_index, skin_weight: (N, K), or (B, N, K) with batched vertices.
         dof_bone: (D,) bone of each DoF; descendants: (J, J) bool (see KinematicTree).
     Returns:
         (B, N, 3, D).
     """
-    Gk = G[:, skin_index, :3, :]  # (B, N, K, 3, 4)
-    x = (Gk[..., :3] @ vertices[None, :, None, :, None])[..., 0] + Gk[..., 3]  # (B, N, K, 3)
-    drives = descendants[skin_index][..., dof_bone].to(skin_weight.dtype)  # (N, K, D)
+    if vertices.dim() == 2:
+        Gk = G[:, skin_index, :3, :]  # (B, N, K, 3, 4)
+        v = vertices[None, :, None, :, None]
+    else:
+        b = torch.arange(G.shape[0], device=G.device)[:, None, None]
+        Gk = G[b, skin_index, :3, :]
+        v = vertices[:, :, None, :, None]
+    x = (Gk[..., :3] @ v)[..., 0] + Gk[..., 3]  # (B, N, K, 3)
+    drives = descendants[skin_index][..., dof_bone].to(skin_weight.dtype)  # ([B,] N, K, D)
     wA = skin_weight[..., None] * drives
-    S = torch.einsum("nkd,bnkc->bndc", wA, x)
-    return point_jacobian(twists, S, wA.sum(1))
+    S = torch.einsum("nkd,bnkc->bndc" if wA.dim() == 3 else "bnkd,bnkc->bndc", wA, x)
+    return point_jacobian(twists, S, wA.sum(-2))

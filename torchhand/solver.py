@@ -19,12 +19,14 @@ ResidualFn = Callable[[torch.Tensor, bool], Tuple[torch.Tensor, Optional[torch.T
 
 class LMResult(NamedTuple):
     """theta: (B, D) solution; cost: (B,) final sum of squared residuals;
-    iterations: (B,) accepted steps per problem; converged: (B,) bool."""
+    iterations: (B,) accepted steps per problem; converged: (B,) bool;
+    damping: (B,) final lambda (to warm-start the next solve)."""
 
     theta: torch.Tensor
     cost: torch.Tensor
     iterations: torch.Tensor
     converged: torch.Tensor
+    damping: torch.Tensor
 
 
 def solve_damped(J: torch.Tensor, r: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
@@ -51,7 +53,7 @@ def levenberg_marquardt(
     lower: Optional[torch.Tensor] = None,
     upper: Optional[torch.Tensor] = None,
     max_iterations: int = 50,
-    damping: float = 1e-3,
+    damping: float | torch.Tensor = 1e-3,
     step_tolerance: float = 0.0,
     check_every: int = 5,
 ) -> LMResult:
@@ -62,7 +64,7 @@ def levenberg_marquardt(
         theta0: (B, D) start.
         lower, upper: (D,) or (B, D) box bounds (may hold +-inf).
         max_iterations: iteration budget per problem.
-        damping: initial lambda.
+        damping: initial lambda, a float or (B,) per problem.
         step_tolerance: a problem converges when the largest |delta| of an accepted
             step falls below it (in theta units).
         check_every: the loop exits early once every problem has converged; this is
@@ -74,7 +76,7 @@ def levenberg_marquardt(
     if lower is not None or upper is not None:
         theta = _clamp(theta, lower, upper)
     B = theta.shape[0]
-    lam = theta.new_full((B,), damping)
+    lam = torch.as_tensor(damping, dtype=theta.dtype, device=theta.device).expand(B).clone()
     iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
     done = torch.zeros(B, dtype=torch.bool, device=theta.device)
     r, J = residuals(theta, True)
@@ -94,7 +96,7 @@ def levenberg_marquardt(
             break
         if it + 1 < max_iterations:
             r, J = residuals(theta, True)
-    return LMResult(theta, cost, iters, done)
+    return LMResult(theta, cost, iters, done, lam)
 
 
 def _clamp(theta, lower, upper):

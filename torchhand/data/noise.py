@@ -247,7 +247,7 @@ def _fmt(shape) -> str:
     return "(" + ", ".join(str(int(s)) for s in shape) + ")"
 
 
-def _check_inputs(depth, normals, K, params, generator):
+def _check_inputs(depth, normals, K, params, generator) -> None:
     if not isinstance(depth, torch.Tensor):
         raise TypeError(f"depth must be a torch.Tensor of shape (B, H, W), got {type(depth).__name__}")
     if depth.ndim != 3:
@@ -266,7 +266,7 @@ def _check_inputs(depth, normals, K, params, generator):
             raise ValueError(f"normals is on {normals.device} but depth is on {depth.device}; they must match")
     if not isinstance(K, torch.Tensor):
         raise TypeError(f"K must be a torch.Tensor of shape (3, 3) or (B, 3, 3), got {type(K).__name__}")
-    if not (K.shape == (3, 3) or (K.ndim == 3 and K.shape[1:] == (3, 3) and K.shape[0] in (1, B))):
+    if not (tuple(K.shape) == (3, 3) or (K.ndim == 3 and tuple(K.shape[1:]) == (3, 3) and K.shape[0] in (1, B))):
         raise ValueError(f"K must have shape (3, 3) or (B, 3, 3) with B={B}, got {_fmt(K.shape)}")
     if not K.is_floating_point():
         raise TypeError(f"K must have a floating point dtype, got {K.dtype}")
@@ -274,13 +274,18 @@ def _check_inputs(depth, normals, K, params, generator):
         raise TypeError(f"params must be a KinectNoise, got {type(params).__name__}")
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
-    # Value checks (one host sync each; cheap next to the model).
-    if depth.numel() and not bool(torch.isfinite(depth).all()):
-        raise ValueError("depth contains NaN or inf; use 0 for missing pixels")
-    if depth.numel() and bool((depth < 0).any()):
-        raise ValueError("depth contains negative values; use 0 for missing pixels")
-    if normals is not None and normals.numel() and not bool(torch.isfinite(normals).all()):
-        raise ValueError("normals contains NaN or inf")
+    # Value checks: one reduction each (NaN propagates through min/sum).
+    if depth.numel():
+        lo, hi = torch.aminmax(depth.detach())
+        lo, hi = float(lo), float(hi)
+        if math.isnan(lo) or math.isnan(hi) or math.isinf(hi):
+            raise ValueError("depth contains NaN or inf; use 0 for missing pixels")
+        if lo < 0:
+            raise ValueError(f"depth contains negative values (min {lo}); use 0 for missing pixels")
+    if normals is not None and normals.numel():
+        total = float(normals.detach().sum(dtype=torch.float64))
+        if not math.isfinite(total):
+            raise ValueError("normals contains NaN or inf")
     if not bool(torch.isfinite(K).all()):
         raise ValueError("K contains NaN or inf")
     Kd = K.detach().reshape(-1, 3, 3)
@@ -291,39 +296,46 @@ def _check_inputs(depth, normals, K, params, generator):
 # --------------------------------------------------------------------------- pieces
 
 
-def _incidence_angle(depth, normals, K):
-    """(B, H, W) angle (rad) between the surface normal and the viewing ray, 0 where empty.
-
-    With ``normals`` None the angle is estimated from the depth map: for a surface
-    ``z(u, v)`` seen through a pinhole with zero skew, ``n ~ (-fx z_u, -fy z_v,
-    fx z_u x + fy z_v y + z)`` with ``(x, y, 1)`` the pixel's viewing ray, and
-    ``cos(angle) = z / (|n| |ray|)``. The derivatives ``z_u, z_v`` are one-sided
-    differences, taking per pixel the side with the smaller jump among valid
-    neighbours (so depth discontinuities do not read as grazing surfaces).
-    """
-    B, H, W = depth.shape
-    dev, dt = depth.device, depth.dtype
+def _rays(K: torch.Tensor, H: int, W: int):
+    """Viewing rays ``(x, y, 1)`` of the pixel centres: (B|1, H|1, W) x and (B|1, H, 1) y."""
+    dev, dt = K.device, K.dtype
     fx, fy, s = K[:, 0, 0].view(-1, 1, 1), K[:, 1, 1].view(-1, 1, 1), K[:, 0, 1].view(-1, 1, 1)
     cx, cy = K[:, 0, 2].view(-1, 1, 1), K[:, 1, 2].view(-1, 1, 1)
     v = torch.arange(H, device=dev, dtype=dt).view(1, H, 1)
     u = torch.arange(W, device=dev, dtype=dt).view(1, 1, W)
     ry = (v - cy) / fy
-    rx = (u - cx - s * ry) / fx
-    valid = depth > 0
+    rx = (u - cx) / fx if not bool((s != 0).any()) else (u - cx - s * ry) / fx
+    return rx, ry
+
+
+def _incidence_cos(depth, valid, normals, K):
+    """(B, H, W) cosine of the angle between the surface normal and the viewing ray; 1 where empty.
+
+    With ``normals`` None the angle is estimated from the depth map: for a surface
+    ``z(u, v)`` seen through a pinhole with zero skew, ``n ~ (-fx z_u, -fy z_v,
+    fx z_u x + fy z_v y + z)`` with ``(x, y, 1)`` the pixel's viewing ray, so
+    ``cos(angle) = z / (|n| |ray|)``. The derivatives ``z_u, z_v`` are one-sided
+    differences, taking per pixel the side with the smaller jump among valid
+    neighbours (so depth discontinuities do not read as grazing surfaces).
+    """
+    B, H, W = depth.shape
+    rx, ry = _rays(K, H, W)
+    inv_ray = torch.rsqrt(rx * rx + ry * ry + 1.0)
     if normals is not None:
-        n = normals.to(dt)
-        dot = (n[..., 0] * rx + n[..., 1] * ry + n[..., 2]).abs()
-        norm = n.norm(dim=-1) * torch.sqrt(rx * rx + ry * ry + 1.0)
-        cos = torch.where(norm > 1e-12, dot / norm.clamp_min(1e-12), torch.ones_like(dot))
+        n = normals.to(depth.dtype)
+        n0, n1, n2 = n[..., 0], n[..., 1], n[..., 2]
+        dot = torch.addcmul(torch.addcmul(n2, n0, rx), n1, ry)
+        nsq = torch.addcmul(torch.addcmul(n0 * n0, n1, n1), n2, n2)
+        cos = dot.abs_().mul_(nsq.clamp_min_(1e-30).rsqrt_()).mul_(inv_ray)
+        cos = torch.where(nsq > 1e-30, cos, 1.0)
     else:
-        z_u = _one_sided_derivative(depth, valid, dim=2)
-        z_v = _one_sided_derivative(depth, valid, dim=1)
-        a, c = fx * z_u, fy * z_v
-        nz = a * rx + c * ry + depth
-        norm = torch.sqrt(a * a + c * c + nz * nz) * torch.sqrt(rx * rx + ry * ry + 1.0)
-        cos = torch.where(norm > 1e-12, depth / norm.clamp_min(1e-12), torch.ones_like(depth))
-    angle = torch.acos(cos.clamp(0.0, 1.0))
-    return torch.where(valid, angle, torch.zeros_like(angle))
+        fx, fy = K[:, 0, 0].view(-1, 1, 1), K[:, 1, 1].view(-1, 1, 1)
+        a = _one_sided_derivative(depth, valid, dim=2).mul_(fx)
+        c = _one_sided_derivative(depth, valid, dim=1).mul_(fy)
+        nz = torch.addcmul(torch.addcmul(depth, a, rx), c, ry)
+        nsq = torch.addcmul(torch.addcmul(a * a, c, c), nz, nz)
+        cos = (depth * inv_ray).mul_(nsq.clamp_min_(1e-30).rsqrt_())
+    return torch.where(valid, cos.clamp_(0.0, 1.0), 1.0)
 
 
 def _one_sided_derivative(depth, valid, dim):
@@ -333,18 +345,17 @@ def _one_sided_derivative(depth, valid, dim):
         return torch.zeros_like(depth)
     d = depth.diff(dim=dim)  # d[i] = z[i+1] - z[i]
     ok = valid.narrow(dim, 1, n - 1) & valid.narrow(dim, 0, n - 1)
-    big = torch.full_like(d, float("inf"))
-    d = torch.where(ok, d, big)
+    d = torch.where(ok, d, float("inf"))
     pad_shape = list(depth.shape)
     pad_shape[dim] = 1
     pad = torch.full(pad_shape, float("inf"), dtype=depth.dtype, device=depth.device)
     fwd = torch.cat([d, pad], dim=dim)
     bwd = torch.cat([pad, d], dim=dim)
     out = torch.where(fwd.abs() <= bwd.abs(), fwd, bwd)
-    return torch.where(torch.isfinite(out), out, torch.zeros_like(out))
+    return torch.where(out.abs() < float("inf"), out, 0.0)
 
 
-def _projector_shadow(depth, fx, params):
+def _projector_shadow(depth, valid, fx, params):
     """(B, H, W) bool: pixels the camera sees but the projector does not.
 
     With the projector at ``+x`` (baseline ``b``) and disparity ``D(u) = f b / z(u)``
@@ -356,18 +367,19 @@ def _projector_shadow(depth, fx, params):
     of an occluding edge, ``f b (1/z_near - 1/z_far)`` px wide (at most ``f b / z_far``),
     and surfaces tilted away from the projector so steeply that ``p`` decreases are
     self-shadowed. Empty pixels (depth 0) count as infinitely far and never occlude.
-    For the projector on the left the image is mirrored.
+    With the projector on the left the image is mirrored.
     """
     if not params.projector_on_right:
-        return _projector_shadow(depth.flip(-1), fx, _projector_right(params)).flip(-1)
+        return _projector_shadow(depth.flip(-1), valid.flip(-1), fx, _projector_right(params)).flip(-1)
     W = depth.shape[-1]
-    valid = depth > 0
-    disparity = torch.where(valid, fx * params.baseline_mm / depth.clamp_min(1e-6), torch.zeros_like(depth))
-    p = torch.arange(W, device=depth.device, dtype=depth.dtype) - disparity
+    u = torch.arange(W, device=depth.device, dtype=depth.dtype)
+    # p = u - f b / z on valid pixels, u on empty ones (disparity 0).
+    disparity = torch.where(valid, depth, float("inf")).reciprocal_().mul_(fx * params.baseline_mm)
+    p = u - disparity
     # suffix minimum over u' > u: cummin over the flipped row, shifted by one pixel.
     suffix = p.flip(-1).cummin(dim=-1).values.flip(-1)
     after = torch.cat([suffix[..., 1:], torch.full_like(suffix[..., :1], float("inf"))], dim=-1)
-    return valid & (after < p - params.shadow_tolerance_px)
+    return valid & (after < p.sub_(params.shadow_tolerance_px))
 
 
 def _projector_right(params):
@@ -387,27 +399,25 @@ def _rand(shape, generator, device, dtype):
 
 
 def _random_holes(B, H, W, params, generator, device):
-    """(B, H, W) bool mask of a Poisson number of random disks per frame."""
-    gdev = generator.device if generator is not None else device
-    rates = torch.full((B,), float(params.holes_per_frame), device=gdev)
-    counts = torch.poisson(rates, generator=generator)
-    M = int(counts.max().item()) if B else 0
-    mask = torch.zeros(B * H * W, dtype=torch.bool, device=device)
+    """(B, H, W) bool mask of a Poisson number of random disks per frame, or None if there are none."""
+    gdev = generator.device if generator is not None else torch.device(device)
+    counts = torch.poisson(torch.full((B,), float(params.holes_per_frame), device=gdev), generator=generator)
+    M = int(counts.max().item())
     if M == 0:
-        return mask.view(B, H, W)
-    centre = _rand((B, M, 2), generator, device, torch.float32)
-    cu = (centre[..., 0] * W).long().clamp_(0, W - 1)
-    cv = (centre[..., 1] * H).long().clamp_(0, H - 1)
+        return None
     r_lo, r_hi = params.hole_radius_min_px, params.hole_radius_max_px
-    radius = (_rand((B, M), generator, device, torch.float32) * (r_hi - r_lo + 1)).long().clamp_(max=r_hi - r_lo) + r_lo
+    draws = _rand((B, M, 3), generator, device, torch.float32)
+    cu = (draws[..., 0] * W).long().clamp_(0, W - 1)
+    cv = (draws[..., 1] * H).long().clamp_(0, H - 1)
+    radius = (draws[..., 2] * (r_hi - r_lo + 1)).long().clamp_(max=r_hi - r_lo) + r_lo
     offs = torch.arange(-r_hi, r_hi + 1, device=device)
     dv, du = torch.meshgrid(offs, offs, indexing="ij")
     du, dv = du.reshape(1, 1, -1), dv.reshape(1, 1, -1)
     uu, vv = cu[..., None] + du, cv[..., None] + dv
     keep = (du * du + dv * dv <= (radius * radius)[..., None]) & (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
     keep &= (torch.arange(M, device=device).view(1, M) < counts.to(device).view(B, 1))[..., None]
-    b = torch.arange(B, device=device).view(B, 1, 1)
-    flat = (b * H + vv) * W + uu
+    flat = (torch.arange(B, device=device).view(B, 1, 1) * H + vv) * W + uu
+    mask = torch.zeros(B * H * W, dtype=torch.bool, device=device)
     mask[flat[keep]] = True
     return mask.view(B, H, W)
 
@@ -439,6 +449,9 @@ def apply_kinect_noise(
     7. a Poisson number of random small disk-shaped holes per frame;
     8. range clipping to ``[min_depth_mm, max_depth_mm]``.
 
+    Random numbers are drawn in this order, only for enabled steps: lateral (2, B, H, W)
+    normal, axial (B, H, W) normal, dropout (B, H, W) uniform, hole counts and holes.
+
     Args:
         depth: (B, H, W) clean depth in mm (float), 0 where empty. Not modified.
         normals: (B, H, W, 3) camera-frame surface normals (any orientation, need not
@@ -465,58 +478,73 @@ def apply_kinect_noise(
     if depth.numel() == 0:
         return torch.zeros((B, H, W), dtype=dt, device=device)
     z = depth.detach().to(dt)
-    Kb = K.detach().to(device=device, dtype=dt).reshape(-1, 3, 3).expand(B, 3, 3)
-    fx = Kb[:, 0, 0].view(B, 1, 1)
-    f_disp = fx if params.focal_px is None else torch.full_like(fx, float(params.focal_px))
+    Kb = K.detach().to(device=device, dtype=dt).reshape(-1, 3, 3)
+    if Kb.shape[0] == 1:
+        fx = float(Kb[0, 0, 0])
+    else:
+        fx = Kb[:, 0, 0].view(B, 1, 1)
+    fb = (fx if params.focal_px is None else float(params.focal_px)) * params.baseline_mm
+    valid = z > 0
 
-    # 1. incidence angle
-    angle = _incidence_angle(z, None if normals is None else normals.detach(), Kb)
+    # 1. incidence angle (as theta / (pi/2 - theta), which both sigma formulas use)
+    cos = _incidence_cos(z, valid, None if normals is None else normals.detach(), Kb)
+    angle = torch.acos_(cos)
+    ratio = angle.clamp_max(_MAX_ANGLE)
+    ratio = ratio.div_(ratio.neg().add_(math.pi / 2))
 
     # 2. projector shadows (geometry: computed on the clean depth)
     if params.shadows:
-        z = torch.where(_projector_shadow(z, fx, params), torch.zeros_like(z), z)
+        shadow = _projector_shadow(z, valid, fx, params)
+        valid = valid & ~shadow
+        z = torch.where(shadow, 0.0, z)
 
     # 3. lateral noise: nearest-neighbour resampling at a random integer offset
     if params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0:
-        sigma_l = params.lateral_sigma_px(angle)
-        shift = torch.round(_randn((2, B, H, W), generator, device, dt) * sigma_l).to(torch.int64)
-        vs = (torch.arange(H, device=device).view(1, H, 1) + shift[0]).clamp_(0, H - 1)
-        us = (torch.arange(W, device=device).view(1, 1, W) + shift[1]).clamp_(0, W - 1)
-        idx = (vs * W + us).view(B, H * W)
+        sigma_l = (ratio * params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)
+        shift = _randn((2, B, H, W), generator, device, dt).mul_(sigma_l).round_()
+        vs = shift[0].add_(torch.arange(H, device=device, dtype=dt).view(1, H, 1)).clamp_(0, H - 1)
+        us = shift[1].add_(torch.arange(W, device=device, dtype=dt).view(1, 1, W)).clamp_(0, W - 1)
+        idx = vs.mul_(W).add_(us).view(B, H * W).long()
         z = torch.gather(z.view(B, H * W), 1, idx).view(B, H, W)
-        angle = torch.gather(angle.view(B, H * W), 1, idx).view(B, H, W)
-    valid = z > 0
+        valid = z > 0
+        if params.axial_sigma_angle_mm > 0:
+            ratio = torch.gather(ratio.view(B, H * W), 1, idx).view(B, H, W)
+        if params.grazing_start_deg < 90.0:
+            angle = torch.gather(angle.view(B, H * W), 1, idx).view(B, H, W)
 
-    # 4. axial noise (5. with quantisation compensation)
+    # 4. axial noise, the Gaussian's variance reduced by the quantisation's q^2 / 12
     res = params.disparity_resolution_px
     if params.axial_sigma0_mm > 0 or params.axial_sigma_quad_mm > 0 or params.axial_sigma_angle_mm > 0:
-        sigma = params.axial_sigma(z, angle)
+        z_m = z * 1e-3
+        sigma = (z_m - params.axial_z0_m).square_().mul_(params.axial_sigma_quad_mm).add_(params.axial_sigma0_mm)
+        if params.axial_sigma_angle_mm > 0:
+            sigma.add_(ratio.square().mul_(params.axial_sigma_angle_mm).mul_(z_m.clamp_min_(1e-6).rsqrt_()))
         if res > 0 and params.compensate_quantisation:
-            q = z * z / (f_disp * params.baseline_mm) * res
-            sigma = torch.sqrt(torch.maximum(sigma * sigma - q * q / 12.0, 0.25 * sigma * sigma))
-        z = z + sigma * _randn((B, H, W), generator, device, dt)
-        valid &= z > 0
+            var = sigma.square()
+            q2 = z.square().square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z * z * res / fb) ** 2 / 12.0
+            sigma = torch.maximum(var - q2, var * 0.25).sqrt_()
+        z = torch.addcmul(z, sigma, _randn((B, H, W), generator, device, dt))
 
-    # 5. disparity quantisation
+    # 5. disparity quantisation: k = round(d / res) disparity levels, z = f b / (k res)
     if res > 0:
-        fb = f_disp * params.baseline_mm
-        d = torch.round(fb / z.clamp_min(1e-3) / res) * res
-        valid &= d > 0
-        z = fb / d.clamp_min(res)
+        k = torch.div(fb / res, z).round_()
+        z = torch.div(fb / res, k)  # k <= 0 (z <= 0) gives z <= 0 or inf: removed by the range check
 
     # 6. grazing-angle dropout
     if params.grazing_start_deg < 90.0:
         a0, a1 = math.radians(params.grazing_start_deg), math.radians(params.grazing_full_deg)
-        p_drop = ((angle - a0) / (a1 - a0)).clamp_(0.0, 1.0)
+        p_drop = angle.sub_(a0).mul_(1.0 / (a1 - a0))
         valid &= _rand((B, H, W), generator, device, dt) >= p_drop
 
     # 7. random holes
     if params.holes_per_frame > 0:
-        valid &= ~_random_holes(B, H, W, params, generator, device)
+        holes = _random_holes(B, H, W, params, generator, device)
+        if holes is not None:
+            valid &= ~holes
 
     # 8. range clipping
-    valid &= (z >= params.min_depth_mm) & (z <= params.max_depth_mm)
-    return torch.where(valid, z, torch.zeros_like(z))
+    valid &= (z >= max(params.min_depth_mm, 1e-3)) & (z <= params.max_depth_mm)
+    return torch.where(valid, z, 0.0)
 
 
 #: Named noise models; ``None`` means clean depth.

@@ -1,0 +1,34 @@
+"""Energy terms of the tracking objective (thesis Eq. 4.5), one module per term.
+
+``parse_energy("LO")`` builds the terms named on the command line: ``LO`` is
+model-to-data plus data-to-model; anatomy and regularisation are always added.
+"""
+
+from __future__ import annotations
+
+from typing import List
+
+from .anatomy import Anatomy
+from .base import EnergyTerm, Residuals, TrackState
+from .data_to_model import DataToModel
+from .model_to_data import ModelToData
+from .regularization import Regularization
+
+__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Anatomy", "Regularization",
+           "parse_energy", "ENERGY_COMPONENTS"]
+
+#: components understood by parse_energy; C and S arrive with collisions and salient points
+ENERGY_COMPONENTS = {"LO": "model-to-data + data-to-model"}
+
+
+def parse_energy(spec: str, metric: str = "point-to-point") -> List[EnergyTerm]:
+    """Terms for an energy string like ``LO`` (later ``LO+C``, ``LO+S``, ``LO+CS``)."""
+    parts = spec.replace(" ", "").split("+")
+    if parts[0] != "LO":
+        raise ValueError(f"energy {spec!r} must start with LO (model-to-data + data-to-model)")
+    extra = "".join(parts[1:])
+    unknown = [c for c in extra if c not in ENERGY_COMPONENTS]
+    if unknown:
+        raise ValueError(f"energy {spec!r}: unknown components {unknown}; this version supports "
+                         f"{sorted(ENERGY_COMPONENTS)} (collisions 'C' and salient points 'S' are not available yet)")
+    return [ModelToData(metric=metric), DataToModel(), Anatomy(), Regularization()]

@@ -1,0 +1,78 @@
+"""The interface every energy term of the objective (thesis Eq. 4.5) implements.
+
+A term is prepared once per outer iteration of Algorithm 1 (it finds its
+correspondences at the current pose) and then evaluated, with the
+correspondences fixed, at any theta the solver tries::
+
+    term.prepare(state)                       # correspondences at the current pose
+    r, J = term.residuals(theta, posed, True) # r: (B, m), J: (B, m, D)
+
+Residuals come out multiplied by ``sqrt(weight)``, so the stacked sum of squares of
+all terms is the weighted energy. ``count`` tells how many correspondences a term
+contributes (C_all of the thesis scales the anatomy and regularisation weights).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, NamedTuple, Optional
+
+import torch
+
+from ..camera import Camera
+from ..preprocess import DepthFrame
+from ..render import RenderResult
+from ..scene import Scene, SceneOutput
+
+__all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns"]
+
+
+class Residuals(NamedTuple):
+    """r: (B, m) weighted residuals; J: (B, m, D) their Jacobian, or None."""
+
+    r: torch.Tensor
+    J: Optional[torch.Tensor]
+
+
+@dataclass
+class TrackState:
+    """What the terms see at the start of an outer iteration, for B problems.
+
+    scene: the shared scene; theta: (B, D) current pose; previous: (B, D) the pose
+    of the previous frame; posed: scene output at theta; frames: one preprocessed
+    frame per problem (points and normals in the camera frame); cameras: one camera
+    per problem; render: the scene rendered at theta from each problem's camera;
+    data_labels: (B, H, W) int64 model id assigned to each data pixel (-1 none).
+    """
+
+    scene: Scene
+    theta: torch.Tensor
+    previous: torch.Tensor
+    posed: SceneOutput
+    frames: List[DepthFrame]
+    cameras: List[Camera]
+    render: RenderResult
+    data_labels: torch.Tensor
+
+
+class EnergyTerm:
+    """Base class: a named, weighted term with the prepare/residuals interface."""
+
+    name: str = "term"
+
+    def __init__(self, weight: float = 1.0):
+        self.weight = float(weight)
+        self.count = None  # (B,) correspondences found by the last prepare()
+
+    def prepare(self, state: TrackState) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def residuals(self, theta: torch.Tensor, posed: SceneOutput, with_jacobian: bool) -> Residuals:
+        raise NotImplementedError  # pragma: no cover - interface
+
+
+def scatter_columns(J_model: torch.Tensor, cols: slice, D: int) -> torch.Tensor:
+    """Place a model's Jacobian (B, m, D_k) into the scene's columns (B, m, D)."""
+    J = J_model.new_zeros(J_model.shape[0], J_model.shape[1], D)
+    J[:, :, cols] = J_model
+    return J

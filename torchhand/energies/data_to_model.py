@@ -1,0 +1,101 @@
+"""LO_d2m: data depth discontinuities to the model's silhouette (thesis Eq. 4.8).
+
+Depth-discontinuity pixels of the data (see preprocess) are matched to the nearest
+silhouette pixel of the rendered model with the same label by a 2D distance
+transform (OpenCV); the vertex seen at that silhouette pixel must lie on the data
+pixel's projection ray, written as a Pluecker line (d, m): the residual is
+``V x d - m`` (its norm is the vertex's distance to the ray). Pairs whose 3D
+distance, with the data depth averaged over 3x3 pixels, exceeds 30 mm are dropped.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+from ..camera import pixel_rays, unproject_pixels
+from ..kinematics import skew
+from .base import EnergyTerm, Residuals, TrackState, scatter_columns
+from .model_to_data import _pad_rows
+
+__all__ = ["DataToModel"]
+
+
+class DataToModel(EnergyTerm):
+    """E_data->model. max_distance: mm (30 in the thesis); max_pixels: data edge
+    pixels used per model and problem (a stride subsample)."""
+
+    name = "d2m"
+
+    def __init__(self, weight=1.0, max_distance=30.0, max_pixels=600):
+        super().__init__(weight)
+        self.max_distance, self.max_pixels = max_distance, max_pixels
+
+    def prepare(self, state: TrackState) -> None:
+        scene, B = state.scene, state.theta.shape[0]
+        self._scene = scene
+        dev, dt = state.theta.device, state.theta.dtype
+        rend = state.render
+        count = torch.zeros(B, dtype=torch.int64)
+        self.per_model = []
+        for k, name in enumerate(scene.names):
+            vs = scene.vertex_slices[name]
+            rows = []
+            for b in range(B):
+                frame, cam = state.frames[b], state.cameras[b]
+                edge = (rend.silhouette_edges[b] & (rend.model_id[b] == k)).cpu().numpy()
+                sel = torch.zeros(0, dtype=torch.int64)
+                if len(frame.edges):
+                    sel = torch.nonzero(state.data_labels[b][frame.edges[:, 0], frame.edges[:, 1]] == k)[:, 0]
+                if not edge.any() or len(sel) == 0:
+                    rows.append(None)
+                    continue
+                if len(sel) > self.max_pixels:
+                    sel = sel[torch.linspace(0, len(sel) - 1, self.max_pixels, device=sel.device).long()]
+                rc = frame.edges[sel]
+                # Nearest model silhouette pixel of every pixel (labels index the zero pixels
+                # in row-major order).
+                src = np.where(edge, 0, 255).astype(np.uint8)
+                _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+                zero_rc = np.argwhere(edge)
+                rcn = rc.cpu().numpy()
+                p = torch.as_tensor(zero_rc[labels[rcn[:, 0], rcn[:, 1]] - 1], device=dev)
+                fid = rend.face_id[b][p[:, 0], p[:, 1]]
+                bary = rend.barycentric[b][p[:, 0], p[:, 1]].to(dt)
+                w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)
+                vid = scene.faces[fid, w.argmax(-1)]  # global vertex seen at the model pixel
+                z = frame.edge_depth[sel].to(dt)
+                uv = rc.flip(-1).to(dt)
+                K, T_cw = cam.K.to(dev, dt), cam.T_cw.to(dev, dt)
+                X_cam = unproject_pixels(uv, z, K)
+                X = (X_cam - T_cw[:3, 3]) @ T_cw[:3, :3]  # to world
+                V = state.posed.vertices[b, vid]
+                keep = (V - X).norm(dim=-1) <= self.max_distance
+                rays = pixel_rays(uv, K, T_cw)
+                rows.append((vid[keep] - vs.start, rays.direction[keep], rays.moment[keep]))
+                count[b] += int(keep.sum())
+            self.per_model.append(_pad_rows(rows, B, dev, dt))
+        self.count = count
+
+    def residuals(self, theta, posed, with_jacobian):
+        B, D = theta.shape
+        rs, Js = [], []
+        sw = self.weight ** 0.5
+        b = torch.arange(B, device=theta.device)[:, None]
+        for k, (ids, d, m, mask) in enumerate(self.per_model):
+            if ids is None:
+                continue
+            out = posed.models[k]
+            V = out.vertices[b, ids]
+            r = (torch.cross(V, d, dim=-1) - m) * mask[..., None]  # Eq. 4.8
+            rs.append(sw * r.reshape(B, -1))
+            if with_jacobian:
+                model = self._scene.models[k]
+                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))
+                Jr = -(skew(d) @ Jv) * mask[..., None, None]  # d(V x d) = -[d]x dV
+                cols = self._scene.slices[self._scene.names[k]]
+                Js.append(sw * scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D))
+        if not rs:
+            return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+        return Residuals(torch.cat(rs, 1), torch.cat(Js, 1) if with_jacobian else None)

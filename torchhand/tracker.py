@@ -1,0 +1,352 @@
+"""The RGB-D tracker (thesis Ch. 4.2, Algorithm 1), batched over independent sequences.
+
+For every frame, starting from the previous frame's pose, repeat until the vertices
+move less than 0.2 mm or the iteration budget is spent: render the scene at the
+current pose, find the correspondences of every energy term, and take a
+Levenberg-Marquardt step on the stacked residuals with the joint limits as box
+bounds. B sequences of the same scene are tracked as one batch: their frames are
+independent problems that share every tensor operation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, NamedTuple, Optional, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from .camera import Camera
+from .energies import Anatomy, EnergyTerm, Regularization, TrackState, parse_energy
+from .preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
+from .render import RenderResult, render
+from .scene import Scene
+from .solver import levenberg_marquardt
+
+__all__ = ["TrackerConfig", "FrameResult", "Tracker", "label_data"]
+
+
+@dataclass
+class TrackerConfig:
+    """energy: terms (``LO``); metric: m2d distance; max_iterations: per frame (the
+    thesis' i_thr); first_frame_iterations: for frame 0 (50 in the thesis);
+    min_vertex_motion: mm, convergence when every vertex moves less in an iteration;
+    recover_factor: a frame whose energy per correspondence exceeds this multiple of
+    the median of the previous frames is re-solved from the previous pose with
+    ``recover_tries`` perturbations (the best is kept); label_radius: px, data pixels
+    farther than this from any rendered model pixel are left unlabelled."""
+
+    energy: str = "LO"
+    metric: str = "point-to-point"
+    max_iterations: int = 50
+    first_frame_iterations: int = 50
+    min_vertex_motion: float = 0.2
+    recover_factor: float = 4.0
+    recover_tries: int = 4
+    perturbation: float = 0.15
+    label_radius: float = 40.0
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+
+
+class FrameResult(NamedTuple):
+    """theta: (B, D) poses; valid: (B,) False where a frame could not be used (kept
+    the previous pose); iterations: (B,); energy: (B,) final energy per correspondence;
+    recovered: (B,) True where the recovery re-solve replaced the estimate."""
+
+    theta: torch.Tensor
+    valid: torch.Tensor
+    iterations: torch.Tensor
+    energy: torch.Tensor
+    recovered: torch.Tensor
+
+
+def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torch.Tensor:
+    """Assign every valid data pixel the id of the rendered model at it, or of the
+    nearest rendered pixel within ``radius`` px (2D distance transform); -1 otherwise.
+
+    frame: preprocessed data; model_id: (H, W) rendered ids (-1 empty) -> (H, W) int64.
+    """
+    ids = model_id.cpu().numpy()
+    hit = ids >= 0
+    labels = np.full(ids.shape, -1, np.int64)
+    if hit.any():
+        dist, lab = cv2.distanceTransformWithLabels(np.where(hit, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        nearest = ids[hit][lab - 1]  # labels enumerate the zero (rendered) pixels row-major
+        labels = np.where(dist <= radius, nearest, -1)
+    valid = frame.mask.cpu().numpy()
+    return torch.as_tensor(np.where(valid, labels, -1), device=model_id.device)
+
+
+class Tracker:
+    """Tracks a scene through depth frames.
+
+    Args:
+        scene: the models, in the order of their slices in theta.
+        config: :class:`TrackerConfig`.
+        terms: energy terms (default: from ``config.energy``); anatomy and
+            regularisation are scaled by the number of data correspondences.
+    """
+
+    def __init__(self, scene: Scene, config: TrackerConfig = TrackerConfig(),
+                 terms: Optional[List[EnergyTerm]] = None):
+        self.scene, self.config = scene, config
+        self.terms = terms if terms is not None else parse_energy(config.energy, config.metric)
+        self.data_terms = [t for t in self.terms if not isinstance(t, (Anatomy, Regularization))]
+        self.prior_terms = [t for t in self.terms if isinstance(t, (Anatomy, Regularization))]
+        self._energy_history: List[torch.Tensor] = []
+
+    # ------------------------------------------------------------------ frames
+    def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera]) -> RenderResult:
+        s = self.scene
+        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id)
+                 for b in range(len(cameras))]
+        return RenderResult(*(torch.cat(x, 0) for x in zip(*parts)))
+
+    def _state(self, theta, previous, frames, cameras) -> TrackState:
+        posed = self.scene(theta, validate=False)
+        rend = self._render(posed.vertices.detach(), cameras)
+        labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius) for b, f in enumerate(frames)])
+        return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels)
+
+    def _residual_fn(self):
+        scene = self.scene
+
+        def fn(theta, with_jacobian):
+            posed = scene(theta, validate=False)
+            parts = [t.residuals(theta, posed, with_jacobian) for t in self.terms]
+            r = torch.cat([p.r for p in parts], 1)
+            J = torch.cat([p.J for p in parts], 1) if with_jacobian else None
+            return r, J
+
+        return fn
+
+    def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[DepthFrame],
+              cameras: Sequence[Camera], iterations: int):
+        """Algorithm 1 for a batch: alternate correspondences and LM steps.
+
+        Returns (theta (B, D), iterations (B,), energy per correspondence (B,)).
+        """
+        theta = start.clone()
+        B = theta.shape[0]
+        lower, upper = self.scene.lower, self.scene.upper
+        active = torch.ones(B, dtype=torch.bool, device=theta.device)
+        iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
+        damping = theta.new_full((B,), 1e-3)
+        energy = theta.new_zeros(B)
+        fn = self._residual_fn()
+        for it in range(iterations):
+            with torch.no_grad():
+                state = self._state(theta, previous, frames, cameras)
+                for t in self.data_terms:
+                    t.prepare(state)
+                count = sum(t.count for t in self.data_terms).to(theta)
+                for t in self.prior_terms:
+                    t.prepare(state, count)
+                res = levenberg_marquardt(fn, theta, lower, upper, max_iterations=1, damping=damping)
+                moved = (self.scene(res.theta, validate=False).vertices - state.posed.vertices).norm(dim=-1).amax(-1)
+            theta = torch.where(active[:, None], res.theta, theta)
+            damping = torch.where(active, res.damping, damping)
+            energy = torch.where(active, res.cost / count.clamp_min(1), energy)
+            iters = iters + active.long()
+            active = active & (moved >= self.config.min_vertex_motion)
+            if not bool(active.any()):  # one sync per outer iteration, next to a render
+                break
+        return theta, iters, energy
+
+    def track_frame(self, depths: Sequence[Optional[np.ndarray]], cameras: Sequence[Camera],
+                    previous: torch.Tensor, first: bool = False, generator: Optional[torch.Generator] = None) -> FrameResult:
+        """Track one frame of each of B sequences.
+
+        Args:
+            depths: B depth maps (H, W) in mm, or None where a frame is missing.
+            cameras: B cameras.
+            previous: (B, D) poses of the previous frame (or the initial poses).
+            first: use the first-frame iteration budget.
+        Returns:
+            :class:`FrameResult`; problems without usable depth keep ``previous``
+            and are flagged invalid.
+        """
+        cfg, B = self.config, previous.shape[0]
+        frames, ok = [], []
+        for b, d in enumerate(depths):
+            try:
+                if d is None:
+                    raise EmptyFrameError("missing frame")
+                frames.append(preprocess_depth(d, cameras[b], cfg.preprocess, device=previous.device,
+                                               dtype=previous.dtype))
+                ok.append(b)
+            except EmptyFrameError:
+                pass
+        theta = previous.clone()
+        valid = torch.zeros(B, dtype=torch.bool)
+        iters = torch.zeros(B, dtype=torch.int64)
+        energy = previous.new_full((B,), float("nan"))
+        recovered = torch.zeros(B, dtype=torch.bool)
+        if ok:
+            idx = torch.tensor(ok)
+            cams = [cameras[b] for b in ok]
+            n_it = cfg.first_frame_iterations if first else cfg.max_iterations
+            th, it, en = self.solve(previous[idx], previous[idx], frames, cams, n_it)
+            if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
+                th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
+                recovered[idx] = rec.cpu()
+            theta[idx], valid[idx], iters[idx], energy[idx] = th, True, it.cpu(), en
+        self._energy_history.append(energy)
+        return FrameResult(theta, valid, iters, energy, recovered)
+
+    def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator):
+        """Re-solve problems whose energy rose sharply, from perturbed previous poses."""
+        hist = torch.stack(self._energy_history[-30:])[:, idx]
+        ref = torch.nanmedian(hist, 0).values
+        bad = torch.nonzero(energy > self.config.recover_factor * ref)[:, 0].tolist()
+        rec = torch.zeros(len(energy), dtype=torch.bool)
+        if not bad:
+            return theta, energy, rec
+        R = self.config.recover_tries
+        starts, fr, cams, prev = [], [], [], []
+        # try 0 restarts from the previous pose itself; the others perturb the joints by
+        # N(0, perturbation) rad and the global pose by 4 mm / 0.03 rad
+        scale = torch.full((previous.shape[1],), self.config.perturbation, dtype=previous.dtype)
+        for s in self.scene.slices.values():
+            scale[s.start : s.start + 3], scale[s.start + 3 : s.start + 6] = 4.0, 0.03
+        for b in bad:
+            for r in range(R):
+                noise = torch.randn(previous.shape[1], generator=generator, dtype=previous.dtype) * scale
+                starts.append(previous[b] + noise.to(previous.device) * (r > 0))
+                fr.append(frames[b])
+                cams.append(cameras[b])
+                prev.append(previous[b])
+        th, _, en = self.solve(torch.stack(starts), torch.stack(prev), fr, cams, iterations)
+        for i, b in enumerate(bad):
+            best = int(torch.argmin(en[i * R : (i + 1) * R]))
+            if en[i * R + best] < energy[b]:
+                theta[b], energy[b], rec[b] = th[i * R + best], en[i * R + best], True
+        return theta, energy, rec
+
+
+# ------------------------------------------------------------ sequence folders
+def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(), device: str = "cpu",
+                    viz: bool = False, force: bool = False, progress: bool = True) -> List[dict]:
+    """Track sequence folders (datasets/README.md layout) and write their results.
+
+    Sequences with the same models are solved as one batch, frame by frame; ``gt/``
+    is never read. For every sequence ``<out>/<name>/`` receives the ``gt/`` layout
+    (theta.npy, keypoints_3d.npy, keypoints_2d.npy, meta.json with per-frame
+    ``valid`` flags), ``motion/<Model>.MOTION`` per model (thesis format: row 0 is
+    the rigging pose, row k+1 is frame k), ``track_log.json``, and with ``viz``
+    overlay PNGs.
+    """
+    import json
+    import time
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from .data.layout import Poses, camera_dir, frame_name, read_depth, read_init_pose, read_sequence_info, write_poses
+    from .io.assets import THESIS_MODEL_NAMES
+    from .io.thesis import write_motion
+    from .motion import theta_to_motion
+    from .workspace import prepare_output_dir
+
+    roots = [Path(r) for r in roots]
+    infos = [read_sequence_info(r) for r in roots]
+    names = [i.name for i in infos]
+    if len(set(names)) != len(names):
+        names = [f"{i.name}_{k}" for k, i in enumerate(infos)]
+    out = Path(out)
+    targets = [out / n for n in names]
+    for t in targets:
+        if t.exists() and any(t.iterdir()) and not force:
+            raise FileExistsError(f"{t} is not empty; choose another --out or pass --force")
+    groups = {}
+    for k, info in enumerate(infos):
+        groups.setdefault(tuple(info.models), []).append(k)
+    thesis_name = {v: k for k, v in THESIS_MODEL_NAMES.items()}
+    summaries = []
+    for models, members in groups.items():
+        scene = Scene.from_names(list(models), device=device)
+        tracker = Tracker(scene, config)
+        init = []
+        for k in members:
+            th = read_init_pose(roots[k])
+            if th.shape != (scene.num_dofs,):
+                raise ValueError(f"{roots[k] / 'init_pose.json'}: theta has {th.size} values, the scene "
+                                 f"{list(models)} has {scene.num_dofs} DoF")
+            init.append(th)
+        theta = torch.as_tensor(np.stack(init), dtype=torch.float32, device=device)
+        n_frames = max(infos[k].frames for k in members)
+        cams = [infos[k].cameras[0].to(device) for k in members]
+        thetas, valids, logs = [], [], []
+        bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
+        for f in range(n_frames):
+            depths = []
+            for k in members:
+                path = camera_dir(roots[k], 0) / "depth" / frame_name(f)
+                if f >= infos[k].frames:
+                    depths.append(None)
+                    continue
+                try:
+                    depths.append(read_depth(path, infos[k].depth_unit_mm))
+                except ValueError as err:  # missing or unreadable frame: keep the previous pose
+                    tqdm.write(f"warning: {err}; keeping the previous pose")
+                    depths.append(None)
+            t0 = time.perf_counter()
+            res = tracker.track_frame(depths, cams, theta, first=(f == 0))
+            dt = time.perf_counter() - t0
+            theta = res.theta
+            thetas.append(theta.detach().cpu().numpy())
+            valids.append(res.valid.numpy())
+            logs.append({"frame": f, "seconds": dt, "iterations": res.iterations.tolist(),
+                         "energy": [None if not np.isfinite(e) else float(e) for e in res.energy.tolist()],
+                         "valid": res.valid.tolist(), "recovered": res.recovered.tolist()})
+            bar.update(len(members))
+        bar.close()
+        TH = np.stack(thetas, 1)  # (S, N, D)
+        with torch.no_grad():
+            for i, k in enumerate(members):
+                N = infos[k].frames
+                th = torch.as_tensor(TH[i, :N], device=device)
+                posed = scene(th)
+                cam = cams[i]
+                kp3 = cam.to_camera(posed.keypoints).cpu().numpy()[:, None]
+                kp2 = cam.project(posed.keypoints).cpu().numpy()[:, None]
+                target = prepare_output_dir(targets[k], force)
+                valid = np.stack(valids, 1)[i, :N]
+                write_poses(target, Poses(TH[i, :N].astype(np.float64), kp3, kp2, list(scene.names),
+                                          scene.dof_names, scene.keypoint_names, valid))
+                (target / "motion").mkdir()
+                for name, model in zip(scene.names, scene.models):
+                    mot = theta_to_motion(model, th[:, scene.slices[name]])
+                    rest = {b: model.rest_transforms[j].cpu().double().numpy()[None] for j, b in enumerate(model.bone_names)}
+                    mot = {b: np.concatenate([rest[b], m], 0) for b, m in mot.items()}
+                    write_motion(target / "motion" / f"{thesis_name.get(name, name)}.MOTION", mot)
+                log = [{"frame": e["frame"], "seconds": e["seconds"], **{key: e[key][i] for key in
+                        ("iterations", "energy", "valid", "recovered")}} for e in logs[:N]]
+                (target / "track_log.json").write_text(json.dumps({"sequence": names[k], "source": str(roots[k]),
+                                                                    "energy": config.energy, "frames": log}))
+                if viz:
+                    _write_overlays(target, roots[k], infos[k], scene, posed, cam)
+                secs = [e["seconds"] for e in logs[:N]]
+                summaries.append({"sequence": names[k], "frames": N, "out": str(target),
+                                  "seconds_per_frame": float(np.mean(secs)) / len(members),
+                                  "flagged_frames": int((~valid).sum())})
+    return summaries
+
+
+def _write_overlays(target, root, info, scene, posed, cam):
+    """Tracked skeletons over the input depth, one PNG per frame, and an MP4."""
+    from .data.layout import camera_dir, frame_name, read_depth
+    from .viz import depth_to_color, draw_skeleton, write_video
+
+    (target / "overlays").mkdir()
+    images = []
+    hands = [k for k, m in enumerate(scene.models) if m.kind == "hand"]
+    for f in range(info.frames):
+        img = depth_to_color(read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm))
+        for k in hands:
+            draw_skeleton(img, cam.project(posed.models[k].keypoints[f : f + 1])[0].cpu().numpy())
+        cv2.imwrite(str(target / "overlays" / frame_name(f)), img)
+        images.append(img)
+    write_video(images, target / "overlays.mp4")
