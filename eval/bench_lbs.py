@@ -122,8 +122,8 @@ def local_rotations(G: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------- timing
-def time_cells(steps: Dict[str, Callable[[], object]], repeats: int | None, bar: tqdm,
-               warmup: int = 3, target_s: float = 1.5) -> Dict[str, Dict]:
+def time_cells(steps: Dict[str, Callable[[], object]], repeats: int | None, bar: tqdm, warmup: int = 3,
+               target_s: float = 1.5, min_repeats: int = 5, max_repeats: int = 500) -> Dict[str, Dict]:
     """Median wall time (ms) of every step (one cell each) after ``warmup`` calls.
 
     The steps are timed round-robin (one call of each in turn) so that a change in
@@ -134,17 +134,19 @@ def time_cells(steps: Dict[str, Callable[[], object]], repeats: int | None, bar:
     need: Dict[str, int] = {}
     for name, step in steps.items():
         bar.set_postfix_str(f"warm-up {name}")
+        warm: List[float] = []
         for _ in range(warmup):
-            step()
-        if repeats is None:
             t0 = time.perf_counter()
             step()
-            one = time.perf_counter() - t0
-            need[name] = int(min(2000, max(5, math.ceil(target_s / max(one, 1e-6)))))
+            warm.append(time.perf_counter() - t0)
+        if repeats is None:  # calibrate on the warm-up calls after the first
+            one = statistics.median(warm[1:] or warm)
+            need[name] = int(min(max_repeats, max(min_repeats, math.ceil(target_s / max(one, 1e-6)))))
         else:
             need[name] = repeats
     times: Dict[str, List[float]] = {name: [] for name in steps}
     bar.set_postfix_str("timing " + ", ".join(steps))
+    start = bar.n
     while any(len(times[n]) < need[n] for n in steps):
         for name, step in steps.items():
             if len(times[name]) >= need[name]:
@@ -152,7 +154,7 @@ def time_cells(steps: Dict[str, Callable[[], object]], repeats: int | None, bar:
             t0 = time.perf_counter()
             step()
             times[name].append(time.perf_counter() - t0)
-            bar.update(1.0 / need[name])
+        bar.update(sum(len(times[n]) / need[n] for n in steps) + start - bar.n)
     return {
         n: {"median_ms": 1e3 * statistics.median(t), "min_ms": 1e3 * min(t), "repeats": len(t)}
         for n, t in times.items()
@@ -171,6 +173,7 @@ def main(argv=None) -> int:
 
     threads = args.threads or len(os.sched_getaffinity(0))
     torch.set_num_threads(threads)
+    load_start = os.getloadavg()
     batch_sizes = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
     gen = torch.Generator().manual_seed(args.seed)
 
@@ -291,21 +294,26 @@ def main(argv=None) -> int:
         "weight_density": density,
         "dtype": "float32",
         "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores",
+        "loadavg_1min": {"start": load_start[0], "end": os.getloadavg()[0]},
     })
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(results, indent=2))
 
     # ------------------------------------------------------------ table
-    hdr = (f"| B | torchhand ({default_layout}, default) ms | torchhand dense ms | torchhand sparse ms "
-           f"| smplx skinning ms | speedup | smplx full lbs ms |")
-    print()
-    print(hdr)
-    print("|---:|---:|---:|---:|---:|---:|---:|")
-    for B in batch_sizes:
-        r = results[f"B{B}"]
-        full = f"{r['smplx_full_lbs_ms']:.3f}" if "smplx_full_lbs_ms" in r else "-"
-        print(f"| {B} | {r['torchhand_ms']:.3f} | {r['torchhand_dense_ms']:.3f} | {r['torchhand_sparse_ms']:.3f} "
-              f"| {r['smplx_ms']:.3f} | {r['speedup']:.2f}x | {full} |")
+    cols = ["torchhand_dense", "torchhand_sparse", "smplx", "smplx_full_lbs"]
+    for what in ("median", "min"):
+        print(f"\n{what} ms of forward + backward ({threads} threads; torchhand default = {default_layout}):")
+        print("| B | torchhand dense | torchhand sparse CSR | smplx skinning | smplx full lbs | speedup |")
+        print("|---:|---:|---:|---:|---:|---:|")
+        for B in batch_sizes:
+            r = results[f"B{B}"]
+            if what == "median":
+                ms = {c: r.get(f"{c}_ms") for c in cols}
+            else:
+                ms = {c: r["min_ms"].get(c) for c in cols}
+            cells = [f"{ms[c]:.2f}" if ms[c] is not None else "-" for c in cols]
+            speed = ms["smplx"] / ms[f"torchhand_{default_layout}"]
+            print(f"| {B} | " + " | ".join(cells) + f" | {speed:.2f}x |")
     last = results[f"B{max(batch_sizes)}"]
     ok = last["speedup"] >= TARGET_SPEEDUP
     print(f"\nB={max(batch_sizes)}: speedup {last['speedup']:.2f}x "

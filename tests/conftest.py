@@ -28,6 +28,8 @@ warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta 
 
 def pytest_configure(config):
     config.addinivalue_line("filterwarnings", "ignore:Sparse CSR tensor support is in beta state:UserWarning")
+    # torch.autograd.functional.jacobian(vectorize=True) scripts helpers internally
+    config.addinivalue_line("filterwarnings", "ignore:`torch.jit.script` is deprecated:DeprecationWarning")
 
 HIA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "hands_in_action"
 SHIPPED_MODELS = ("hand_right", "hand_left", "ball", "cube", "pipe", "rope")

@@ -137,6 +137,23 @@ def test_to_float64_converts_every_floating_buffer(convert):
     assert back.vertices_rest.dtype == back.skinning_matrix.dtype == back.lower.dtype == torch.float32
 
 
+@pytest.mark.parametrize("name", ["hand_right", "rope"])
+def test_model_poses_and_differentiates_on_device_and_dtype(model64, name, device, dtype):
+    ref = model64(name)
+    model = load_model(name, dtype=dtype, device=device)
+    assert model.vertices_rest.device.type == device.type and model.skinning_matrix.dtype == dtype
+    theta = random_theta(ref, 2, torch.Generator().manual_seed(50))
+    out = model(theta.to(device, dtype))
+    assert out.vertices.device.type == device.type and out.vertices.dtype == dtype
+    tol = 1e-9 if dtype == F64 else 2e-3  # mm
+    assert (out.vertices.cpu().double() - ref(theta).vertices).abs().max() < tol
+    ids = torch.arange(0, model.num_vertices, 97, device=device)
+    J = model.jacobian(theta.to(device, dtype), ids)
+    J_ref = ref.jacobian(theta, ids.cpu())
+    assert J.device.type == device.type
+    assert ((J.cpu().double() - J_ref).abs().max() / J_ref.abs().max()) < (1e-12 if dtype == F64 else 1e-4)
+
+
 def test_float32_and_float64_models_agree(model64):
     m32 = load_model("hand_right")
     m64 = model64("hand_right")
@@ -160,9 +177,6 @@ def test_state_dict_round_trip_into_fresh_model(model64):
         assert torch.equal(a, b)
 
 
-@pytest.mark.xfail(strict=True, reason="ArticulatedModel: load_state_dict updates vertices_rest/skin_weight/"
-                   "rest_transforms but not the derived non-persistent buffers (skinning_matrix, slot_axis), "
-                   "so the loaded model still poses its old template")
 def test_load_state_dict_of_other_model_poses_the_loaded_template(tmp_thesis_model):
     t = tmp_thesis_model
     assets = assets_from_thesis(read_thesis_model(t.dir, t.name))
@@ -233,14 +247,11 @@ def _bone_length_change(model, theta):
     return (d - d0).abs().max().item()
 
 
-_NON_RIGID_REST = ("thesis hands: rest_transforms (MOTION row 0, 6 digits) are not orthonormal (~1.2e-6) and "
-                   "ArticulatedModel.__init__ builds slot_axis = R_rest @ slot_axes without renormalising, so "
-                   "rotation_about_axis gets non-unit axes and G is not rigid")
 
 
 @pytest.mark.parametrize("name", [
-    pytest.param("hand_right", marks=pytest.mark.xfail(strict=True, reason=_NON_RIGID_REST)),
-    pytest.param("hand_left", marks=pytest.mark.xfail(strict=True, reason=_NON_RIGID_REST)),
+    "hand_right",
+    "hand_left",
     "pipe",
     "rope",
 ])
@@ -258,8 +269,8 @@ def test_bone_lengths_stay_constant_with_orthonormalised_rest_frames(rigid_model
 
 
 @pytest.mark.parametrize("name", [
-    pytest.param("hand_right", marks=pytest.mark.xfail(strict=True, reason=_NON_RIGID_REST)),
-    pytest.param("hand_left", marks=pytest.mark.xfail(strict=True, reason=_NON_RIGID_REST)),
+    "hand_right",
+    "hand_left",
     "pipe",
     "rope",
 ])

@@ -97,10 +97,6 @@ def test_bounds_are_respected_at_every_evaluation():
     assert (res.cost < 0.1 * (r0 * r0).sum(-1)).all()
 
 
-@pytest.mark.xfail(strict=True, reason="levenberg_marquardt projects the full LM step onto the box: at an active "
-                   "bound the step of the free variables is the unconstrained one, so it is rejected and the "
-                   "damping crawls; after 100 iterations Rosenbrock with x <= 0.5 stops at y = 0.2505 "
-                   "(minimum 0.25) and a 2x2 linear problem with y >= -0.5 is off by 1.8e-3 in x")
 def test_active_bounds_reach_the_constrained_minimum():
     res = levenberg_marquardt(make_residuals(BOUNDED_KINDS), BOUNDED_THETA0, lower=BOUNDED_LOWER,
                               upper=BOUNDED_UPPER, max_iterations=100)

@@ -172,8 +172,6 @@ def test_motion_row_with_wrong_number_count_names_line(tmp_thesis_model):
     _names_file_and_line(err, path, 3)
 
 
-@pytest.mark.xfail(strict=True, reason="read_motion: a number row before any bone name is reported as "
-                   "'expected 12 numbers (R row-major + t), got 12' instead of a missing bone name")
 def test_motion_rows_before_any_bone_name_report_the_missing_name(tmp_thesis_model):
     t = tmp_thesis_model
     lines = list(t.lines["MOTION"])

@@ -53,50 +53,61 @@ class ArticulatedModel(nn.Module):
         self.bone_names: List[str] = list(assets.bone_names)
         self.dof_names: List[str] = assets.dof_names
         self.keypoint_names: List[str] = list(assets.keypoint_names)
-        J = assets.num_bones
         f = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype)  # noqa: E731
         i = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.int64)  # noqa: E731
 
-        rest = f(assets.rest_transforms)
+        # Persistent buffers: the assets themselves (saved in state_dict).
         self.register_buffer("vertices_rest", f(assets.vertices))
         self.register_buffer("faces", i(assets.faces))
         self.register_buffer("skin_index", i(assets.skin_index))
         self.register_buffer("skin_weight", f(assets.skin_weight))
-        self.register_buffer("rest_transforms", rest)
+        self.register_buffer("rest_transforms", f(assets.rest_transforms))
         self.register_buffer("bone_lengths", f(assets.bone_lengths))
         self.register_buffer("parents", i(assets.parents))
+        self.register_buffer("slot_axes", f(assets.slot_axes))
+        self.register_buffer("slot_used", torch.as_tensor(np.asarray(assets.slot_used, bool)))
+        self.register_buffer("slot_limits", f(assets.slot_limits))
         self.register_buffer("keypoint_bones", i(assets.keypoint_bones))
         self.register_buffer("keypoint_rest", f(assets.keypoint_rest))
+        self._derive()
+        # Derived buffers must follow the assets when a state_dict is loaded.
+        self.register_load_state_dict_post_hook(lambda module, keys: module._derive())
+
+    def _derive(self) -> None:
+        """(Re)build the non-persistent buffers that are functions of the assets:
+        the skinning matrix, the flattened tree (Eq. 4.4) and the limits."""
+        J = self.num_bones
+        dev, dt = self.rest_transforms.device, self.rest_transforms.dtype
+        i = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.int64, device=dev)  # noqa: E731
         self.register_buffer(
-            "skinning_matrix",
-            skinning_matrix(self.vertices_rest, self.skin_index, self.skin_weight, J),
+            "skinning_matrix", skinning_matrix(self.vertices_rest, self.skin_index, self.skin_weight, J),
             persistent=False,
         )
         # Dominant bone of each vertex: the thesis' segmentation into parts (Fig. 4.4).
         self.register_buffer("vertex_bone", self.skin_index[:, 0].clone(), persistent=False)
-
-        # Flatten the tree (Eq. 4.4) once: depth levels, DoF slots, axes in world frame.
+        parents = self.parents.cpu().numpy()
+        used = self.slot_used.cpu().numpy()
         depth = np.zeros(J, np.int64)
         for j in range(1, J):
-            depth[j] = depth[assets.parents[j]] + 1
+            depth[j] = depth[parents[j]] + 1
         self._num_levels = int(depth.max())
         for d in range(1, self._num_levels + 1):
             self.register_buffer(f"_level{d}", i(np.nonzero(depth == d)[0]), persistent=False)
         slot_dof = -np.ones((J, 3), np.int64)
-        slot_dof[assets.slot_used] = ROOT_DOFS + np.arange(int(assets.slot_used.sum()))
-        dof_bone = np.concatenate([np.zeros(ROOT_DOFS, np.int64), np.nonzero(assets.slot_used)[0]])
-        axes_world = np.einsum("jrc,jsc->jsr", assets.rest_transforms[:, :3, :3], assets.slot_axes)
+        slot_dof[used] = ROOT_DOFS + np.arange(int(used.sum()))
+        dof_bone = np.concatenate([np.zeros(ROOT_DOFS, np.int64), np.nonzero(used)[0]])
+        axes = torch.einsum("jrc,jsc->jsr", self.rest_transforms[:, :3, :3], self.slot_axes)
+        axes = axes / axes.norm(dim=-1, keepdim=True).clamp_min(1e-12) * self.slot_used[..., None]
         desc = np.eye(J, dtype=bool)
         for j in range(1, J):  # parents come first, so one pass fills all ancestors
-            desc[j] |= desc[assets.parents[j]]
-        lower = np.concatenate([np.full(ROOT_DOFS, -np.inf), assets.slot_limits[..., 0][assets.slot_used]])
-        upper = np.concatenate([np.full(ROOT_DOFS, np.inf), assets.slot_limits[..., 1][assets.slot_used]])
+            desc[j] |= desc[parents[j]]
+        inf = torch.full((ROOT_DOFS,), float("inf"), dtype=dt, device=dev)
         self.register_buffer("slot_dof", i(slot_dof), persistent=False)
-        self.register_buffer("slot_axis", f(axes_world), persistent=False)
+        self.register_buffer("slot_axis", axes, persistent=False)
         self.register_buffer("dof_bone", i(dof_bone), persistent=False)
-        self.register_buffer("descendants", torch.as_tensor(desc), persistent=False)
-        self.register_buffer("lower", f(lower), persistent=False)
-        self.register_buffer("upper", f(upper), persistent=False)
+        self.register_buffer("descendants", torch.as_tensor(desc, device=dev), persistent=False)
+        self.register_buffer("lower", torch.cat([-inf, self.slot_limits[..., 0][self.slot_used]]), persistent=False)
+        self.register_buffer("upper", torch.cat([inf, self.slot_limits[..., 1][self.slot_used]]), persistent=False)
 
     # ------------------------------------------------------------- properties
     @property

@@ -20,7 +20,7 @@ from typing import Dict
 import numpy as np
 import torch
 
-from .kinematics import so3_log
+from .kinematics import ROOT_DOFS, SLOT_ORDER, rotation_about_axis, so3_log
 from .model import ArticulatedModel
 from .skinning import lbs, lbs_jacobian
 from .solver import levenberg_marquardt
@@ -80,6 +80,7 @@ def motion_to_theta(
     theta0 = model.zero_pose(N)
     theta0[:, :3] = t
     theta0[:, 3:6] = so3_log(R)
+    theta0[:, ROOT_DOFS:] = _joint_angles_per_bone(model, M)
 
     # Four points per bone: origin and axis points, in the rigging pose.
     axes = torch.cat([rest.new_zeros(1, 3), _FRAME_SCALE * torch.eye(3, dtype=rest.dtype, device=rest.device)])
@@ -102,7 +103,7 @@ def motion_to_theta(
 
     theta = levenberg_marquardt(residuals, theta0, max_iterations=iterations, step_tolerance=1e-7).theta
     if refine_vertices <= 0:
-        return theta
+        return _wrap_angles(theta)
 
     V = model.num_vertices
     ids = torch.linspace(0, V - 1, min(refine_vertices, V), device=rest.device).round().long()
@@ -121,7 +122,54 @@ def motion_to_theta(
         Jac = lbs_jacobian(fk.G, fk.twists, v0, idx, w, tree.dof_bone, tree.descendants)
         return r, Jac.reshape(N, -1, model.num_dofs)
 
-    return levenberg_marquardt(vertex_residuals, theta, max_iterations=iterations, step_tolerance=1e-7).theta
+    return _wrap_angles(levenberg_marquardt(vertex_residuals, theta, max_iterations=iterations,
+                                            step_tolerance=1e-7).theta)
+
+
+def _wrap_angles(theta: torch.Tensor) -> torch.Tensor:
+    """Revolute angles into (-pi, pi]: the fit may land on a 2 pi-equivalent angle."""
+    a = theta[:, ROOT_DOFS:]
+    return torch.cat([theta[:, :ROOT_DOFS], torch.atan2(torch.sin(a), torch.cos(a))], 1)
+
+
+def _joint_angles_per_bone(model: ArticulatedModel, M: torch.Tensor) -> torch.Tensor:
+    """Initial joint angles (N, D - 6): each bone's slots fitted to its own rotation
+    relative to its parent, all bones and frames as one batch of small LM problems.
+
+    Starting the whole-skeleton fit from here instead of from zero avoids the local
+    minima of long chains (the rope's 35 joints)."""
+    N, J = M.shape[:2]
+    used = model.slot_used
+    bones = torch.nonzero(used.any(1))[:, 0]
+    if len(bones) == 0:
+        return M.new_zeros(N, 0)
+    par = model.parents[bones]
+    rel = M[:, par, :3, :3].transpose(-1, -2) @ M[:, bones, :3, :3]  # (N, n, 3, 3)
+    rest = model.rest_transforms
+    rel0 = rest[par, :3, :3].transpose(-1, -2) @ rest[bones, :3, :3]
+    target = (rel0.transpose(-1, -2) @ rel).reshape(-1, 3, 3)  # rotation in the bone frame
+    axes = (model.slot_axes * used[..., None])[bones].expand(N, -1, -1, -1).reshape(-1, 3, 3)
+
+    def rotation(x):  # x: (P, 3) -> (P, 3, 3), slots in SLOT_ORDER
+        R = torch.eye(3, dtype=x.dtype, device=x.device).expand(len(x), 3, 3)
+        for s in SLOT_ORDER:
+            R = R @ rotation_about_axis(axes[:, s], x[:, s])
+        return R
+
+    def residuals(x, with_jacobian):
+        r = (rotation(x) - target).reshape(len(x), 9)
+        if not with_jacobian:
+            return r, None
+        eps = 1e-6  # 3 parameters: central differences are exact enough for a start value
+        cols = [(rotation(x + eps * e) - rotation(x - eps * e)).reshape(len(x), 9) / (2 * eps)
+                for e in torch.eye(3, dtype=x.dtype, device=x.device)]
+        return r, torch.stack(cols, -1)
+
+    x = levenberg_marquardt(residuals, M.new_zeros(len(target), 3), max_iterations=30, step_tolerance=1e-9).theta
+    x = x.reshape(N, len(bones), 3)
+    out = M.new_zeros(N, J, 3)
+    out[:, bones] = x
+    return out[:, used]  # (N, D - 6) in DoF order (bones, then x, y, z slots)
 
 
 def pose_like_viewer(vertices: torch.Tensor, weights: torch.Tensor, M: torch.Tensor, M0: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ import open3d as o3d
 import torch
 import torch.nn.functional as F
 
-from torchhand.camera import Camera, _check_tensor, _fmt_shape, _transform
+from torchhand.camera import Camera, _check_tensor, _fmt_shape, _transform, project_points
 
 __all__ = ["RenderResult", "render", "silhouette_edges", "visible_vertices", "DEFAULT_EDGE_THRESHOLD_MM"]
 
@@ -77,7 +77,7 @@ def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESH
 
 
 @functools.lru_cache(maxsize=8)  # ~7 MB per 640x480 camera
-def _camera_rays(key: tuple) -> o3d.core.Tensor:
+def _camera_rays(key: tuple) -> np.ndarray:
     """World-frame rays (H, W, 6) through pixel centres, cached per camera.
 
     Directions are scaled to unit camera-frame z so open3d's ``t_hit`` (in units of the
@@ -93,11 +93,10 @@ def _camera_rays(key: tuple) -> o3d.core.Tensor:
     R, t = T[:3, :3], T[:3, 3]
     d_world = d_cam @ R  # row-vector form of R^T d
     origin = np.broadcast_to(-R.T @ t, d_world.shape)
-    rays = np.concatenate([origin, d_world], axis=-1).astype(np.float32)
-    return o3d.core.Tensor(np.ascontiguousarray(rays))
+    return np.ascontiguousarray(np.concatenate([origin, d_world], axis=-1).astype(np.float32))
 
 
-def _rays_for(camera: Camera) -> o3d.core.Tensor:
+def _rays_for(camera: Camera) -> np.ndarray:
     key = (
         tuple(camera.K.detach().cpu().double().flatten().tolist()),
         tuple(camera.T_cw.detach().cpu().double().flatten().tolist()),
@@ -105,6 +104,31 @@ def _rays_for(camera: Camera) -> o3d.core.Tensor:
         camera.height,
     )
     return _camera_rays(key)
+
+
+def _regions_of_interest(vertices: torch.Tensor, camera: Camera) -> list:
+    """Per batch element, the pixel box (r0, r1, c0, c1) that can contain hits.
+
+    The bounding box of the projected vertices, widened by 2 px; the whole image when
+    some vertex lies at or behind the camera plane (its projection is unbounded).
+    """
+    cam = camera.to(device=vertices.device, dtype=vertices.dtype)
+    pc = cam.to_camera(vertices)
+    z = pc[..., 2]
+    safe = torch.where((z > 1e-3)[..., None], pc, pc.new_tensor([0.0, 0.0, 1.0]))
+    uv = project_points(safe, cam.K)
+    lo = (uv.amin(1).floor() - 2).cpu().numpy()
+    hi = (uv.amax(1).ceil() + 3).cpu().numpy()
+    behind = (z.amin(1) <= 1e-3).cpu().numpy()
+    out = []
+    for b in range(vertices.shape[0]):
+        if behind[b]:
+            out.append((0, camera.height, 0, camera.width))
+            continue
+        c0, r0 = (int(np.clip(x, 0, m)) for x, m in zip(lo[b], (camera.width, camera.height)))
+        c1, r1 = (int(np.clip(x, 0, m)) for x, m in zip(hi[b], (camera.width, camera.height)))
+        out.append((r0, r1, c0, c1))
+    return out
 
 
 def _check_ids(name: str, ids: torch.Tensor | None, num_faces: int, like: torch.Tensor) -> torch.Tensor:
@@ -172,14 +196,19 @@ def render(
         rays = _rays_for(camera)
         verts_np = np.ascontiguousarray(vertices.to("cpu", torch.float32).numpy())
         faces_o3d = o3d.core.Tensor(faces.cpu().numpy().astype(np.uint32))
+        rois = _regions_of_interest(vertices, camera)
         # open3d builds one BVH per scene, so each batch element needs its own scene.
         for b in range(B):
+            r0, r1, c0, c1 = rois[b]
+            if r1 <= r0 or c1 <= c0:
+                continue  # nothing projects into the image
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.core.Tensor(verts_np[b]), faces_o3d)
-            hit = scene.cast_rays(rays)
-            t_hit[b] = hit["t_hit"].numpy()
-            prim[b] = hit["primitive_ids"].numpy()
-            uvs[b] = hit["primitive_uvs"].numpy()
+            # Only pixels inside the projected bounding box can be hit.
+            hit = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[r0:r1, c0:c1])))
+            t_hit[b, r0:r1, c0:c1] = hit["t_hit"].numpy()
+            prim[b, r0:r1, c0:c1] = hit["primitive_ids"].numpy()
+            uvs[b, r0:r1, c0:c1] = hit["primitive_uvs"].numpy()
 
     t_hit_t = torch.from_numpy(t_hit).to(device)
     hit_mask = torch.isfinite(t_hit_t)

@@ -82,6 +82,8 @@ def levenberg_marquardt(
     r, J = residuals(theta, True)
     cost = (r * r).sum(-1)
     for it in range(max_iterations):
+        if lower is not None or upper is not None:
+            J = _freeze_active_bounds(J, r, theta, lower, upper)
         delta = solve_damped(J, r, lam)
         cand = _clamp(theta + delta, lower, upper)
         r_new, _ = residuals(cand, False)
@@ -97,6 +99,21 @@ def levenberg_marquardt(
         if it + 1 < max_iterations:
             r, J = residuals(theta, True)
     return LMResult(theta, cost, iters, done, lam)
+
+
+def _freeze_active_bounds(J, r, theta, lower, upper):
+    """Zero the Jacobian columns of variables held at a bound by the gradient.
+
+    Without this, clamping the full step moves the free variables by a step computed
+    as if the held ones could move too; that step is rejected and the damping crawls.
+    """
+    g = (J.transpose(1, 2) @ r[..., None])[..., 0]  # gradient of 0.5 |r|^2
+    held = torch.zeros_like(theta, dtype=torch.bool)
+    if lower is not None:
+        held |= (theta <= lower) & (g > 0)
+    if upper is not None:
+        held |= (theta >= upper) & (g < 0)
+    return J * (~held)[:, None, :]
 
 
 def _clamp(theta, lower, upper):

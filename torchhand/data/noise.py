@@ -79,12 +79,19 @@ class KinectNoise:
     (i.e. ``sigma_L [mm] = sigma_L [px] * z / f``). It is applied as an independent
     per-pixel, per-axis Gaussian shift of the position where the clean depth is
     sampled, rounded to whole pixels (nearest-neighbour sampling), so edges become
-    jagged but no depth value that was not in the input is invented.
+    jagged but no depth value that was not in the input is invented. Nguyen et al.
+    measured ``sigma_L`` as the scatter of *edge* pixels; on a smooth surface a shift
+    would only add ``slope * shift`` of extra axial noise, which their ``sigma_z`` (fit
+    on tilted planes) already contains. So a pixel takes the shifted sample only if it
+    differs from its own depth by more than ``lateral_min_jump_mm``.
 
     Attributes:
         lateral_sigma0_px: constant term, 0.8 px (Nguyen et al. 2012). Both lateral
             coefficients 0 disables lateral noise.
         lateral_sigma_angle_px: angular coefficient, 0.035 px (Nguyen et al. 2012).
+        lateral_min_jump_mm: depth difference (mm) above which the shifted sample is
+            taken, 10 mm (the renderer's silhouette-edge threshold; a modelling choice,
+            no literature value). 0 applies the shift everywhere.
 
     Projector shadows: the projector sits ``baseline_mm`` beside the IR camera, so
     surfaces the camera sees but the projector does not (a band on the far side of an
@@ -103,9 +110,9 @@ class KinectNoise:
             projector ray by more than this (px); absorbs ray-casting round-off.
 
     Grazing-angle dropout: the reflected pattern becomes too weak and too stretched to
-    correlate at grazing incidence. Nguyen et al. 2012 fit their model only up to about
-    70 degrees and report that measurements beyond become unreliable or missing; the
-    ramp below is a heuristic on top of that.
+    correlate at grazing incidence. Nguyen et al. 2012's angle terms grow without bound
+    as the angle approaches 90 degrees and their measurements cover moderate angles
+    only; the ramp below (start and end angles) is a heuristic, not from the paper.
 
     Attributes:
         grazing_start_deg: angle (deg) at which dropout begins, 70.
@@ -139,6 +146,7 @@ class KinectNoise:
     axial_sigma_angle_mm: float = 0.1
     lateral_sigma0_px: float = 0.8
     lateral_sigma_angle_px: float = 0.035
+    lateral_min_jump_mm: float = 10.0
     shadows: bool = True
     projector_on_right: bool = True
     shadow_tolerance_px: float = 0.25
@@ -169,6 +177,7 @@ class KinectNoise:
             "axial_sigma_angle_mm",
             "lateral_sigma0_px",
             "lateral_sigma_angle_px",
+            "lateral_min_jump_mm",
             "shadow_tolerance_px",
             "grazing_start_deg",
             "holes_per_frame",
@@ -283,8 +292,8 @@ def _check_inputs(depth, normals, K, params, generator) -> None:
         if lo < 0:
             raise ValueError(f"depth contains negative values (min {lo}); use 0 for missing pixels")
     if normals is not None and normals.numel():
-        total = float(normals.detach().sum(dtype=torch.float64))
-        if not math.isfinite(total):
+        # A float32 sum is finite iff all entries are (barring overflow: then check exactly).
+        if not math.isfinite(float(normals.detach().sum())) and not bool(torch.isfinite(normals).all()):
             raise ValueError("normals contains NaN or inf")
     if not bool(torch.isfinite(K).all()):
         raise ValueError("K contains NaN or inf")
@@ -399,7 +408,7 @@ def _rand(shape, generator, device, dtype):
 
 
 def _random_holes(B, H, W, params, generator, device):
-    """(B, H, W) bool mask of a Poisson number of random disks per frame, or None if there are none."""
+    """Flat (B * H * W) indices of the pixels of a Poisson number of random disks per frame; None if none."""
     gdev = generator.device if generator is not None else torch.device(device)
     counts = torch.poisson(torch.full((B,), float(params.holes_per_frame), device=gdev), generator=generator)
     M = int(counts.max().item())
@@ -417,9 +426,7 @@ def _random_holes(B, H, W, params, generator, device):
     keep = (du * du + dv * dv <= (radius * radius)[..., None]) & (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
     keep &= (torch.arange(M, device=device).view(1, M) < counts.to(device).view(B, 1))[..., None]
     flat = (torch.arange(B, device=device).view(B, 1, 1) * H + vv) * W + uu
-    mask = torch.zeros(B * H * W, dtype=torch.bool, device=device)
-    mask[flat[keep]] = True
-    return mask.view(B, H, W)
+    return flat[keep]
 
 
 # --------------------------------------------------------------------------- public API
@@ -438,19 +445,22 @@ def apply_kinect_noise(
     Steps, in order (each vectorised over the batch and all pixels):
 
     1. incidence angle per pixel, from ``normals`` or estimated from ``depth``;
-    2. projector shadows on the clean depth (exact per-row visibility test);
-    3. lateral noise: each pixel takes depth (and angle) from the pixel at a random
-       integer offset ``round(sigma_L(angle) * N(0, 1))`` per axis (clamped to the
-       image), so empty/shadowed pixels spread into edges and vice versa;
+    2. surface points the sensor cannot measure are removed from the clean depth:
+       projector shadows (exact per-row visibility test) and grazing-angle dropout
+       (probability ramping linearly from ``grazing_start_deg`` to ``grazing_full_deg``);
+    3. lateral noise: each pixel looks up the pixel at a random integer offset
+       ``round(sigma_L(angle) * N(0, 1))`` per axis (clamped to the image) and takes
+       its depth if the two differ by more than ``lateral_min_jump_mm`` (i.e. across a
+       depth edge or a hole), so edges and hole borders become jagged without new
+       depth values being invented;
     4. axial Gaussian noise ``sigma_z(z, angle)``;
     5. disparity quantisation to ``disparity_resolution_px`` (``z = f b / d``);
-    6. dropout with probability ramping from ``grazing_start_deg`` to
-       ``grazing_full_deg`` of incidence;
-    7. a Poisson number of random small disk-shaped holes per frame;
-    8. range clipping to ``[min_depth_mm, max_depth_mm]``.
+    6. range clipping to ``[min_depth_mm, max_depth_mm]``;
+    7. a Poisson number of random small disk-shaped holes per frame.
 
-    Random numbers are drawn in this order, only for enabled steps: lateral (2, B, H, W)
-    normal, axial (B, H, W) normal, dropout (B, H, W) uniform, hole counts and holes.
+    Random numbers are drawn in this order, only for enabled steps: dropout (B, H, W)
+    uniform; lateral and axial normals in one (n, B, H, W) draw (lateral first); hole
+    counts (Poisson) and hole centres/radii.
 
     Args:
         depth: (B, H, W) clean depth in mm (float), 0 where empty. Not modified.
@@ -479,72 +489,74 @@ def apply_kinect_noise(
         return torch.zeros((B, H, W), dtype=dt, device=device)
     z = depth.detach().to(dt)
     Kb = K.detach().to(device=device, dtype=dt).reshape(-1, 3, 3)
-    if Kb.shape[0] == 1:
-        fx = float(Kb[0, 0, 0])
-    else:
-        fx = Kb[:, 0, 0].view(B, 1, 1)
+    fx = float(Kb[0, 0, 0]) if Kb.shape[0] == 1 else Kb[:, 0, 0].view(B, 1, 1)
     fb = (fx if params.focal_px is None else float(params.focal_px)) * params.baseline_mm
     valid = z > 0
 
-    # 1. incidence angle (as theta / (pi/2 - theta), which both sigma formulas use)
-    cos = _incidence_cos(z, valid, None if normals is None else normals.detach(), Kb)
-    angle = torch.acos_(cos)
+    # 1. incidence angle; both sigma formulas use ratio = theta / (pi/2 - theta)
+    angle = torch.acos_(_incidence_cos(z, valid, None if normals is None else normals.detach(), Kb))
     ratio = angle.clamp_max(_MAX_ANGLE)
     ratio = ratio.div_(ratio.neg().add_(math.pi / 2))
 
-    # 2. projector shadows (geometry: computed on the clean depth)
-    if params.shadows:
-        shadow = _projector_shadow(z, valid, fx, params)
-        valid = valid & ~shadow
-        z = torch.where(shadow, 0.0, z)
-
-    # 3. lateral noise: nearest-neighbour resampling at a random integer offset
-    if params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0:
-        sigma_l = (ratio * params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)
-        shift = _randn((2, B, H, W), generator, device, dt).mul_(sigma_l).round_()
-        vs = shift[0].add_(torch.arange(H, device=device, dtype=dt).view(1, H, 1)).clamp_(0, H - 1)
-        us = shift[1].add_(torch.arange(W, device=device, dtype=dt).view(1, 1, W)).clamp_(0, W - 1)
-        idx = vs.mul_(W).add_(us).view(B, H * W).long()
-        z = torch.gather(z.view(B, H * W), 1, idx).view(B, H, W)
-        valid = z > 0
-        if params.axial_sigma_angle_mm > 0:
-            ratio = torch.gather(ratio.view(B, H * W), 1, idx).view(B, H, W)
-        if params.grazing_start_deg < 90.0:
-            angle = torch.gather(angle.view(B, H * W), 1, idx).view(B, H, W)
-
-    # 4. axial noise, the Gaussian's variance reduced by the quantisation's q^2 / 12
-    res = params.disparity_resolution_px
-    if params.axial_sigma0_mm > 0 or params.axial_sigma_quad_mm > 0 or params.axial_sigma_angle_mm > 0:
-        z_m = z * 1e-3
-        sigma = (z_m - params.axial_z0_m).square_().mul_(params.axial_sigma_quad_mm).add_(params.axial_sigma0_mm)
-        if params.axial_sigma_angle_mm > 0:
-            sigma.add_(ratio.square().mul_(params.axial_sigma_angle_mm).mul_(z_m.clamp_min_(1e-6).rsqrt_()))
-        if res > 0 and params.compensate_quantisation:
-            var = sigma.square()
-            q2 = z.square().square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z * z * res / fb) ** 2 / 12.0
-            sigma = torch.maximum(var - q2, var * 0.25).sqrt_()
-        z = torch.addcmul(z, sigma, _randn((B, H, W), generator, device, dt))
-
-    # 5. disparity quantisation: k = round(d / res) disparity levels, z = f b / (k res)
-    if res > 0:
-        k = torch.div(fb / res, z).round_()
-        z = torch.div(fb / res, k)  # k <= 0 (z <= 0) gives z <= 0 or inf: removed by the range check
-
-    # 6. grazing-angle dropout
+    # 2. unmeasurable surface points: projector shadow, grazing-angle dropout
+    drop = _projector_shadow(z, valid, fx, params) if params.shadows else None
     if params.grazing_start_deg < 90.0:
         a0, a1 = math.radians(params.grazing_start_deg), math.radians(params.grazing_full_deg)
         p_drop = angle.sub_(a0).mul_(1.0 / (a1 - a0))
-        valid &= _rand((B, H, W), generator, device, dt) >= p_drop
+        grazing = _rand((B, H, W), generator, device, dt) < p_drop
+        drop = grazing if drop is None else drop.logical_or_(grazing)
+    if drop is not None:
+        z = z.masked_fill(drop, 0.0)
+
+    lateral = params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0
+    axial = params.axial_sigma0_mm > 0 or params.axial_sigma_quad_mm > 0 or params.axial_sigma_angle_mm > 0
+    noise = _randn((2 * lateral + axial, B, H, W), generator, device, dt) if lateral or axial else None
+
+    # 3. lateral noise: nearest-neighbour lookup at a random integer offset
+    if lateral:
+        shift = noise[:2].mul_(ratio.mul(params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)).round_()
+        vs = shift[0].add_(torch.arange(H, device=device, dtype=dt).view(1, H, 1)).clamp_(0, H - 1)
+        us = shift[1].add_(torch.arange(W, device=device, dtype=dt).view(1, 1, W)).clamp_(0, W - 1)
+        idx = vs.mul_(W).add_(us).view(B, H * W).long()
+        z_s = torch.gather(z.view(B, H * W), 1, idx).view(B, H, W)
+        if params.lateral_min_jump_mm > 0:
+            take = (z_s - z).abs_() > params.lateral_min_jump_mm
+            z = torch.where(take, z_s, z)
+        else:
+            take, z = None, z_s
+        if axial and params.axial_sigma_angle_mm > 0:
+            ratio_s = torch.gather(ratio.view(B, H * W), 1, idx).view(B, H, W)
+            ratio = ratio_s if take is None else torch.where(take, ratio_s, ratio)
+    valid = z > 0
+
+    # 4. axial noise, the Gaussian's variance reduced by the quantisation's q^2 / 12
+    res = params.disparity_resolution_px
+    if axial:
+        z_m = z * 1e-3
+        sigma = (z_m - params.axial_z0_m).square_().mul_(params.axial_sigma_quad_mm).add_(params.axial_sigma0_mm)
+        if params.axial_sigma_angle_mm > 0:
+            sigma.addcmul_(ratio.square_(), z_m.clamp_min_(1e-6).rsqrt_(), value=params.axial_sigma_angle_mm)
+        if res > 0 and params.compensate_quantisation:
+            var = sigma.square_()
+            z2 = z.square()
+            q2 = z2.square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z2 * res / fb).square_() / 12.0
+            sigma = torch.maximum(var - q2, var.mul_(0.25)).sqrt_()
+        z = z.addcmul(sigma, noise[-1])
+
+    # 5. disparity quantisation: k = round(d / res) disparity levels, z = f b / (k res)
+    if res > 0:
+        z = torch.div(fb / res, torch.div(fb / res, z).round_())  # z <= 0 gives z <= 0 or inf: dropped below
+
+    # 6. range clipping (and the pixels that were empty before the noise)
+    valid &= (z >= max(params.min_depth_mm, 1e-3)) & (z <= params.max_depth_mm)
+    z = torch.where(valid, z, 0.0)
 
     # 7. random holes
     if params.holes_per_frame > 0:
         holes = _random_holes(B, H, W, params, generator, device)
         if holes is not None:
-            valid &= ~holes
-
-    # 8. range clipping
-    valid &= (z >= max(params.min_depth_mm, 1e-3)) & (z <= params.max_depth_mm)
-    return torch.where(valid, z, 0.0)
+            z.view(-1)[holes] = 0.0
+    return z
 
 
 #: Named noise models; ``None`` means clean depth.

@@ -197,6 +197,10 @@ def assets_from_thesis(
 
     if files.motion is not None:
         rest = np.stack([files.motion[b][0] for b in order])
+        # MOTION stores 6 significant digits, so its rotations are off by ~1e-6; project
+        # them onto SO(3) so that posed bones stay exactly rigid.
+        U, _, Vt = np.linalg.svd(rest[:, :3, :3])
+        rest[:, :3, :3] = U @ Vt
     else:
         rest = _rest_from_skeleton(order, parents, lengths, path)
 

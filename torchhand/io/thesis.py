@@ -298,6 +298,8 @@ def read_motion(path) -> Dict[str, np.ndarray]:
         if _is_number_row(text) and cur is not None and len(toks) == 12:
             bones[cur].append(_floats(path, i, text, 12))
             continue
+        if _is_number_row(text) and cur is None:
+            raise _fail(path, "a row of numbers before the first bone name", i)
         if _is_number_row(text):
             raise _fail(path, f"expected 12 numbers (R row-major + t), got {len(toks)}", i)
         cur = text.strip()
