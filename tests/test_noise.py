@@ -234,6 +234,9 @@ def test_empty_stays_empty_no_nan_and_output_format():
     assert bool(torch.isfinite(out).all())
     assert depth.dtype == torch.float64  # input untouched
     assert apply_kinect_noise(torch.zeros(0, H, W), None, K).shape == (0, H, W)
+    # Non-contiguous input is fine.
+    transposed = torch.full((1, W, H), 800.0).transpose(1, 2)
+    assert _valid_fraction(apply_kinect_noise(transposed, None, K, generator=_gen())) > 0.95
 
 
 def test_wrong_inputs_raise_naming_the_argument():

@@ -13,10 +13,16 @@ __all__ = ["main"]
 def _demo(args) -> int:
     from .demo import run_demo
 
-    summary = run_demo(args.out, frames=args.frames, force=args.force, device=args.device)
+    summary = run_demo(args.out, frames=args.frames, force=args.force, device=args.device,
+                       track_frames=args.track_frames)
     print(f"rendered {summary['frames']} frames of {', '.join(summary['models'])} "
           f"({summary['dofs']} DoF, {summary['render_ms_per_frame']:.1f} ms/frame to render)")
-    print(f"wrote {args.out}/overlays/*.png, {args.out}/demo.mp4, {args.out}/summary.json")
+    t = summary["tracking"]
+    if t:
+        print(f"tracked {t['frames']} synthetic Kinect frames from the first-frame pose: "
+              f"mean error {t['mean_px']:.2f} px, {t['mean_mm']:.2f} mm ({t['seconds_per_frame']:.1f} s/frame)")
+    print(f"wrote {args.out}/overlays/*.png, {args.out}/demo.mp4, {args.out}/track/, {args.out}/eval.json, "
+          f"{args.out}/summary.json")
     return 0
 
 
@@ -97,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="pose, render and draw the default scene through a short motion")
     p.add_argument("--out", type=Path, required=True, help="output folder (created; must be new or empty)")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: all 60)")
+    p.add_argument("--track-frames", type=int, default=8, help="frames to synthesise and track (0: skip)")
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.set_defaults(func=_demo)

@@ -33,6 +33,8 @@ class PreprocessConfig:
         None disables it.
     canny: (low, high) thresholds of Canny on the depth map quantised to
         ``canny_mm_per_level`` mm per 8-bit level.
+    hole_size: px, holes up to about this size inside the data are sensor dropouts,
+        not silhouettes, and produce no depth-discontinuity pixels.
     """
 
     near: float = 200.0
@@ -42,6 +44,7 @@ class PreprocessConfig:
     bilateral: Optional[tuple] = (5, 15.0, 3.0)
     canny: tuple = (20, 60)
     canny_mm_per_level: float = 2.0
+    hole_size: int = 7
 
 
 class DepthFrame(NamedTuple):
@@ -94,9 +97,12 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     q = np.clip(np.where(valid, d, config.far) / config.canny_mm_per_level, 0, 255 * 64)
     q8 = cv2.convertScaleAbs(q - np.median(q[valid]) + 128)
     canny = cv2.Canny(q8, config.canny[0], config.canny[1], L2gradient=True) > 0
-    # near side = a valid pixel next to background or to a pixel > 10 mm farther
+    # near side = a valid pixel next to background or to a pixel > 10 mm farther.
+    # Small holes (sensor dropouts) are closed first: their borders are not silhouettes.
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (config.hole_size, config.hole_size))
+    closed = cv2.morphologyEx(valid.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
     far_neighbour = cv2.dilate(np.where(valid, d, 1e9).astype(np.float32), np.ones((3, 3))) > d + 10.0
-    touches_background = ~cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    touches_background = ~cv2.erode(closed, np.ones((3, 3), np.uint8)).astype(bool)
     edges = canny & valid & (far_neighbour | touches_background)
     # 3x3 average over valid pixels (thesis: depth at discontinuities is unreliable).
     s = cv2.blur(d, (3, 3))

@@ -11,7 +11,7 @@ independent problems that share every tensor operation.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, NamedTuple, Optional, Sequence
+from typing import Callable, List, NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -29,7 +29,8 @@ __all__ = ["TrackerConfig", "FrameResult", "Tracker", "label_data"]
 
 @dataclass
 class TrackerConfig:
-    """energy: terms (``LO``); metric: m2d distance; max_iterations: per frame (the
+    """energy: terms (``LO``); metric: m2d distance; inner_iterations: LM steps per
+    correspondence update (1 = the thesis' alternation); max_iterations: per frame (the
     thesis' i_thr); first_frame_iterations: for frame 0 (50 in the thesis);
     min_vertex_motion: mm, convergence when every vertex moves less in an iteration;
     recover_factor: a frame whose energy per correspondence exceeds this multiple of
@@ -39,6 +40,7 @@ class TrackerConfig:
 
     energy: str = "LO"
     metric: str = "point-to-point"
+    inner_iterations: int = 1
     max_iterations: int = 50
     first_frame_iterations: int = 50
     min_vertex_motion: float = 0.2
@@ -144,7 +146,8 @@ class Tracker:
                 count = sum(t.count for t in self.data_terms).to(theta)
                 for t in self.prior_terms:
                     t.prepare(state, count)
-                res = levenberg_marquardt(fn, theta, lower, upper, max_iterations=1, damping=damping)
+                res = levenberg_marquardt(fn, theta, lower, upper, max_iterations=self.config.inner_iterations,
+                                         damping=damping)
                 moved = (self.scene(res.theta, validate=False).vertices - state.posed.vertices).norm(dim=-1).amax(-1)
             theta = torch.where(active[:, None], res.theta, theta)
             damping = torch.where(active, res.damping, damping)
@@ -228,7 +231,8 @@ class Tracker:
 
 # ------------------------------------------------------------ sequence folders
 def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(), device: str = "cpu",
-                    viz: bool = False, force: bool = False, progress: bool = True) -> List[dict]:
+                    viz: bool = False, force: bool = False, progress: bool = True,
+                    make_terms: Optional[Callable[[], List[EnergyTerm]]] = None) -> List[dict]:
     """Track sequence folders (datasets/README.md layout) and write their results.
 
     Sequences with the same models are solved as one batch, frame by frame; ``gt/``
@@ -236,7 +240,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     (theta.npy, keypoints_3d.npy, keypoints_2d.npy, meta.json with per-frame
     ``valid`` flags), ``motion/<Model>.MOTION`` per model (thesis format: row 0 is
     the rigging pose, row k+1 is frame k), ``track_log.json``, and with ``viz``
-    overlay PNGs.
+    overlay PNGs. ``make_terms`` builds custom energy terms per batch (default: from
+    ``config.energy``).
     """
     import json
     import time
@@ -267,7 +272,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     summaries = []
     for models, members in groups.items():
         scene = Scene.from_names(list(models), device=device)
-        tracker = Tracker(scene, config)
+        tracker = Tracker(scene, config, make_terms() if make_terms is not None else None)
         init = []
         for k in members:
             th = read_init_pose(roots[k])

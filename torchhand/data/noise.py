@@ -487,7 +487,7 @@ def apply_kinect_noise(
     dt = torch.float32
     if depth.numel() == 0:
         return torch.zeros((B, H, W), dtype=dt, device=device)
-    z = depth.detach().to(dt)
+    z = depth.detach().to(dt).contiguous()
     Kb = K.detach().to(device=device, dtype=dt).reshape(-1, 3, 3)
     fx = float(Kb[0, 0, 0]) if Kb.shape[0] == 1 else Kb[:, 0, 0].view(B, 1, 1)
     fb = (fx if params.focal_px is None else float(params.focal_px)) * params.baseline_mm
@@ -517,7 +517,10 @@ def apply_kinect_noise(
         shift = noise[:2].mul_(ratio.mul(params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)).round_()
         vs = shift[0].add_(torch.arange(H, device=device, dtype=dt).view(1, H, 1)).clamp_(0, H - 1)
         us = shift[1].add_(torch.arange(W, device=device, dtype=dt).view(1, 1, W)).clamp_(0, W - 1)
-        idx = vs.mul_(W).add_(us).view(B, H * W).long()
+        if H * W <= 2**24:  # exact in float32
+            idx = vs.mul_(W).add_(us).view(B, H * W).long()
+        else:
+            idx = vs.long().mul_(W).add_(us.long()).view(B, H * W)
         z_s = torch.gather(z.view(B, H * W), 1, idx).view(B, H, W)
         if params.lateral_min_jump_mm > 0:
             take = (z_s - z).abs_() > params.lateral_min_jump_mm
@@ -540,7 +543,7 @@ def apply_kinect_noise(
             var = sigma.square_()
             z2 = z.square()
             q2 = z2.square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z2 * res / fb).square_() / 12.0
-            sigma = torch.maximum(var - q2, var.mul_(0.25)).sqrt_()
+            sigma = torch.maximum(var - q2, var * 0.25).sqrt_()
         z = z.addcmul(sigma, noise[-1])
 
     # 5. disparity quantisation: k = round(d / res) disparity levels, z = f b / (k res)

@@ -1,0 +1,63 @@
+"""Evaluation speed: 10 sequences x 200 frames scored in one call.
+
+    python eval/bench_eval.py --json out/bench_eval.json [--sequences 10] [--frames 200] [--workers 2]
+
+Ground truth is built from the demo motion (two hands and the ball, looped and
+perturbed), predictions are perturbed copies; both in the gt/ layout. Times
+``evaluate_many`` without and with the penetration measures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _common import machine, write_json
+from torchhand.camera import kinect_camera
+from torchhand.data.layout import Poses, write_poses
+from torchhand.demo import load_demo_motion
+from torchhand.evaluation import evaluate_many
+from torchhand.scene import Scene
+
+
+def make_pair(root: Path, k: int, scene: Scene, theta: torch.Tensor, cam, frames: int):
+    rng = np.random.default_rng(k)
+    idx = np.arange(frames) % len(theta)
+    th = theta[idx].double().numpy()
+    pred = th + rng.normal(0, 0.01, th.shape)
+    for name, t in (("gt", th), ("pred", pred)):
+        with torch.no_grad():
+            kp = scene(torch.as_tensor(t, dtype=torch.float32)).keypoints
+        poses = Poses(t, cam.to_camera(kp).numpy()[:, None], cam.project(kp).numpy()[:, None], list(scene.names),
+                      scene.dof_names, scene.keypoint_names)
+        write_poses(root / f"seq{k:02d}" / name, poses)
+    return root / f"seq{k:02d}" / "pred", root / f"seq{k:02d}" / "gt"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--sequences", type=int, default=10)
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args(argv)
+    names, theta = load_demo_motion()
+    scene = Scene.from_names(names)
+    cam = kinect_camera()
+    result = {"sequences": args.sequences, "frames": args.frames, "workers": args.workers, **machine()}
+    with tempfile.TemporaryDirectory() as tmp:
+        pairs = [make_pair(Path(tmp), k, scene, theta, cam, args.frames) for k in range(args.sequences)]
+        for key, pen in (("keypoints_seconds", False), ("with_penetration_seconds", True)):
+            t0 = time.perf_counter()
+            evaluate_many(pairs, workers=args.workers, with_penetration=pen, progress=False)
+            result[key] = time.perf_counter() - t0
+    write_json(args.json, result)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,45 @@
+"""Depth rendering speed: 640x480, two thesis hands plus the ball (demo motion poses).
+
+    python eval/bench_render.py --json out/bench_render.json [--frames 30]
+
+Writes {"fps": f, "ms_per_frame": t, "triangles": n, ...}. One open3d RaycastingScene is
+built per frame (the meshes deform), and only the pixels inside the projected bounding
+box of the scene are cast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from _common import machine, write_json
+from torchhand.camera import kinect_camera
+from torchhand.demo import load_demo_motion
+from torchhand.render import render
+from torchhand.scene import Scene
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--frames", type=int, default=30)
+    args = ap.parse_args(argv)
+    names, theta = load_demo_motion()
+    scene = Scene.from_names(names)
+    cam = kinect_camera()
+    with torch.no_grad():
+        verts = scene(theta[: args.frames]).vertices
+    render(verts[:1], scene.faces, cam, scene.face_model_id, scene.face_bone_id)  # warm-up (ray cache)
+    t0 = time.perf_counter()
+    for k in range(len(verts)):
+        render(verts[k : k + 1], scene.faces, cam, scene.face_model_id, scene.face_bone_id)
+    dt = (time.perf_counter() - t0) / len(verts)
+    write_json(args.json, {"fps": 1.0 / dt, "ms_per_frame": 1000 * dt, "frames": len(verts),
+                           "triangles": int(scene.faces.shape[0]), "image": [640, 480], "models": names, **machine()})
+
+
+if __name__ == "__main__":
+    main()

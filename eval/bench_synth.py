@@ -1,0 +1,42 @@
+"""Synthesis speed: 640x480 depth of two hands and an object, written as a sequence.
+
+    python eval/bench_synth.py --json out/bench_synth.json [--frames 60] [--noise kinect]
+
+Times ``write_synthetic_sequence`` on the shipped demo motion (two hands and the ball):
+posing, ray casting, the noise model and PNG writing, depth only and depth + RGB.
+Writes {"depth_fps": a, "depth_rgb_fps": b, ...}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+from _common import machine, write_json
+from torchhand.camera import kinect_camera
+from torchhand.data.synth import SyntheticFrames, write_synthetic_sequence
+from torchhand.demo import load_demo_motion
+from torchhand.scene import Scene
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--noise", default="kinect")
+    args = ap.parse_args(argv)
+    names, theta = load_demo_motion()
+    frames = SyntheticFrames(Scene.from_names(names), theta[: args.frames], [kinect_camera()], "bench", {})
+    result = {"frames": len(frames.theta), "noise": args.noise, "models": names, **machine()}
+    with tempfile.TemporaryDirectory() as tmp:
+        for key, rgb in (("depth_fps", False), ("depth_rgb_fps", True)):
+            t0 = time.perf_counter()
+            write_synthetic_sequence(frames, Path(tmp) / key, noise=args.noise, rgb=rgb, progress=False)
+            result[key] = len(frames.theta) / (time.perf_counter() - t0)
+    write_json(args.json, result)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""Tracking experiments on renders of the thesis motions (docs/results.md).
+
+    python eval/exp_tracking.py lo --hia-root ../shared/data/hands_in_action --frames 20 --work out/exp --json out/exp_lo.json
+    python eval/exp_tracking.py m2d --hia-root ../shared/data/hands_in_action --sequences 09,16 --frames 10 --work out/exp --json out/exp_m2d.json
+
+``lo``: every sequence with MOTION files is rendered with the kinect noise model
+(frames 0..F-1), tracked with LO from its first-frame pose (``gt/`` is not read by
+the tracker) and scored; same-scene sequences are tracked as one batch.
+``m2d``: model-to-data alone, point-to-point vs point-to-plane, for several
+iteration budgets (thesis Table 4.2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from torchhand.data.synth import thesis_motion, write_synthetic_sequence
+from torchhand.energies import Anatomy, ModelToData, Regularization
+from torchhand.evaluation import evaluate_sequence, summarize
+from torchhand.io.thesis import FormatError
+from torchhand.tracker import TrackerConfig, track_sequences
+
+
+def render_sequences(hia_root: Path, seqs, frames: int, work: Path, noise: str = "kinect"):
+    """Render (or reuse) frames 0..frames-1 of each sequence; returns {seq: folder}."""
+    out = {}
+    for s in seqs:
+        folder = work / f"hia_{s}_{noise}_{frames}"
+        if not (folder / "gt" / "meta.json").is_file():
+            try:
+                fr = thesis_motion(hia_root, s, slice(0, frames), dtype=torch.float32)
+            except FormatError:
+                print(f"sequence {s}: no MOTION files, skipped")
+                continue
+            write_synthetic_sequence(fr, folder, noise=noise, seed=int(s), force=True, rgb=False)
+        out[s] = folder
+    return out
+
+
+def run_lo(args) -> dict:
+    cfg_dir = args.hia_root / "Configs"
+    seqs = args.sequences.split(",") if args.sequences else sorted(p.name for p in cfg_dir.iterdir())
+    folders = render_sequences(args.hia_root, seqs, args.frames, args.work)
+    cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
+                        first_frame_iterations=args.iterations)
+    t0 = time.perf_counter()
+    summaries = track_sequences(list(folders.values()), args.work / "tracked_lo", cfg, force=True)
+    elapsed = time.perf_counter() - t0
+    results = []
+    for s, folder in folders.items():
+        r = evaluate_sequence(args.work / "tracked_lo" / f"hia_{s}", folder / "gt")
+        worst = max(r["per_frame"]["mm"])
+        results.append({"sequence": s, "frames": r["frames"], "mean_px": r["mean_px"], "median_px": r["median_px"],
+                        "mean_mm": r["mean_mm"], "median_mm": r["median_mm"], "worst_frame_mm": worst,
+                        "lost": worst > 20.0, "penetration": r.get("penetration")})
+    pooled = summarize([evaluate_sequence(args.work / "tracked_lo" / f"hia_{s}", f / "gt", with_penetration=False)
+                        for s, f in folders.items()])
+    return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
+            "iterations": args.iterations, "sequences": results,
+            "overall": {k: pooled[k] for k in ("frames", "mean_px", "median_px", "mean_mm", "median_mm")},
+            "track_seconds": elapsed, "tracker": summaries}
+
+
+def run_m2d(args) -> dict:
+    seqs = args.sequences.split(",") if args.sequences else ["09", "16"]
+    folders = render_sequences(args.hia_root, seqs, args.frames, args.work)
+    rows = []
+    for metric in ("point-to-point", "point-to-plane"):
+        for iters in (5, 10, 15, 20, 30):
+            cfg = TrackerConfig(energy="LO", metric=metric, max_iterations=iters, first_frame_iterations=iters,
+                                min_vertex_motion=0.0)
+            out = args.work / f"tracked_m2d_{metric}_{iters}"
+            summaries = track_sequences(list(folders.values()), out, cfg, force=True, progress=False,
+                                        make_terms=lambda: [ModelToData(metric=metric), Anatomy(), Regularization()])
+            res = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
+                             for s, f in folders.items()])
+            rows.append({"metric": metric, "iterations": iters, "mean_px": res["mean_px"], "mean_mm": res["mean_mm"],
+                         "seconds_per_frame": sum(s["seconds_per_frame"] for s in summaries) / len(summaries)})
+            print(rows[-1])
+    return {"experiment": "m2d alone: point-to-point vs point-to-plane", "sequences": seqs,
+            "frames_per_sequence": args.frames, "rows": rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("experiment", choices=["lo", "m2d"])
+    ap.add_argument("--hia-root", type=Path, required=True)
+    ap.add_argument("--sequences", default=None)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--iterations", type=int, default=10)
+    ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])
+    ap.add_argument("--work", type=Path, default=Path("out/exp"))
+    ap.add_argument("--json", type=Path, required=True)
+    args = ap.parse_args(argv)
+    args.work.mkdir(parents=True, exist_ok=True)
+    result = run_lo(args) if args.experiment == "lo" else run_m2d(args)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=2))
+    print(json.dumps({k: v for k, v in result.items() if k != "tracker"}, indent=1)[:4000])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,178 @@
+"""The ``torchhand`` command line, run in-process through ``torchhand.cli.main``."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from torchhand.cli import build_parser, main
+
+REPO = Path(__file__).resolve().parents[1]
+SUBCOMMANDS = ("demo", "synth", "eval", "track")
+
+
+# ------------------------------------------------------------------ help
+def test_help_lists_subcommands(capsys):
+    with pytest.raises(SystemExit) as ex:
+        main(["--help"])
+    assert ex.value.code == 0
+    out = capsys.readouterr().out
+    for cmd in SUBCOMMANDS:
+        assert cmd in out
+
+
+def test_no_subcommand_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as ex:
+        main([])
+    assert ex.value.code == 2
+    assert "usage" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(shutil.which("torchhand") is None, reason="the torchhand console script is not installed")
+def test_console_script_help():
+    res = subprocess.run([shutil.which("torchhand"), "--help"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    for cmd in SUBCOMMANDS:
+        assert cmd in res.stdout
+
+
+@pytest.mark.xfail(strict=True, reason="pyproject.toml [tool.setuptools] packages lists torchhand, torchhand.io and "
+                                       "torchhand._assets only: a (non-editable) install lacks torchhand.data and "
+                                       "torchhand.energies, so the installed synth/eval/track commands fail")
+def test_pyproject_packages_every_subpackage():
+    tomllib = pytest.importorskip("tomllib")
+    cfg = tomllib.loads((REPO / "pyproject.toml").read_text())
+    packages = set(cfg["tool"]["setuptools"]["packages"])
+    subpackages = {"torchhand." + str(p.parent.relative_to(REPO / "torchhand")).replace("/", ".")
+                   for p in (REPO / "torchhand").rglob("__init__.py") if p.parent != REPO / "torchhand"}
+    assert {"torchhand.data", "torchhand.energies", "torchhand.io"} <= subpackages  # the layout this test assumes
+    missing = sorted(subpackages - packages)
+    assert not missing, f"not packaged: {missing}"
+
+
+# ------------------------------------------------------------------ demo
+def test_demo_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--frames", "2"]) == 0
+    assert (out / "overlays" / "000000.png").is_file() and (out / "overlays" / "000001.png").is_file()
+    assert not (out / "overlays" / "000002.png").exists()
+    img = cv2.imread(str(out / "overlays" / "000000.png"))
+    assert img is not None and img.shape == (480, 640, 3)
+    assert (out / "demo.mp4").is_file() and (out / "demo.mp4").stat().st_size > 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 2
+    assert summary["models"] == ["hand_right", "hand_left", "ball"] and summary["dofs"] == 80
+    assert "rendered 2 frames" in capsys.readouterr().out
+
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert main(["demo", "--out", str(out), "--frames", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "torchhand demo: error" in err and str(out) in err and "--force" in err
+    after = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before
+
+
+# ------------------------------------------------------------------ synth + eval
+@pytest.fixture(scope="module")
+def synth_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "random"
+    code = main(["synth", "--random", "--models", "hand_right", "--frames", ":2", "--out", str(out), "--noise", "none"])
+    assert code == 0
+    return out
+
+
+def test_synth_random(synth_out):
+    seq = json.loads((synth_out / "sequence.json").read_text())
+    assert seq["frames"] == 2 and seq["models"] == ["hand_right"] and seq["has_rgb"] is True
+    assert seq["source"]["noise"] == "none"
+    assert sorted(p.name for p in (synth_out / "depth").iterdir()) == ["000000.png", "000001.png"]
+    assert sorted(p.name for p in (synth_out / "rgb").iterdir()) == ["000000.png", "000001.png"]
+    assert np.load(synth_out / "gt" / "theta.npy").shape == (2, 37)
+
+
+def test_eval_ground_truth_against_itself(synth_out, tmp_path, capsys):
+    j, plot = tmp_path / "res" / "scores.json", tmp_path / "pck.png"
+    assert main(["eval", str(synth_out / "gt"), "--gt", str(synth_out), "--json", str(j), "--plot", str(plot)]) == 0
+    r = json.loads(j.read_text())
+    assert {"mean_px", "median_px", "mean_mm", "auc_0_50mm", "frames"} <= set(r)
+    assert r["frames"] == 2
+    assert r["mean_px"] == 0 and r["median_px"] == 0 and r["mean_mm"] == 0 and r["median_mm"] == 0
+    assert r["auc_0_50mm"] == 1.0
+    img = cv2.imread(str(plot))
+    assert img is not None and img.ndim == 3
+    out = capsys.readouterr().out
+    assert "2 frames" in out and str(j) in out
+
+
+def test_eval_needs_one_gt_per_prediction(synth_out, capsys):
+    assert main(["eval", str(synth_out), str(synth_out), "--gt", str(synth_out)]) == 2
+    assert "--gt" in capsys.readouterr().err
+
+
+def test_eval_missing_prediction(synth_out, tmp_path, capsys):
+    assert main(["eval", str(tmp_path / "none"), "--gt", str(synth_out)]) == 2
+    assert "none" in capsys.readouterr().err
+
+
+def test_synth_unknown_sequence(tmp_path, capsys):
+    root = tmp_path / "hia"
+    (root / "Configs").mkdir(parents=True)
+    (root / "Models").mkdir()
+    out = tmp_path / "out"
+    assert main(["synth", "--hia-root", str(root), "--sequence", "99", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "torchhand synth: error" in err and "99" in err
+    assert not out.exists()
+
+
+def test_synth_unknown_sequence_in_thesis_data(hia_root, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["synth", "--hia-root", str(hia_root), "--sequence", "99", "--out", str(out)]) == 2
+    assert "99" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_synth_without_hia_root(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["synth", "--sequence", "16", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--hia-root" in err
+    assert not out.exists()
+
+
+def test_synth_random_with_sequence_is_refused(tmp_path, capsys):
+    assert main(["synth", "--random", "--sequence", "16", "--out", str(tmp_path / "o")]) == 2
+    assert "--random" in capsys.readouterr().err
+
+
+def test_synth_bad_frames_and_noise_are_usage_errors(tmp_path, capsys):
+    with pytest.raises(SystemExit) as ex:
+        main(["synth", "--random", "--frames", "abc", "--out", str(tmp_path / "o")])
+    assert ex.value.code == 2
+    assert "--frames" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as ex:
+        main(["synth", "--random", "--noise", "gauss", "--out", str(tmp_path / "o")])
+    assert ex.value.code == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_track_unknown_energy(synth_out, tmp_path, capsys):
+    out = tmp_path / "track"
+    assert main(["track", str(synth_out), "--out", str(out), "--energy", "XY"]) == 2
+    assert "XY" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_parser_defaults():
+    args = build_parser().parse_args(["synth", "--random", "--out", "x", "--frames", "3:7"])
+    assert args.frames == slice(3, 7) and args.noise == "kinect" and args.seed == 0 and args.models == "hand_right"
+    args = build_parser().parse_args(["eval", "p", "--gt", "g"])
+    assert args.workers == 1 and not args.no_penetration

@@ -1,0 +1,261 @@
+"""Scoring predictions against ground truth: exact values for known offsets, PCK/AUC,
+errors for incomparable folders, parallel evaluation and interpenetration."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torchhand.camera import kinect_camera
+from torchhand.data.layout import Poses, read_poses, write_poses
+from torchhand.evaluation import EvaluationError, evaluate_many, evaluate_sequence, summarize
+from torchhand.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
+from torchhand.scene import Scene
+
+FX = 525.0
+
+
+def _project(kp3d):
+    """(..., 3) camera-frame mm -> (..., 2) px of the Kinect camera."""
+    return np.stack([FX * kp3d[..., 0] / kp3d[..., 2] + 319.5, FX * kp3d[..., 1] / kp3d[..., 2] + 239.5], -1)
+
+
+def _gt_poses(models, N, seed=0):
+    """Ground truth for random in-limit poses: keypoints rounded to 1/64 mm so that
+    shifting them by whole millimetres is exact in floating point."""
+    scene = Scene.from_names(models, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = scene.lower.clone(), scene.upper.clone()
+    fin = torch.isfinite(lo) & torch.isfinite(hi)
+    theta = torch.where(fin, lo.nan_to_num(0) + torch.rand(N, scene.num_dofs, generator=g, dtype=torch.float64)
+                        * (hi - lo).nan_to_num(0), torch.zeros(N, scene.num_dofs, dtype=torch.float64))
+    for k, name in enumerate(scene.names):
+        s = scene.slices[name]
+        theta[:, s.start + 2] = 600.0  # in front of the camera
+        theta[:, s.start] = 200.0 * k
+    with torch.no_grad():
+        world = scene(theta).keypoints
+    cam = kinect_camera(dtype=torch.float64)
+    kp3d = np.round(cam.to_camera(world).numpy()[:, None] * 64) / 64  # (N, 1, P, 3)
+    assert (kp3d[..., 2] > 100).all()
+    return Poses(theta.numpy(), kp3d, _project(kp3d), list(scene.names), scene.dof_names, scene.keypoint_names)
+
+
+def _shifted(p: Poses, mm=(5.0, 0.0, 0.0)) -> Poses:
+    kp3d = p.keypoints_3d + np.asarray(mm)
+    return Poses(p.theta.copy(), kp3d, _project(kp3d), p.models, p.dof_names, p.keypoint_names)
+
+
+@pytest.fixture(scope="module")
+def gt1():
+    return _gt_poses(["hand_right"], 3)
+
+
+@pytest.fixture
+def gt_dir(gt1, tmp_path):
+    d = tmp_path / "seq" / "gt"
+    write_poses(d, gt1)
+    return d
+
+
+# ------------------------------------------------------------------ metrics
+def test_pck_and_auc_basics():
+    t = PCK_THRESHOLDS_MM
+    assert len(t) == 51 and t[0] == 0 and t[-1] == 50 and np.all(np.diff(t) == 1)
+    np.testing.assert_array_equal(pck_curve(np.zeros(7)), np.ones(51))
+    assert auc(t, np.ones(51)) == 1.0 and auc(t, np.zeros(51)) == 0.0
+    c = pck_curve(np.array([0.5, 2.0, 2.0, 100.0]))
+    assert c[0] == 0 and c[1] == 0.25 and c[2] == 0.75 and c[50] == 0.75
+    np.testing.assert_array_equal(pck_curve(np.array([])), np.zeros(51))
+    e = keypoint_errors(np.array([[[3.0, 4.0]]]), np.zeros((1, 1, 2)))
+    assert e.shape == (1, 1) and e[0, 0] == 5.0
+
+
+# ------------------------------------------------------------------ exact scores
+def test_ground_truth_against_itself_scores_zero(gt_dir):
+    r = evaluate_sequence(gt_dir, gt_dir)
+    assert r["frames"] == 3
+    assert r["mean_px"] == 0.0 and r["median_px"] == 0.0
+    assert r["mean_mm"] == 0.0 and r["median_mm"] == 0.0
+    assert r["auc_0_50mm"] == 1.0
+    assert r["pck"]["fraction"] == [1.0] * 51
+    assert r["flagged_frames"] == 0 and "penetration" not in r  # one model: nothing to penetrate
+    assert r["sequence"] == "seq"
+    assert set(r["per_keypoint"]) == set(read_poses(gt_dir).keypoint_names)
+    assert r["per_frame"]["mm"] == [0.0] * 3
+    json.dumps(r)  # JSON-ready
+    # a sequence folder holding gt/ is accepted on either side
+    r2 = evaluate_sequence(gt_dir.parent, gt_dir.parent)
+    assert r2["mean_mm"] == 0.0 and r2["frames"] == 3
+
+
+def test_shift_of_5mm(gt1, gt_dir, tmp_path):
+    pred = _shifted(gt1)
+    write_poses(tmp_path / "pred", pred)
+    r = evaluate_sequence(tmp_path / "pred", gt_dir)
+    assert abs(r["mean_mm"] - 5.0) <= 1e-9 and abs(r["median_mm"] - 5.0) <= 1e-9
+    # a 5 mm shift along x moves u by fx * 5 / z pixels, v not at all
+    expect_px = FX * 5.0 / gt1.keypoints_3d[..., 2]
+    assert abs(r["mean_px"] - expect_px.mean()) <= 1e-9
+    assert abs(r["median_px"] - np.median(expect_px)) <= 1e-9
+    curve = np.asarray(r["pck"]["fraction"])
+    np.testing.assert_array_equal(r["pck"]["thresholds_mm"], np.arange(51.0))
+    np.testing.assert_array_equal(curve[:5], 0.0)  # 0..4 mm: none within
+    np.testing.assert_array_equal(curve[5:], 1.0)  # 5..50 mm: all within
+    # trapezoid over 0..50 mm: 0.5 for [4, 5] plus 45 unit intervals, over 50 mm
+    assert abs(r["auc_0_50mm"] - 45.5 / 50) <= 1e-12
+    np.testing.assert_allclose(r["per_frame"]["mm"], 5.0, atol=1e-9)
+    assert all(abs(v["mm"] - 5.0) <= 1e-9 for v in r["per_keypoint"].values())
+
+
+def test_shift_of_3_4_0_is_5mm_too(gt1, gt_dir, tmp_path):
+    write_poses(tmp_path / "pred", _shifted(gt1, (3.0, -4.0, 0.0)))
+    r = evaluate_sequence(tmp_path / "pred", gt_dir)
+    assert abs(r["mean_mm"] - 5.0) <= 1e-9 and abs(r["auc_0_50mm"] - 0.91) <= 1e-12
+
+
+def test_flagged_frames_are_counted(gt1, gt_dir, tmp_path):
+    p = _shifted(gt1, (0.0, 0.0, 0.0))
+    p.valid = np.array([True, False, False])
+    write_poses(tmp_path / "pred", p)
+    assert evaluate_sequence(tmp_path / "pred", gt_dir)["flagged_frames"] == 2
+
+
+# ------------------------------------------------------------------ incomparable folders
+def test_frame_count_mismatch(gt1, gt_dir, tmp_path):
+    p = Poses(gt1.theta[:2], gt1.keypoints_3d[:2], gt1.keypoints_2d[:2], gt1.models, gt1.dof_names,
+              gt1.keypoint_names)
+    write_poses(tmp_path / "pred", p)
+    with pytest.raises(EvaluationError, match="2 frames.*3"):
+        evaluate_sequence(tmp_path / "pred", gt_dir)
+
+
+def test_nan_in_prediction_names_file_and_frame(gt1, gt_dir, tmp_path):
+    kp3d = gt1.keypoints_3d.copy()
+    kp3d[1, 0, 4, 2] = np.nan
+    write_poses(tmp_path / "pred", Poses(gt1.theta, kp3d, gt1.keypoints_2d, gt1.models, gt1.dof_names,
+                                          gt1.keypoint_names))
+    with pytest.raises(EvaluationError) as err:
+        evaluate_sequence(tmp_path / "pred", gt_dir)
+    msg = str(err.value)
+    assert str(tmp_path / "pred" / "keypoints_3d.npy") in msg
+    assert "[1]" in msg
+
+
+def test_inf_in_theta_names_theta(gt1, gt_dir, tmp_path):
+    theta = gt1.theta.copy()
+    theta[2, 7] = np.inf
+    write_poses(tmp_path / "pred", Poses(theta, gt1.keypoints_3d, gt1.keypoints_2d, gt1.models, gt1.dof_names,
+                                          gt1.keypoint_names))
+    with pytest.raises(EvaluationError, match=r"theta\.npy.*\[2\]"):
+        evaluate_sequence(tmp_path / "pred", gt_dir)
+
+
+def test_different_keypoint_names(gt1, gt_dir, tmp_path):
+    names = list(gt1.keypoint_names)
+    names[3] = "hand_right/something_else"
+    write_poses(tmp_path / "pred", Poses(gt1.theta, gt1.keypoints_3d, gt1.keypoints_2d, gt1.models, gt1.dof_names,
+                                          names))
+    with pytest.raises(EvaluationError, match="keypoint names"):
+        evaluate_sequence(tmp_path / "pred", gt_dir)
+
+
+def test_different_camera_count(gt1, gt_dir, tmp_path):
+    two = lambda a: np.concatenate([a, a], 1)  # noqa: E731
+    write_poses(tmp_path / "pred", Poses(gt1.theta, two(gt1.keypoints_3d), two(gt1.keypoints_2d), gt1.models,
+                                          gt1.dof_names, gt1.keypoint_names))
+    with pytest.raises(EvaluationError):
+        evaluate_sequence(tmp_path / "pred", gt_dir)
+
+
+def test_missing_prediction_folder(gt_dir, tmp_path):
+    with pytest.raises(EvaluationError, match="nothing"):
+        evaluate_sequence(tmp_path / "nothing", gt_dir)
+
+
+# ------------------------------------------------------------------ many sequences
+def test_evaluate_many_parallel_equals_serial(gt1, tmp_path):
+    pairs = []
+    for k, shift in enumerate([(1.0, 0, 0), (0, 7.0, 0), (0, 0, 20.0)]):
+        write_poses(tmp_path / f"s{k}" / "gt", gt1)
+        write_poses(tmp_path / f"p{k}", _shifted(gt1, shift))
+        pairs.append((tmp_path / f"p{k}", tmp_path / f"s{k}"))
+    serial = evaluate_many(pairs, workers=1, progress=False)
+    parallel = evaluate_many(pairs, workers=2, progress=False)
+    assert serial == parallel
+    assert serial["frames"] == 9 and len(serial["sequences"]) == 3
+    assert [s["sequence"] for s in serial["sequences"]] == ["s0", "s1", "s2"]
+    assert abs(serial["mean_mm"] - (1 + 7 + 20) / 3) <= 1e-9
+    one = evaluate_many(pairs[:1], progress=False)
+    assert "sequences" not in one and abs(one["mean_mm"] - 1.0) <= 1e-9
+
+
+@pytest.mark.xfail(strict=True, reason="summarize() weights sequences by frame count, but evaluate_many documents "
+                                       "pooling all keypoints of all frames: sequences with different keypoint "
+                                       "counts (one hand vs two) are mis-weighted")
+def test_evaluate_many_pools_all_keypoints(gt1, tmp_path):
+    gt2 = _gt_poses(["hand_right", "hand_left"], 3, seed=1)  # 42 keypoints per frame
+    write_poses(tmp_path / "a" / "gt", gt1)
+    write_poses(tmp_path / "pa", _shifted(gt1, (5.0, 0, 0)))
+    write_poses(tmp_path / "b" / "gt", gt2)
+    write_poses(tmp_path / "pb", _shifted(gt2, (10.0, 0, 0)))
+    r = evaluate_many([(tmp_path / "pa", tmp_path / "a"), (tmp_path / "pb", tmp_path / "b")],
+                      with_penetration=False, progress=False)
+    # 3 * 21 keypoints 5 mm off, 3 * 42 keypoints 10 mm off
+    assert abs(r["mean_mm"] - (63 * 5 + 126 * 10) / 189) <= 1e-9
+
+
+# ------------------------------------------------------------------ interpenetration
+def _two_hands(offset_mm):
+    """theta (1, 74) of hand_right at rest and hand_left with its root joint at hand_right's
+    root, moved by offset_mm along x."""
+    scene = Scene.from_names(["hand_right", "hand_left"], dtype=torch.float64)
+    theta = scene.zero_pose(1).double()
+    sr, sl = scene.slices["hand_right"], scene.slices["hand_left"]
+    theta[0, sr.start + 2] = 600.0
+    root_r = scene.models[0].rest_transforms[0, :3, 3]
+    root_l = scene.models[1].rest_transforms[0, :3, 3]
+    theta[0, sl.start:sl.start + 3] = theta[0, sr.start:sr.start + 3] + root_r - root_l
+    theta[0, sl.start] += offset_mm
+    return scene, theta
+
+
+def _write_two_hand_pair(tmp_path, name, offset_mm):
+    scene, theta = _two_hands(offset_mm)
+    P = len(scene.keypoint_names)
+    kp3d = np.zeros((1, 1, P, 3))
+    kp3d[..., 2] = 600.0
+    p = Poses(theta.numpy(), kp3d, _project(kp3d), list(scene.names), scene.dof_names, scene.keypoint_names)
+    write_poses(tmp_path / name, p)
+    return tmp_path / name
+
+
+def test_penetration_of_overlapping_and_separate_hands(tmp_path):
+    pytest.importorskip("fcl")
+    inside = _write_two_hand_pair(tmp_path, "inside", 0.0)
+    r = evaluate_sequence(inside, inside)
+    assert r["mean_mm"] == 0.0
+    pen = r["penetration"]
+    assert pen["pairs_per_frame"] > 0 and pen["max_pairs"] > 0 and pen["max_depth_mm"] > 0
+    apart = _write_two_hand_pair(tmp_path, "apart", 300.0)
+    pen = evaluate_sequence(apart, apart)["penetration"]
+    assert pen == {"pairs_per_frame": 0.0, "max_pairs": 0, "max_depth_mm": 0.0}
+    # switched off on request
+    assert "penetration" not in evaluate_sequence(apart, apart, with_penetration=False)
+
+
+def test_penetration_metric_on_meshes():
+    scene, theta = _two_hands(300.0)
+    with torch.no_grad():
+        out = scene(theta)
+    faces = [m.faces.numpy() for m in scene.models]
+    apart = penetration([(o.vertices[0].numpy(), f) for o, f in zip(out.models, faces)])
+    assert apart.max_depth_mm == 0.0 and apart.pairs in (0, None)
+    # the same mesh twice, one copy shifted by 3 mm into itself: vertices inside, faces crossing
+    v, f = out.models[0].vertices[0].numpy(), faces[0]
+    pen = penetration([(v, f), (v + np.array([3.0, 0.0, 0.0]), f)])
+    assert pen.max_depth_mm > 0.5
+    assert pen.pairs is None or pen.pairs > 0
