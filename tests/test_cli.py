@@ -59,9 +59,20 @@ def test_pyproject_packages_every_subpackage():
 
 
 # ------------------------------------------------------------------ demo
-def test_demo_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
-    out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--frames", "2"]) == 0
+# --track-frames 0: the demo's synthesise-track-evaluate stage takes tens of seconds per
+# frame on a busy 2-core machine; its parts are covered by the synth/eval/track tests.
+DEMO = ["--frames", "2", "--track-frames", "0"]
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    assert main(["demo", "--out", str(out), *DEMO]) == 0
+    return out
+
+
+def test_demo_writes_outputs(demo_out):
+    out = demo_out
     assert (out / "overlays" / "000000.png").is_file() and (out / "overlays" / "000001.png").is_file()
     assert not (out / "overlays" / "000002.png").exists()
     img = cv2.imread(str(out / "overlays" / "000000.png"))
@@ -70,14 +81,28 @@ def test_demo_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 2
     assert summary["models"] == ["hand_right", "hand_left", "ball"] and summary["dofs"] == 80
-    assert "rendered 2 frames" in capsys.readouterr().out
+    assert summary["tracking"] is None
+    kp = json.loads((out / "keypoints_2d.json").read_text())
+    assert len(kp) == 2 and set(kp[0]) == {"hand_right", "hand_left"} and len(kp[0]["hand_right"]) == 21
 
+
+def test_demo_refuses_to_overwrite(demo_out, capsys):
+    out = demo_out
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
-    assert main(["demo", "--out", str(out), "--frames", "2"]) == 2
+    assert main(["demo", "--out", str(out), *DEMO]) == 2
     err = capsys.readouterr().err
     assert "torchhand demo: error" in err and str(out) in err and "--force" in err
     after = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert after == before
+
+
+@pytest.mark.xfail(strict=True, reason="with --track-frames 0 the demo's summary.json 'outputs' (and the printed "
+                                       "'wrote ...' line) still list sequence/, track/ and eval.json, which are "
+                                       "not written")
+def test_demo_summary_lists_only_written_outputs(demo_out):
+    summary = json.loads((demo_out / "summary.json").read_text())
+    missing = [o for o in summary["outputs"] if not (demo_out / o).exists()]
+    assert not missing, f"listed but not written: {missing}"
 
 
 # ------------------------------------------------------------------ synth + eval

@@ -190,9 +190,7 @@ def test_load_state_dict_of_other_model_poses_the_loaded_template(tmp_thesis_mod
 
 @pytest.mark.parametrize("name", [
     "hand_right",
-    pytest.param("rope", marks=pytest.mark.xfail(
-        strict=True, raises=NotImplementedError,
-        reason="copy.deepcopy(rope model) fails: its CSR skinning_matrix buffer cannot be deep-copied")),
+    "rope",
 ])
 def test_model_can_be_deep_copied(name):
     model = load_model(name, dtype=F64)

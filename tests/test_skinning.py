@@ -78,9 +78,9 @@ def test_lbs_reference_is_the_weighted_sum_of_bone_transforms():
 
 
 def test_default_skinning_matrix_layout_follows_density(model64):
-    # the hands are ~45 % dense (dense GEMM), the rope ~19 % (sparse CSR)
+    # dense products beat CSR on CPU for all shipped models (eval/bench_lbs.py)
     assert model64("hand_right").skinning_matrix.layout == torch.strided
-    assert model64("rope").skinning_matrix.layout == torch.sparse_csr
+    assert model64("rope").skinning_matrix.layout == torch.strided
 
 
 @pytest.mark.parametrize("name", ["hand_right", "hand_left", "ball", "cube", "pipe", "rope"])

@@ -8,7 +8,8 @@ motions ``G``: with the static *skinning matrix* ``P[v, 4j + c] = kappa_vj V_c(0
 ``P @ G`` of a (V, 4J) matrix with a (4J, 3B) matrix. Sparse weights make ``P``
 sparse; it is stored as a sparse CSR tensor when that pays off (see
 :func:`skinning_matrix`) and as a dense one otherwise, so the dominant cost is one
-GEMM (or SpMM) in the forward pass and one in the backward pass.
+GEMM in the forward pass and one in the backward pass (a sparse CSR ``P`` is
+supported but slower on CPU for the shipped models).
 
 Weights are stored compactly as ``skin_index: (V, K)`` / ``skin_weight: (V, K)``
 (K = the largest number of non-zero weights of a vertex, padded with weight 0).
@@ -22,9 +23,11 @@ from .kinematics import point_jacobian
 
 __all__ = ["skinning_matrix", "lbs", "lbs_dense_reference", "lbs_jacobian", "dense_weights"]
 
-# Below this fraction of non-zeros a CSR product beats a dense GEMM on CPU
-# (measured with eval/bench_lbs.py; the thesis hands are ~45 % dense, the rope ~19 %).
-SPARSE_DENSITY = 0.2
+# Below this fraction of non-zeros P is stored as sparse CSR by default. On CPU the
+# dense product was faster for every shipped model (hands ~45 % dense, rope ~18 %;
+# eval/bench_lbs.py, docs/benchmarks.md), so by default P is dense; sparse=True remains
+# available for rigs with many more bones.
+SPARSE_DENSITY = 0.0
 
 
 def dense_weights(skin_index: torch.Tensor, skin_weight: torch.Tensor, num_bones: int) -> torch.Tensor:
@@ -68,10 +71,14 @@ def lbs(G: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
         (B, V, 3) posed vertices.
     """
     B, J = G.shape[:2]
-    # Gm[4j + c, 3b + r] = G[b, j, r, c]
-    Gm = G[:, :, :3, :].permute(1, 3, 0, 2).reshape(4 * J, 3 * B)
-    out = torch.sparse.mm(P, Gm) if P.layout != torch.strided else P @ Gm  # (V, 3B)
-    return out.reshape(-1, B, 3).transpose(0, 1)
+    if P.layout != torch.strided:
+        # Gm[4j + c, 3b + r] = G[b, j, r, c]
+        Gm = G[:, :, :3, :].permute(1, 3, 0, 2).reshape(4 * J, 3 * B)
+        return torch.sparse.mm(P, Gm).reshape(-1, B, 3).transpose(0, 1)
+    # (3B, 4J) @ (4J, V): the long dimension V is the output's fast axis, so P is read
+    # once in its stored order (measured 2x faster at B = 1 than P @ (4J, 3B)).
+    Gr = G[:, :, :3, :].permute(0, 2, 1, 3).reshape(3 * B, 4 * J)
+    return (Gr @ P.mT).view(B, 3, -1).transpose(1, 2)
 
 
 def lbs_dense_reference(G: torch.Tensor, vertices: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

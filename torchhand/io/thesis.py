@@ -97,6 +97,19 @@ def _is_number_row(text: str) -> bool:
     return True
 
 
+def _counted_lines(path, what: str) -> Tuple[int, List[Tuple[int, str]]]:
+    """Non-blank stripped lines (with 1-based numbers) of a file whose first line is
+    an integer count; returns (count, remaining lines)."""
+    lines = [(i + 1, l.strip()) for i, l in enumerate(_read_lines(path))]
+    lines = [(n, l) for n, l in lines if l]
+    if not lines:
+        raise _fail(path, "empty file")
+    try:
+        return int(lines[0][1]), lines[1:]
+    except ValueError:
+        raise _fail(path, f"first line must be the number of {what}, got {lines[0][1]!r}", lines[0][0]) from None
+
+
 # --------------------------------------------------------------------------- OFF
 class Mesh(NamedTuple):
     """vertices: (V, 3) float64 mm; faces: (F, 3) int64 vertex ids."""
@@ -161,15 +174,7 @@ class SkeletonFile(NamedTuple):
 
 
 def read_skel(path) -> SkeletonFile:
-    lines = [(i + 1, l.strip()) for i, l in enumerate(_read_lines(path))]
-    lines = [(n, l) for n, l in lines if l]
-    if not lines:
-        raise _fail(path, "empty file")
-    try:
-        rows = int(lines[0][1])
-    except ValueError:
-        raise _fail(path, f"first line must be the number of motion rows, got {lines[0][1]!r}", lines[0][0]) from None
-    rest = lines[1:]
+    rows, rest = _counted_lines(path, "motion rows")
     if len(rest) % 3 != 0 or not rest:
         raise _fail(path, f"expected triples 'parent / child / length', got {len(rest)} lines after the header")
     bones = []
@@ -383,32 +388,18 @@ class ZonesFile(NamedTuple):
 
 
 def read_zones(path) -> ZonesFile:
-    lines = [(i + 1, l.strip()) for i, l in enumerate(_read_lines(path))]
-    lines = [(n, l) for n, l in lines if l]
-    if not lines:
-        raise _fail(path, "empty file")
-    try:
-        n = int(lines[0][1])
-    except ValueError:
-        raise _fail(path, f"first line must be the number of parts, got {lines[0][1]!r}", lines[0][0]) from None
-    if len(lines) != 1 + 2 * n:
-        raise _fail(path, f"expected {n} part names and {n} thresholds, got {len(lines) - 1} lines")
-    names = [l for _, l in lines[1 : 1 + n]]
-    thr = np.array([_floats(path, k, l, 1)[0] for k, l in lines[1 + n :]])
+    n, lines = _counted_lines(path, "parts")
+    if len(lines) != 2 * n:
+        raise _fail(path, f"expected {n} part names and {n} thresholds, got {len(lines)} lines")
+    names = [l for _, l in lines[:n]]
+    thr = np.array([_floats(path, k, l, 1)[0] for k, l in lines[n:]])
     return ZonesFile(names, thr)
 
 
 # ------------------------------------------------------------- Configs / Calib
 def read_models_info(path) -> List[str]:
-    lines = [(i + 1, l.strip()) for i, l in enumerate(_read_lines(path))]
-    lines = [(n, l) for n, l in lines if l]
-    if not lines:
-        raise _fail(path, "empty file")
-    try:
-        n = int(lines[0][1])
-    except ValueError:
-        raise _fail(path, "first line must be the number of models", lines[0][0]) from None
-    names = [l for _, l in lines[1:]]
+    n, lines = _counted_lines(path, "models")
+    names = [l for _, l in lines]
     if len(names) != n:
         raise _fail(path, f"expected {n} model names, got {len(names)}")
     return names
