@@ -122,6 +122,19 @@ def test_depth_colour_8bit_png_is_rejected(tmp_path):
         read_depth(p)
 
 
+@pytest.mark.xfail(strict=True, reason="read_depth reads with cv2.IMREAD_ANYDEPTH, which converts a 3-channel 16-bit "
+                                       "PNG to grey, so a colour 16-bit image is silently accepted as depth (a "
+                                       "weighted channel mix) instead of the 'single-channel 16-bit' error")
+def test_depth_16bit_three_channel_png_is_rejected(tmp_path):
+    p = tmp_path / "colour16.png"
+    img = np.zeros((4, 4, 3), np.uint16)
+    img[..., 0], img[..., 1], img[..., 2] = 1000, 2000, 3000
+    assert cv2.imwrite(str(p), img)
+    assert cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape == (4, 4, 3)
+    with pytest.raises(SequenceError, match="single-channel"):
+        read_depth(p)
+
+
 def test_depth_in_metres_is_rejected_naming_file(tmp_path):
     p = tmp_path / "metres.png"
     m = np.tile(np.arange(4, dtype=np.uint16), (6, 2))  # 0..3: "metres"

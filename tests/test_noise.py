@@ -150,6 +150,28 @@ def test_estimated_incidence_angle_matches_normals():
     assert torch.rad2deg(torch.acos(cos_n[0, 240, 320])).item() == pytest.approx(60.0, abs=0.1)
 
 
+def test_sparse_frame_uses_the_right_geometry():
+    # Only a patch of a plane tilted 55 deg about x is present (rows 300-340, true incidence
+    # 41-49 deg); the model then works on a crop, whose rays must still be the image's.
+    depth, normals = _tilted_about_x(700.0, 55.0)
+    patch = torch.zeros_like(depth)
+    patch[:, 300:340, 500:600] = depth[:, 300:340, 500:600]
+    step = KinectNoise(
+        grazing_start_deg=52.0, grazing_full_deg=52.5, shadows=False, holes_per_frame=0.0,
+        lateral_sigma0_px=0.0, lateral_sigma_angle_px=0.0,
+    )
+    for n in (normals, None):
+        out = apply_kinect_noise(patch, n, K, step, generator=_gen())
+        assert _valid_fraction(out[0, 302:338, 502:598]) > 0.99
+        assert bool((out[0, :, :490] == 0).all()) and bool((out[0, :290] == 0).all())
+    # The same patch seen at 65-70 deg incidence is dropped.
+    steep, steep_n = _tilted_about_x(700.0, 75.0)
+    patch = torch.zeros_like(steep)
+    patch[:, 300:340, 500:600] = steep[:, 300:340, 500:600]
+    out = apply_kinect_noise(patch, steep_n, K, step, generator=_gen())
+    assert _valid_fraction(out[0, 302:338, 502:598]) < 0.01
+
+
 def test_projector_shadow_on_one_side_of_box():
     params = KinectNoise()
     depth, normals = _box_on_wall(600.0, 1000.0)

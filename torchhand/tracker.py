@@ -54,13 +54,15 @@ class TrackerConfig:
 class FrameResult(NamedTuple):
     """theta: (B, D) poses; valid: (B,) False where a frame could not be used (kept
     the previous pose); iterations: (B,); energy: (B,) final energy per correspondence;
-    recovered: (B,) True where the recovery re-solve replaced the estimate."""
+    recovered: (B,) True where the recovery re-solve replaced the estimate;
+    notes: B strings, why a frame was flagged ("" when fine)."""
 
     theta: torch.Tensor
     valid: torch.Tensor
     iterations: torch.Tensor
     energy: torch.Tensor
     recovered: torch.Tensor
+    notes: List[str]
 
 
 def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torch.Tensor:
@@ -144,6 +146,7 @@ class Tracker:
                 for t in self.data_terms:
                     t.prepare(state)
                 count = sum(t.count for t in self.data_terms).to(theta)
+                self._last_count = count.cpu()
                 for t in self.prior_terms:
                     t.prepare(state, count)
                 res = levenberg_marquardt(fn, theta, lower, upper, max_iterations=self.config.inner_iterations,
@@ -172,16 +175,16 @@ class Tracker:
             and are flagged invalid.
         """
         cfg, B = self.config, previous.shape[0]
-        frames, ok = [], []
+        frames, ok, notes = [], [], [""] * B
         for b, d in enumerate(depths):
             try:
                 if d is None:
-                    raise EmptyFrameError("missing frame")
+                    raise EmptyFrameError("missing depth frame")
                 frames.append(preprocess_depth(d, cameras[b], cfg.preprocess, device=previous.device,
                                                dtype=previous.dtype))
                 ok.append(b)
-            except EmptyFrameError:
-                pass
+            except EmptyFrameError as err:
+                notes[b] = f"{err}; previous pose kept"
         theta = previous.clone()
         valid = torch.zeros(B, dtype=torch.bool)
         iters = torch.zeros(B, dtype=torch.int64)
@@ -192,12 +195,21 @@ class Tracker:
             cams = [cameras[b] for b in ok]
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             th, it, en = self.solve(previous[idx], previous[idx], frames, cams, n_it)
+            counts = self._last_count.clone()
             if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
                 th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
                 recovered[idx] = rec.cpu()
-            theta[idx], valid[idx], iters[idx], energy[idx] = th, True, it.cpu(), en
+            # never return NaN: a diverged problem keeps its previous pose and is flagged
+            finite = torch.isfinite(th).all(1) & torch.isfinite(en)
+            th = torch.where(finite[:, None], th, previous[idx])
+            theta[idx], valid[idx], iters[idx], energy[idx] = th, finite.cpu(), it.cpu(), en
+            for k, b in enumerate(ok):
+                if not finite[k]:
+                    notes[b] = "the solver diverged; previous pose kept"
+                elif counts[k] == 0:
+                    notes[b] = "no correspondences (models out of view or far from the data)"
         self._energy_history.append(energy)
-        return FrameResult(theta, valid, iters, energy, recovered)
+        return FrameResult(theta, valid, iters, energy, recovered, notes)
 
     def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator):
         """Re-solve problems whose energy rose sharply, from perturbed previous poses."""
@@ -303,7 +315,10 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
             theta = res.theta
             thetas.append(theta.detach().cpu().numpy())
             valids.append(res.valid.numpy())
-            logs.append({"frame": f, "seconds": dt, "iterations": res.iterations.tolist(),
+            for i, note in enumerate(res.notes):
+                if note:
+                    tqdm.write(f"{names[members[i]]} frame {f}: {note}")
+            logs.append({"frame": f, "seconds": dt, "iterations": res.iterations.tolist(), "notes": res.notes,
                          "energy": [None if not np.isfinite(e) else float(e) for e in res.energy.tolist()],
                          "valid": res.valid.tolist(), "recovered": res.recovered.tolist()})
             bar.update(len(members))
@@ -328,7 +343,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     mot = {b: np.concatenate([rest[b], m], 0) for b, m in mot.items()}
                     write_motion(target / "motion" / f"{thesis_name.get(name, name)}.MOTION", mot)
                 log = [{"frame": e["frame"], "seconds": e["seconds"], **{key: e[key][i] for key in
-                        ("iterations", "energy", "valid", "recovered")}} for e in logs[:N]]
+                        ("iterations", "energy", "valid", "recovered", "notes")}} for e in logs[:N]]
                 (target / "track_log.json").write_text(json.dumps({"sequence": names[k], "source": str(roots[k]),
                                                                     "energy": config.energy, "frames": log}))
                 if viz:
