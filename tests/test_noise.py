@@ -151,25 +151,27 @@ def test_estimated_incidence_angle_matches_normals():
 
 
 def test_sparse_frame_uses_the_right_geometry():
-    # Only a patch of a plane tilted 55 deg about x is present (rows 300-340, true incidence
-    # 41-49 deg); the model then works on a crop, whose rays must still be the image's.
+    # Only a patch of a plane tilted 55 deg about x is present (true incidence 44-50 deg);
+    # the model then works on a crop, whose rays must still be the full image's (with the
+    # crop's own principal point the incidence would read 76-80 deg).
     depth, normals = _tilted_about_x(700.0, 55.0)
+    region = (slice(None), slice(300, 340), slice(330, 430))
     patch = torch.zeros_like(depth)
-    patch[:, 300:340, 500:600] = depth[:, 300:340, 500:600]
+    patch[region] = depth[region]
     step = KinectNoise(
-        grazing_start_deg=52.0, grazing_full_deg=52.5, shadows=False, holes_per_frame=0.0,
+        grazing_start_deg=56.0, grazing_full_deg=56.5, shadows=False, holes_per_frame=0.0,
         lateral_sigma0_px=0.0, lateral_sigma_angle_px=0.0,
     )
     for n in (normals, None):
         out = apply_kinect_noise(patch, n, K, step, generator=_gen())
-        assert _valid_fraction(out[0, 302:338, 502:598]) > 0.99
-        assert bool((out[0, :, :490] == 0).all()) and bool((out[0, :290] == 0).all())
-    # The same patch seen at 65-70 deg incidence is dropped.
+        assert _valid_fraction(out[0, 302:338, 332:428]) > 0.99
+        assert bool((out[0, :, :320] == 0).all()) and bool((out[0, :290] == 0).all())
+    # The same patch of a plane tilted 75 deg (incidence 64-69 deg) is dropped.
     steep, steep_n = _tilted_about_x(700.0, 75.0)
     patch = torch.zeros_like(steep)
-    patch[:, 300:340, 500:600] = steep[:, 300:340, 500:600]
+    patch[region] = steep[region]
     out = apply_kinect_noise(patch, steep_n, K, step, generator=_gen())
-    assert _valid_fraction(out[0, 302:338, 502:598]) < 0.01
+    assert _valid_fraction(out[0, 302:338, 332:428]) < 0.01
 
 
 def test_projector_shadow_on_one_side_of_box():

@@ -37,9 +37,11 @@ def _frames_slice(text: str | None) -> slice | None:
 
 
 def _synth(args) -> int:
-    from .data.synth import random_poses, thesis_motion, write_synthetic_sequence
+    from .data.synth import demo_motion, random_poses, thesis_motion, write_synthetic_sequence
 
-    if args.random:
+    if args.demo:
+        frames = demo_motion(args.frames)
+    elif args.random:
         if args.sequence or args.hia_root:
             raise ValueError("--random renders random poses; do not combine it with --hia-root/--sequence")
         n = args.frames.stop if args.frames is not None and args.frames.stop else 100
@@ -112,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hia-root", type=Path, help="Hands-in-Action data root (Configs/, Models/, Calibration/)")
     p.add_argument("--sequence", help="thesis sequence id, e.g. 16")
     p.add_argument("--random", action="store_true", help="random poses within the limits, random viewpoints")
+    p.add_argument("--demo", action="store_true", help="the shipped demo motion (no thesis data needed)")
     p.add_argument("--models", default="hand_right", help="with --random: comma-separated model names")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--frames", type=_frames_slice, default=None, help="A:B frame range (with --random: :N frames)")

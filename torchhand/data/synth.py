@@ -27,7 +27,7 @@ from ..workspace import prepare_output_dir
 from .layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
 from .noise import apply_kinect_noise, noise_model
 
-__all__ = ["SyntheticFrames", "thesis_motion", "random_poses", "write_synthetic_sequence", "shade_rgb"]
+__all__ = ["SyntheticFrames", "thesis_motion", "demo_motion", "random_poses", "write_synthetic_sequence", "shade_rgb"]
 
 # Albedo per model kind (RGB, 0..1): skin for hands, the thesis objects' colours.
 _COLORS = {"hand": (0.87, 0.67, 0.55), "ball": (0.85, 0.2, 0.15), "cube": (0.2, 0.45, 0.85),
@@ -77,6 +77,19 @@ def thesis_motion(hia_root, sequence: str, frames: Optional[slice] = None, dtype
     source = {"format": "hands-in-action MOTION", "sequence": sequence,
               "video_frames": [int(rows[0] - bounds.motion_offset), int(rows[-1] - bounds.motion_offset)]}
     return SyntheticFrames(scene, torch.cat(thetas, 1), [cam], f"hia_{sequence}", source)
+
+
+def demo_motion(frames: Optional[slice] = None, dtype=torch.float32) -> SyntheticFrames:
+    """The shipped demo motion (two hands and the ball, a thesis excerpt) seen by the
+    thesis' camera; needs no thesis data."""
+    from ..demo import load_demo_motion
+
+    names, theta = load_demo_motion()
+    theta = theta[frames] if frames is not None else theta
+    if len(theta) == 0:
+        raise ValueError("--frames selects no frame of the demo motion (60 frames)")
+    return SyntheticFrames(Scene.from_names(names, dtype=dtype), theta.to(dtype), [kinect_camera(dtype=dtype)],
+                           "demo", {"format": "shipped demo motion"})
 
 
 def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(400.0, 800.0),
