@@ -44,9 +44,6 @@ def test_console_script_help():
         assert cmd in res.stdout
 
 
-@pytest.mark.xfail(strict=True, reason="pyproject.toml [tool.setuptools] packages lists torchhand, torchhand.io and "
-                                       "torchhand._assets only: a (non-editable) install lacks torchhand.data and "
-                                       "torchhand.energies, so the installed synth/eval/track commands fail")
 def test_pyproject_packages_every_subpackage():
     tomllib = pytest.importorskip("tomllib")
     cfg = tomllib.loads((REPO / "pyproject.toml").read_text())
@@ -96,9 +93,6 @@ def test_demo_refuses_to_overwrite(demo_out, capsys):
     assert after == before
 
 
-@pytest.mark.xfail(strict=True, reason="with --track-frames 0 the demo's summary.json 'outputs' (and the printed "
-                                       "'wrote ...' line) still list sequence/, track/ and eval.json, which are "
-                                       "not written")
 def test_demo_summary_lists_only_written_outputs(demo_out):
     summary = json.loads((demo_out / "summary.json").read_text())
     missing = [o for o in summary["outputs"] if not (demo_out / o).exists()]

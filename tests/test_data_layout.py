@@ -122,9 +122,6 @@ def test_depth_colour_8bit_png_is_rejected(tmp_path):
         read_depth(p)
 
 
-@pytest.mark.xfail(strict=True, reason="read_depth reads with cv2.IMREAD_ANYDEPTH, which converts a 3-channel 16-bit "
-                                       "PNG to grey, so a colour 16-bit image is silently accepted as depth (a "
-                                       "weighted channel mix) instead of the 'single-channel 16-bit' error")
 def test_depth_16bit_three_channel_png_is_rejected(tmp_path):
     p = tmp_path / "colour16.png"
     img = np.zeros((4, 4, 3), np.uint16)
@@ -306,8 +303,6 @@ def test_read_poses_corrupt_array_names_it(tmp_path):
         read_poses(tmp_path)
 
 
-@pytest.mark.xfail(strict=True, reason="read_poses lets Poses.__post_init__ raise a bare ValueError without the "
-                                       "folder for gt/ arrays with inconsistent frame counts (not SequenceError)")
 def test_read_poses_inconsistent_frame_counts_is_sequence_error_naming_folder(tmp_path):
     p = _poses()
     write_poses(tmp_path, p)

@@ -193,9 +193,6 @@ def test_evaluate_many_parallel_equals_serial(gt1, tmp_path):
     assert "sequences" not in one and abs(one["mean_mm"] - 1.0) <= 1e-9
 
 
-@pytest.mark.xfail(strict=True, reason="summarize() weights sequences by frame count, but evaluate_many documents "
-                                       "pooling all keypoints of all frames: sequences with different keypoint "
-                                       "counts (one hand vs two) are mis-weighted")
 def test_evaluate_many_pools_all_keypoints(gt1, tmp_path):
     gt2 = _gt_poses(["hand_right", "hand_left"], 3, seed=1)  # 42 keypoints per frame
     write_poses(tmp_path / "a" / "gt", gt1)

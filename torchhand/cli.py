@@ -21,8 +21,7 @@ def _demo(args) -> int:
     if t:
         print(f"tracked {t['frames']} synthetic Kinect frames from the first-frame pose: "
               f"mean error {t['mean_px']:.2f} px, {t['mean_mm']:.2f} mm ({t['seconds_per_frame']:.1f} s/frame)")
-    print(f"wrote {args.out}/overlays/*.png, {args.out}/demo.mp4, {args.out}/track/, {args.out}/eval.json, "
-          f"{args.out}/summary.json")
+    print("wrote " + ", ".join(f"{args.out}/{o}" for o in summary["outputs"]))
     return 0
 
 

@@ -80,7 +80,8 @@ def run_demo(out: Path, frames: int | None = None, force: bool = False, device: 
         "image_size": [cam.width, cam.height],
         "render_ms_per_frame": 1000 * t_render / max(len(theta), 1),
         "tracking": tracking,
-        "outputs": ["overlays/", "demo.mp4", "keypoints_2d.json", "sequence/", "track/", "eval.json", "summary.json"],
+        "outputs": ["overlays/", "demo.mp4", "keypoints_2d.json"]
+        + (["sequence/", "track/", "eval.json"] if tracking else []) + ["summary.json"],
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

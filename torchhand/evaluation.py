@@ -63,6 +63,7 @@ def evaluate_sequence(pred_dir, gt_dir, with_penetration: bool = True) -> Dict:
     e3 = keypoint_errors(pred.keypoints_3d, gt.keypoints_3d)
     result = _scores(e2, e3)
     result.update(
+        keypoint_errors=int(e2.size),
         sequence=gt_dir.parent.name if gt_dir.name == "gt" else gt_dir.name,
         prediction=str(pred_dir),
         per_keypoint={n: {"px": float(e2[..., p].mean()), "mm": float(e3[..., p].mean())}
@@ -134,9 +135,12 @@ def evaluate_many(pairs: Sequence[Tuple[Path, Path]], workers: int = 1, with_pen
 
 
 def summarize(results: List[Dict]) -> Dict:
-    """Pool per-sequence results (frame-weighted means, medians of the per-frame errors)."""
+    """Pool per-sequence results over all keypoints of all frames: means and the AUC
+    are weighted by each sequence's number of keypoint errors (exact pooling, since
+    both are linear in the errors' distribution); medians are taken over the
+    per-frame mean errors."""
     frames = sum(r["frames"] for r in results)
-    w = np.array([r["frames"] for r in results], float)
+    w = np.array([r["keypoint_errors"] for r in results], float)
     pooled = {
         "frames": frames,
         "mean_px": float(np.average([r["mean_px"] for r in results], weights=w)),
@@ -144,6 +148,7 @@ def summarize(results: List[Dict]) -> Dict:
         "median_px": float(np.median(np.concatenate([r["per_frame"]["px"] for r in results]))),
         "median_mm": float(np.median(np.concatenate([r["per_frame"]["mm"] for r in results]))),
         "auc_0_50mm": float(np.average([r["auc_0_50mm"] for r in results], weights=w)),
+        "keypoint_errors": int(w.sum()),
     }
     if len(results) == 1:
         return results[0]

@@ -144,7 +144,7 @@ def read_depth(path, unit_mm: float = 1.0) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise SequenceError(f"{path}: depth frame not found")
-    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SequenceError(f"{path}: unreadable image (not a PNG?)")
     if img.ndim != 2 or img.dtype != np.uint16:
@@ -223,5 +223,9 @@ def read_poses(folder) -> Poses:
             arrays[n] = np.load(folder / n, allow_pickle=False)
         except ValueError as err:
             raise SequenceError(f"{folder / n}: unreadable ({err})") from None
-    return Poses(arrays["theta.npy"], arrays["keypoints_3d.npy"], arrays["keypoints_2d.npy"], meta["models"],
-                 meta["dof_names"], meta["keypoint_names"], np.asarray(meta.get("valid", [True] * len(arrays["theta.npy"]))))
+    try:
+        return Poses(arrays["theta.npy"], arrays["keypoints_3d.npy"], arrays["keypoints_2d.npy"], meta["models"],
+                     meta["dof_names"], meta["keypoint_names"],
+                     np.asarray(meta.get("valid", [True] * len(arrays["theta.npy"]))))
+    except ValueError as err:
+        raise SequenceError(f"{folder}: {err}") from None
