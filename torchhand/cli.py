@@ -136,7 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--energy", default="LO", help="energy terms: LO (model-to-data + data-to-model)")
-    p.add_argument("--metric", default="point-to-point", choices=["point-to-point", "point-to-plane"])
+    p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
+                   help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
     p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
     p.add_argument("--device", default="cpu")

@@ -39,7 +39,7 @@ class TrackerConfig:
     farther than this from any rendered model pixel are left unlabelled."""
 
     energy: str = "LO"
-    metric: str = "point-to-point"
+    metric: str = "point-to-plane"
     inner_iterations: int = 1
     max_iterations: int = 50
     first_frame_iterations: int = 50

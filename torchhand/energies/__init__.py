@@ -21,7 +21,7 @@ __all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel"
 ENERGY_COMPONENTS = {"LO": "model-to-data + data-to-model"}
 
 
-def parse_energy(spec: str, metric: str = "point-to-point") -> List[EnergyTerm]:
+def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
     """Terms for an energy string like ``LO`` (later ``LO+C``, ``LO+S``, ``LO+CS``)."""
     parts = spec.replace(" ", "").split("+")
     if parts[0] != "LO":

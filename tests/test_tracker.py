@@ -1,0 +1,158 @@
+"""Energy terms, the per-frame solver and sequence tracking."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchhand.camera import kinect_camera
+from torchhand.data.layout import read_poses
+from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, parse_energy
+from torchhand.evaluation import evaluate_sequence
+from torchhand.render import render
+from torchhand.scene import Scene
+from torchhand.tracker import Tracker, TrackerConfig, track_sequences
+
+SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "sample"
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def hand_frame():
+    """A right hand 450 mm in front of the camera, its clean depth and its pose."""
+    torch.manual_seed(0)
+    scene = Scene.from_names(["hand_right"], dtype=F64)
+    model = scene.models[0]
+    theta = model.zero_pose(1)
+    c = model.vertices_rest.mean(0)
+    theta[0, :3] = torch.tensor([0.0, 0.0, 450.0], dtype=F64) - c
+    theta[0, 6:] = (model.lower[6:].clamp(-0.3, 0) + model.upper[6:].clamp(0, 0.3)) / 2
+    cam = kinect_camera(dtype=F64)
+    with torch.no_grad():
+        depth = render(scene(theta).vertices, scene.faces, cam).depth[0].numpy()
+    return scene, theta, cam, depth
+
+
+def _state(tracker, scene, theta, cam, depth):
+    from torchhand.preprocess import preprocess_depth
+
+    frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
+    return tracker._state(theta, theta, [frame], [cam])
+
+
+@pytest.mark.parametrize("term", [ModelToData(metric="point-to-point"), ModelToData(metric="point-to-plane"),
+                                  DataToModel(), Anatomy(), Regularization()], ids=lambda t: f"{t.name}")
+def test_term_jacobian_matches_finite_differences(hand_frame, term):
+    scene, theta, cam, depth = hand_frame
+    tracker = Tracker(scene, TrackerConfig(), terms=[term])
+    start = theta.clone()
+    start[0, :3] += torch.tensor([3.0, -2.0, 4.0], dtype=F64)
+    start[0, 6:] += 0.05
+    state = _state(tracker, scene, start, cam, depth)
+    if isinstance(term, (Anatomy, Regularization)):
+        term.prepare(state, torch.tensor([100.0], dtype=F64))
+    else:
+        term.prepare(state)
+        assert int(term.count[0]) > 20, "the frame must give correspondences"
+    r, J = term.residuals(start, scene(start, validate=False), True)
+    eps = 1e-6
+    cols = []
+    for d in range(scene.num_dofs):
+        e = torch.zeros_like(start)
+        e[0, d] = eps
+        rp, _ = term.residuals(start + e, scene(start + e, validate=False), False)
+        rm, _ = term.residuals(start - e, scene(start - e, validate=False), False)
+        cols.append((rp - rm) / (2 * eps))
+    J_fd = torch.stack(cols, -1)
+    scale = J_fd.abs().max().clamp_min(1e-12)
+    # point-to-plane keeps the normal fixed, as documented, so it is exact too
+    assert (J - J_fd).abs().max() / scale < 1e-5
+
+
+def test_anatomy_residuals_square_to_eq_4_17(hand_frame):
+    scene, theta, cam, depth = hand_frame
+    term = Anatomy()
+    state = _state(Tracker(scene, terms=[term]), scene, theta, cam, depth)
+    term.prepare(state, torch.tensor([200.0], dtype=F64))
+    t = theta.clone()
+    t[0, 10] = scene.upper[10] + 0.2  # outside the limit
+    r, _ = term.residuals(t, None, False)
+    lo, hi = scene.lower[term.joints], scene.upper[term.joints]
+    e = torch.exp(10 * (lo - t[0, term.joints])) + torch.exp(10 * (t[0, term.joints] - hi))
+    torch.testing.assert_close((r[0] ** 2).sum(), 0.0015 * 200 * e.sum())
+
+
+def test_frame_from_perturbed_pose_converges_to_the_truth(hand_frame):
+    scene, theta, cam, depth = hand_frame
+    tracker = Tracker(scene, TrackerConfig(max_iterations=25, first_frame_iterations=25, min_vertex_motion=0.05))
+    start = theta.clone()
+    start[0, :3] += torch.tensor([4.0, -3.0, 5.0], dtype=F64)
+    start[0, 6:] += 0.08 * torch.randn(31, generator=torch.Generator().manual_seed(1), dtype=F64)
+    start = scene.clamp(start)
+    res = tracker.track_frame([depth], [cam], start, first=True)
+    with torch.no_grad():
+        err0 = (scene(start).keypoints - scene(theta).keypoints).norm(dim=-1).mean()
+        err = (scene(res.theta).keypoints - scene(theta).keypoints).norm(dim=-1).mean()
+    assert bool(res.valid[0]) and res.notes == [""]
+    assert err0 > 5.0 and err < 1.5, (float(err0), float(err))
+
+
+def test_batched_problems_are_independent(hand_frame):
+    scene, theta, cam, depth = hand_frame
+    tracker = Tracker(scene, TrackerConfig(max_iterations=5, first_frame_iterations=5))
+    start = theta.repeat(2, 1)
+    start[1, :3] += 3.0
+    both = tracker.track_frame([depth, depth], [cam, cam], start, first=True)
+    one = Tracker(scene, TrackerConfig(max_iterations=5, first_frame_iterations=5)).track_frame(
+        [depth], [cam], start[1:], first=True)
+    torch.testing.assert_close(both.theta[1:], one.theta, atol=1e-6, rtol=0)
+
+
+def test_empty_and_missing_frames_keep_the_previous_pose(hand_frame):
+    scene, theta, cam, depth = hand_frame
+    tracker = Tracker(scene, TrackerConfig(max_iterations=2))
+    res = tracker.track_frame([np.zeros_like(depth), None], [cam, cam], theta.repeat(2, 1))
+    assert not res.valid.any()
+    torch.testing.assert_close(res.theta, theta.repeat(2, 1))
+    assert "no valid depth" in res.notes[0] and "missing" in res.notes[1]
+
+
+def test_far_off_initial_pose_is_flagged_and_finite(hand_frame):
+    scene, theta, cam, depth = hand_frame
+    far = theta.clone()
+    far[0, 2] += 3000.0
+    res = Tracker(scene, TrackerConfig(max_iterations=3)).track_frame([depth], [cam], far)
+    assert torch.isfinite(res.theta).all()
+    assert "no correspondences" in res.notes[0]
+
+
+def test_parse_energy_rejects_unknown_and_future_components():
+    assert [t.name for t in parse_energy("LO")] == ["m2d", "d2m", "anatomy", "regularization"]
+    with pytest.raises(ValueError, match="not available yet"):
+        parse_energy("LO+C")
+    with pytest.raises(ValueError, match="must start with LO"):
+        parse_energy("XYZ")
+
+
+def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(SAMPLE, seq)
+    gt = tmp_path / "gt_kept"
+    shutil.move(str(seq / "gt"), gt)  # the tracker must not need gt/
+    cfg = TrackerConfig(max_iterations=3, first_frame_iterations=3)
+    out = tmp_path / "out"
+    summary = track_sequences([seq], out, cfg, progress=False)
+    name = summary[0]["sequence"]
+    folder = out / name
+    assert (folder / "motion" / "Model_Hand_R.MOTION").is_file()
+    assert (folder / "motion" / "Model_Object_Ball.MOTION").is_file()
+    poses = read_poses(folder)
+    assert poses.theta.shape == (4, 80) and np.isfinite(poses.theta).all()
+    result = evaluate_sequence(folder, gt, with_penetration=False)
+    assert result["frames"] == 4 and result["mean_mm"] < 6.0
+    with pytest.raises(FileExistsError):
+        track_sequences([seq], out, cfg, progress=False)
