@@ -24,6 +24,11 @@ def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 1) -> f
     return times[len(times) // 2]
 
 
+def set_threads(n: int) -> None:
+    """torch CPU threads for a benchmark (recorded by machine())."""
+    torch.set_num_threads(max(1, n))
+
+
 def machine() -> dict:
     return {"cpu_threads": torch.get_num_threads(), "torch": torch.__version__, "python": platform.python_version()}
 

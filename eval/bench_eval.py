@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _common import machine, write_json
+from _common import machine, set_threads, write_json
 from torchhand.camera import kinect_camera
 from torchhand.data.layout import Poses, write_poses
 from torchhand.demo import load_demo_motion
@@ -45,7 +45,9 @@ def main(argv=None) -> None:
     ap.add_argument("--sequences", type=int, default=10)
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
+    set_threads(args.threads)
     names, theta = load_demo_motion()
     scene = Scene.from_names(names)
     cam = kinect_camera()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from _common import machine, write_json
+from _common import machine, set_threads, write_json
 from torchhand.camera import kinect_camera
 from torchhand.demo import load_demo_motion
 from torchhand.render import render
@@ -26,7 +26,9 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
+    set_threads(args.threads)
     names, theta = load_demo_motion()
     scene = Scene.from_names(names)
     cam = kinect_camera()

@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import machine, write_json
+from _common import machine, set_threads, write_json
 from torchhand.camera import kinect_camera
 from torchhand.data.synth import SyntheticFrames, write_synthetic_sequence
 from torchhand.demo import load_demo_motion
@@ -26,7 +26,9 @@ def main(argv=None) -> None:
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--noise", default="kinect")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
+    set_threads(args.threads)
     names, theta = load_demo_motion()
     frames = SyntheticFrames(Scene.from_names(names), theta[: args.frames], [kinect_camera()], "bench", {})
     result = {"frames": len(frames.theta), "noise": args.noise, "models": names, **machine()}

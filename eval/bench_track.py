@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from _common import machine, write_json
+from _common import machine, set_threads, write_json
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence
 from torchhand.evaluation import evaluate_sequence
 from torchhand.tracker import TrackerConfig, track_sequences
@@ -44,7 +44,9 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--iterations", type=int, default=10)
     ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
+    set_threads(args.threads)
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations)
     result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, **machine()}
     with tempfile.TemporaryDirectory() as tmp:

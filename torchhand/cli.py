@@ -100,6 +100,10 @@ def _track(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch CPU threads per process (default 1: the per-frame work is many small "
+                         "operations, which lose far more to thread contention than they gain; see "
+                         "docs/benchmarks.md)")
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("demo", help="pose, render and draw the default scene through a short motion")
     p.add_argument("--out", type=Path, required=True, help="output folder (created; must be new or empty)")
@@ -149,6 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    import torch
+
+    torch.set_num_threads(max(1, args.threads))
     try:
         return args.func(args)
     except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError) as err:
