@@ -318,8 +318,9 @@ def _rays(K: torch.Tensor, H: int, W: int):
 
 
 def _incidence_cos(depth, valid, normals, K):
-    """(B, H, W) cosine of the angle between the surface normal and the viewing ray; 1 where empty.
+    """(B, H, W) cosine of the angle between the surface normal and the viewing ray.
 
+    Values on empty pixels are finite but meaningless. Zero normals give 0 (grazing).
     With ``normals`` None the angle is estimated from the depth map: for a surface
     ``z(u, v)`` seen through a pinhole with zero skew, ``n ~ (-fx z_u, -fy z_v,
     fx z_u x + fy z_v y + z)`` with ``(x, y, 1)`` the pixel's viewing ray, so
@@ -335,16 +336,13 @@ def _incidence_cos(depth, valid, normals, K):
         n0, n1, n2 = n[..., 0], n[..., 1], n[..., 2]
         dot = torch.addcmul(torch.addcmul(n2, n0, rx), n1, ry)
         nsq = torch.addcmul(torch.addcmul(n0 * n0, n1, n1), n2, n2)
-        cos = dot.abs_().mul_(nsq.clamp_min_(1e-30).rsqrt_()).mul_(inv_ray)
-        cos = torch.where(nsq > 1e-30, cos, 1.0)
-    else:
-        fx, fy = K[:, 0, 0].view(-1, 1, 1), K[:, 1, 1].view(-1, 1, 1)
-        a = _one_sided_derivative(depth, valid, dim=2).mul_(fx)
-        c = _one_sided_derivative(depth, valid, dim=1).mul_(fy)
-        nz = torch.addcmul(torch.addcmul(depth, a, rx), c, ry)
-        nsq = torch.addcmul(torch.addcmul(a * a, c, c), nz, nz)
-        cos = (depth * inv_ray).mul_(nsq.clamp_min_(1e-30).rsqrt_())
-    return torch.where(valid, cos.clamp_(0.0, 1.0), 1.0)
+        return dot.abs_().mul_(nsq.clamp_min_(1e-30).rsqrt_()).mul_(inv_ray)
+    fx, fy = K[:, 0, 0].view(-1, 1, 1), K[:, 1, 1].view(-1, 1, 1)
+    a = _one_sided_derivative(depth, valid, dim=2).mul_(fx)
+    c = _one_sided_derivative(depth, valid, dim=1).mul_(fy)
+    nz = torch.addcmul(torch.addcmul(depth, a, rx), c, ry)
+    nsq = torch.addcmul(torch.addcmul(a * a, c, c), nz, nz)
+    return (depth * inv_ray).mul_(nsq.clamp_min_(1e-30).rsqrt_())
 
 
 def _one_sided_derivative(depth, valid, dim):
@@ -361,11 +359,11 @@ def _one_sided_derivative(depth, valid, dim):
     fwd = torch.cat([d, pad], dim=dim)
     bwd = torch.cat([pad, d], dim=dim)
     out = torch.where(fwd.abs() <= bwd.abs(), fwd, bwd)
-    return torch.where(out.abs() < float("inf"), out, 0.0)
+    return torch.nan_to_num_(out, posinf=0.0, neginf=0.0)
 
 
-def _projector_shadow(depth, valid, fx, params):
-    """(B, H, W) bool: pixels the camera sees but the projector does not.
+def _projector_shadow(depth, fx, params):
+    """(B, H, W) bool: pixels the camera sees but the projector does not (meaningless where empty).
 
     With the projector at ``+x`` (baseline ``b``) and disparity ``D(u) = f b / z(u)``
     in image pixels, a point seen at column ``u`` lies on the projector ray with
@@ -379,20 +377,61 @@ def _projector_shadow(depth, valid, fx, params):
     With the projector on the left the image is mirrored.
     """
     if not params.projector_on_right:
-        return _projector_shadow(depth.flip(-1), valid.flip(-1), fx, _projector_right(params)).flip(-1)
+        return _projector_shadow(depth.flip(-1), fx, dataclasses.replace(params, projector_on_right=True)).flip(-1)
     W = depth.shape[-1]
-    u = torch.arange(W, device=depth.device, dtype=depth.dtype)
-    # p = u - f b / z on valid pixels, u on empty ones (disparity 0).
-    disparity = torch.where(valid, depth, float("inf")).reciprocal_().mul_(fx * params.baseline_mm)
-    p = u - disparity
-    # suffix minimum over u' > u: cummin over the flipped row, shifted by one pixel.
-    suffix = p.flip(-1).cummin(dim=-1).values.flip(-1)
-    after = torch.cat([suffix[..., 1:], torch.full_like(suffix[..., :1], float("inf"))], dim=-1)
-    return valid & (after < p.sub_(params.shadow_tolerance_px))
+    disparity = torch.nan_to_num_(torch.div(fx * params.baseline_mm, depth), posinf=0.0)  # 0 where empty
+    p = torch.arange(W, device=depth.device, dtype=depth.dtype) - disparity
+    suffix = p.flip(-1).cummin(dim=-1).values.flip(-1)  # min over u' >= u
+    shadow = torch.zeros_like(depth, dtype=torch.bool)
+    torch.lt(suffix[..., 1:], p[..., :-1].sub_(params.shadow_tolerance_px), out=shadow[..., :-1])
+    return shadow
 
 
-def _projector_right(params):
-    return dataclasses.replace(params, projector_on_right=True)
+def _box_max(x, R):
+    """Max over the (2R+1)^2 window around each pixel of (..., H, W) ``x`` (-inf outside)."""
+    L = 2 * R + 1
+    for dim, pad in ((-1, (R, R)), (-2, (0, 0, R, R))):
+        y = torch.nn.functional.pad(x, pad, value=float("-inf"))
+        span = 1
+        while span < L:  # doubling: after each step y[i] = max(x[i - R .. i - R + span - 1])
+            step = min(span, L - span)
+            n = y.shape[dim] - step
+            y = torch.maximum(y.narrow(dim, 0, n), y.narrow(dim, step, n))
+            span += step
+        x = y
+    return x
+
+
+def _lateral(z, ratio, params, generator):
+    """Step 3 of :func:`apply_kinect_noise`: returns new ``(z, ratio)``.
+
+    Only pixels whose (2R+1)^2 neighbourhood holds depths more than
+    ``lateral_min_jump_mm`` apart can change, so the random shifts are drawn for those
+    pixels only (all of them if the threshold is 0); shifts are clamped to R px.
+    """
+    B, H, W = z.shape
+    R = _LATERAL_RADIUS_PX
+    thr = params.lateral_min_jump_mm
+    if thr > 0:
+        both = _box_max(torch.stack([z, -z]), R)
+        idx = ((both[0] + both[1]) > thr).view(-1).nonzero().squeeze(1)
+    else:
+        idx = torch.arange(B * H * W, device=z.device)
+    if idx.numel() == 0:
+        return z, ratio
+    sigma = ratio.view(-1)[idx].mul_(params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)
+    shift = _randn((2, idx.numel()), generator, z.device, z.dtype).mul_(sigma).round_().clamp_(-R, R).long()
+    rem = idx % (H * W)
+    v, u = rem // W, rem % W
+    src = idx - rem + (v + shift[0]).clamp_(0, H - 1) * W + (u + shift[1]).clamp_(0, W - 1)
+    zf = z.reshape(-1)
+    z_dst, z_src = zf[idx], zf[src]
+    take = (z_src - z_dst).abs_() > thr if thr > 0 else torch.ones_like(z_dst, dtype=torch.bool)
+    dst = idx[take]
+    z = z.clone()  # may alias the caller's input
+    z.view(-1)[dst] = z_src[take]
+    ratio.view(-1)[dst] = ratio.view(-1)[src[take]]  # the right side is read before writing
+    return z, ratio
 
 
 def _randn(shape, generator, device, dtype):
@@ -443,7 +482,7 @@ def apply_kinect_noise(
     """Clean depth -> Kinect-v1-like depth (see :class:`KinectNoise` and ``docs/noise.md``).
 
     Steps 1-6 run on the bounding box (over the batch) of the non-empty pixels, grown
-    by 8 px; outside it nothing can change, so this only saves time on sparse frames
+    by 4 px; outside it nothing can change, so this only saves time on sparse frames
     (e.g. hands rendered without a background). Steps, in order, each vectorised over
     the batch and all pixels:
 
@@ -452,8 +491,8 @@ def apply_kinect_noise(
        projector shadows (exact per-row visibility test) and grazing-angle dropout
        (probability ramping linearly from ``grazing_start_deg`` to ``grazing_full_deg``);
     3. lateral noise: each pixel looks up the pixel at a random integer offset
-       ``round(sigma_L(angle) * N(0, 1))`` per axis (at most 8 px, more than 5
-       ``sigma_L`` up to 85 degrees incidence; clamped to the image) and takes
+       ``round(sigma_L(angle) * N(0, 1))`` per axis (clamped to 4 px, 4 ``sigma_L`` at
+       75 degrees incidence, and to the image) and takes
        its depth if the two differ by more than ``lateral_min_jump_mm`` (i.e. across a
        depth edge or a hole), so edges and hole borders become jagged without new
        depth values being invented;
@@ -462,9 +501,10 @@ def apply_kinect_noise(
     6. range clipping to ``[min_depth_mm, max_depth_mm]``;
     7. a Poisson number of random small disk-shaped holes per frame.
 
-    Random numbers are drawn in this order, only for enabled steps: dropout (B, h, w)
-    uniform; lateral and axial normals in one (n, B, h, w) draw (lateral first), with
-    (h, w) the size of the box above; hole counts (Poisson) and hole centres/radii.
+    Random numbers are drawn only where needed, in this order: dropout uniforms for the
+    pixels beyond ``grazing_start_deg``; lateral normals (2, M) for the M pixels near a
+    depth jump; axial normals for the (B, h, w) box above; hole counts (Poisson) and
+    hole centres/radii. The stream therefore depends on the input, deterministically.
 
     Args:
         depth: (B, H, W) clean depth in mm (float), 0 where empty. Not modified.
@@ -502,7 +542,7 @@ def apply_kinect_noise(
     if rows.numel() == 0:
         return out
     cols = torch.nonzero(valid.any(dim=1).any(dim=0)).flatten()
-    m = _LATERAL_MARGIN_PX
+    m = _LATERAL_RADIUS_PX
     v0, v1 = max(int(rows[0]) - m, 0), min(int(rows[-1]) + m + 1, H)
     u0, u1 = max(int(cols[0]) - m, 0), min(int(cols[-1]) + m + 1, W)
     if (v0, v1, u0, u1) != (0, H, 0, W):
@@ -521,71 +561,59 @@ def apply_kinect_noise(
     return out
 
 
-#: Lateral shifts are clamped to this many pixels (> 5 sigma_L up to 85 deg incidence).
-_LATERAL_MARGIN_PX = 8
+#: Lateral shifts are clamped to this many pixels (about 4 sigma_L at 75 deg incidence,
+#: 5.6 sigma_L at normal incidence). Also the margin of the working box.
+_LATERAL_RADIUS_PX = 4
 
 
 def _noise_core(z, normals, Kb, params, generator):
-    """Steps 1-6 of :func:`apply_kinect_noise` on a (B, H, W) float32 contiguous crop."""
+    """Steps 1-6 of :func:`apply_kinect_noise` on a (B, H, W) float32 contiguous crop.
+
+    ``z`` may alias the caller's input: it is never modified in place.
+    """
     B, H, W = z.shape
     device, dt = z.device, z.dtype
     fx = float(Kb[0, 0, 0]) if Kb.shape[0] == 1 else Kb[:, 0, 0].view(B, 1, 1)
     fb = (fx if params.focal_px is None else float(params.focal_px)) * params.baseline_mm
     valid = z > 0
 
-    # 1. incidence angle; both sigma formulas use ratio = theta / (pi/2 - theta)
-    angle = torch.acos_(_incidence_cos(z, valid, None if normals is None else normals.detach(), Kb))
+    # 1. incidence angle; both sigma formulas use ratio = theta / (pi/2 - theta), 0 where empty
+    cos = _incidence_cos(z, valid, None if normals is None else normals.detach(), Kb)
+    angle = torch.acos_(cos.clamp_(0.0, 1.0))
     ratio = angle.clamp_max(_MAX_ANGLE)
-    ratio = ratio.div_(ratio.neg().add_(math.pi / 2))
+    ratio = ratio.div_(ratio.neg().add_(math.pi / 2)).mul_(torch.sign(z))
 
     # 2. unmeasurable surface points: projector shadow, grazing-angle dropout
-    drop = _projector_shadow(z, valid, fx, params) if params.shadows else None
+    if params.shadows:
+        z = z.masked_fill(_projector_shadow(z, fx, params), 0.0)
     if params.grazing_start_deg < 90.0:
         a0, a1 = math.radians(params.grazing_start_deg), math.radians(params.grazing_full_deg)
-        p_drop = angle.sub_(a0).mul_(1.0 / (a1 - a0))
-        grazing = _rand((B, H, W), generator, device, dt) < p_drop
-        drop = grazing if drop is None else drop.logical_or_(grazing)
-    if drop is not None:
-        z = z.masked_fill(drop, 0.0)
-
-    lateral = params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0
-    axial = params.axial_sigma0_mm > 0 or params.axial_sigma_quad_mm > 0 or params.axial_sigma_angle_mm > 0
-    noise = _randn((2 * lateral + axial, B, H, W), generator, device, dt) if lateral or axial else None
+        cand = ((angle > a0) & valid).view(-1).nonzero().squeeze(1)  # uniforms only where p > 0
+        if cand.numel():
+            p_drop = angle.view(-1)[cand].sub_(a0).mul_(1.0 / (a1 - a0))
+            dropped = cand[_rand(cand.shape, generator, device, dt) < p_drop]
+            z = z.clone() if not params.shadows else z
+            z.view(-1)[dropped] = 0.0
 
     # 3. lateral noise: nearest-neighbour lookup at a random integer offset
-    if lateral:
-        sigma_l = ratio.mul(params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)
-        shift = noise[:2].mul_(sigma_l).round_().clamp_(-_LATERAL_MARGIN_PX, _LATERAL_MARGIN_PX)
-        vs = shift[0].add_(torch.arange(H, device=device, dtype=dt).view(1, H, 1)).clamp_(0, H - 1)
-        us = shift[1].add_(torch.arange(W, device=device, dtype=dt).view(1, 1, W)).clamp_(0, W - 1)
-        if H * W <= 2**24:  # exact in float32
-            idx = vs.mul_(W).add_(us).view(B, H * W).long()
-        else:
-            idx = vs.long().mul_(W).add_(us.long()).view(B, H * W)
-        z_s = torch.gather(z.view(B, H * W), 1, idx).view(B, H, W)
-        if params.lateral_min_jump_mm > 0:
-            take = (z_s - z).abs_() > params.lateral_min_jump_mm
-            z = torch.where(take, z_s, z)
-        else:
-            take, z = None, z_s
-        if axial and params.axial_sigma_angle_mm > 0:
-            ratio_s = torch.gather(ratio.view(B, H * W), 1, idx).view(B, H, W)
-            ratio = ratio_s if take is None else torch.where(take, ratio_s, ratio)
+    if params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0:
+        z, ratio = _lateral(z, ratio, params, generator)
     valid = z > 0
 
     # 4. axial noise, the Gaussian's variance reduced by the quantisation's q^2 / 12
     res = params.disparity_resolution_px
-    if axial:
-        z_m = z * 1e-3
-        sigma = (z_m - params.axial_z0_m).square_().mul_(params.axial_sigma_quad_mm).add_(params.axial_sigma0_mm)
-        if params.axial_sigma_angle_mm > 0:
-            sigma.addcmul_(ratio.square_(), z_m.clamp_min_(1e-6).rsqrt_(), value=params.axial_sigma_angle_mm)
+    if params.axial_sigma0_mm > 0 or params.axial_sigma_quad_mm > 0 or params.axial_sigma_angle_mm > 0:
+        sigma = (z - 1000.0 * params.axial_z0_m).square_().mul_(params.axial_sigma_quad_mm * 1e-6)
+        sigma.add_(params.axial_sigma0_mm)
+        if params.axial_sigma_angle_mm > 0:  # 0.1 mm sqrt(m) / sqrt(z [m]) = 0.1 sqrt(1000) / sqrt(z [mm])
+            inv_sqrt_z = z.clamp_min(1.0).rsqrt_()
+            sigma.addcmul_(ratio.square_(), inv_sqrt_z, value=params.axial_sigma_angle_mm * math.sqrt(1000.0))
         if res > 0 and params.compensate_quantisation:
             var = sigma.square_()
-            z2 = z.square()
+            z2 = z * z
             q2 = z2.square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z2 * res / fb).square_() / 12.0
             sigma = torch.maximum(var - q2, var * 0.25).sqrt_()
-        z = z.addcmul(sigma, noise[-1])
+        z = torch.addcmul(z, sigma, _randn((B, H, W), generator, device, dt))
 
     # 5. disparity quantisation: k = round(d / res) disparity levels, z = f b / (k res)
     if res > 0:
