@@ -18,6 +18,7 @@ centres are at integer coordinates.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Dict, Optional
@@ -83,7 +84,8 @@ class KinectNoise:
     measured ``sigma_L`` as the scatter of *edge* pixels; on a smooth surface a shift
     would only add ``slope * shift`` of extra axial noise, which their ``sigma_z`` (fit
     on tilted planes) already contains. So a pixel takes the shifted sample only if it
-    differs from its own depth by more than ``lateral_min_jump_mm``.
+    differs from its own depth by more than ``lateral_min_jump_mm``. Shifts are clamped
+    to 4 px (5.6 ``sigma_L`` at normal incidence, 4 ``sigma_L`` at 75 degrees).
 
     Attributes:
         lateral_sigma0_px: constant term, 0.8 px (Nguyen et al. 2012). Both lateral
@@ -306,7 +308,19 @@ def _check_inputs(depth, normals, K, params, generator) -> None:
 
 
 def _rays(K: torch.Tensor, H: int, W: int):
-    """Viewing rays ``(x, y, 1)`` of the pixel centres: (B|1, H|1, W) x and (B|1, H, 1) y."""
+    """Viewing rays ``(x, y, 1)`` of the pixel centres: (B|1, H|1, W) x and (B|1, H, 1) y,
+    and ``1 / |(x, y, 1)|`` (B|1, H, W). Cached for single (3, 3) cameras."""
+    if K.shape[0] == 1:
+        return _rays_cached(tuple(K.flatten().tolist()), H, W, str(K.device))
+    return _rays_uncached(K, H, W)
+
+
+@functools.lru_cache(maxsize=8)
+def _rays_cached(K_flat, H, W, device):
+    return _rays_uncached(torch.tensor(K_flat, dtype=torch.float32, device=device).view(1, 3, 3), H, W)
+
+
+def _rays_uncached(K, H, W):
     dev, dt = K.device, K.dtype
     fx, fy, s = K[:, 0, 0].view(-1, 1, 1), K[:, 1, 1].view(-1, 1, 1), K[:, 0, 1].view(-1, 1, 1)
     cx, cy = K[:, 0, 2].view(-1, 1, 1), K[:, 1, 2].view(-1, 1, 1)
@@ -314,7 +328,7 @@ def _rays(K: torch.Tensor, H: int, W: int):
     u = torch.arange(W, device=dev, dtype=dt).view(1, 1, W)
     ry = (v - cy) / fy
     rx = (u - cx) / fx if not bool((s != 0).any()) else (u - cx - s * ry) / fx
-    return rx, ry
+    return rx, ry, torch.rsqrt(rx * rx + ry * ry + 1.0)
 
 
 def _incidence_cos(depth, valid, normals, K):
@@ -329,8 +343,7 @@ def _incidence_cos(depth, valid, normals, K):
     neighbours (so depth discontinuities do not read as grazing surfaces).
     """
     B, H, W = depth.shape
-    rx, ry = _rays(K, H, W)
-    inv_ray = torch.rsqrt(rx * rx + ry * ry + 1.0)
+    rx, ry, inv_ray = _rays(K, H, W)
     if normals is not None:
         n = normals.to(depth.dtype)
         n0, n1, n2 = n[..., 0], n[..., 1], n[..., 2]
@@ -413,24 +426,27 @@ def _lateral(z, ratio, params, generator):
     R = _LATERAL_RADIUS_PX
     thr = params.lateral_min_jump_mm
     if thr > 0:
-        both = _box_max(torch.stack([z, -z]), R)
-        idx = ((both[0] + both[1]) > thr).view(-1).nonzero().squeeze(1)
+        both = _box_max(torch.stack([z, -z]), R)  # local max and -(local min)
+        bvu = ((both[0] + both[1]) > thr).nonzero()
     else:
-        idx = torch.arange(B * H * W, device=z.device)
-    if idx.numel() == 0:
+        grid = torch.meshgrid(*(torch.arange(n, device=z.device) for n in (B, H, W)), indexing="ij")
+        bvu = torch.stack(grid, dim=-1).view(-1, 3)
+    if bvu.shape[0] == 0:
         return z, ratio
-    sigma = ratio.view(-1)[idx].mul_(params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)
+    b, v, u = bvu.unbind(1)
+    bh = b * H
+    idx = (bh + v) * W + u
+    rf = ratio.view(-1)
+    sigma = rf.index_select(0, idx).mul_(params.lateral_sigma_angle_px).add_(params.lateral_sigma0_px)
     shift = _randn((2, idx.numel()), generator, z.device, z.dtype).mul_(sigma).round_().clamp_(-R, R).long()
-    rem = idx % (H * W)
-    v, u = rem // W, rem % W
-    src = idx - rem + (v + shift[0]).clamp_(0, H - 1) * W + (u + shift[1]).clamp_(0, W - 1)
+    src = (bh + (v + shift[0]).clamp_(0, H - 1)) * W + (u + shift[1]).clamp_(0, W - 1)
     zf = z.reshape(-1)
-    z_dst, z_src = zf[idx], zf[src]
+    z_dst, z_src = zf.index_select(0, idx), zf.index_select(0, src)
     take = (z_src - z_dst).abs_() > thr if thr > 0 else torch.ones_like(z_dst, dtype=torch.bool)
-    dst = idx[take]
+    r_new = torch.where(take, rf.index_select(0, src), rf.index_select(0, idx))
     z = z.clone()  # may alias the caller's input
-    z.view(-1)[dst] = z_src[take]
-    ratio.view(-1)[dst] = ratio.view(-1)[src[take]]  # the right side is read before writing
+    z.view(-1).index_copy_(0, idx, torch.where(take, z_src, z_dst))
+    rf.index_copy_(0, idx, r_new)
     return z, ratio
 
 
@@ -537,11 +553,10 @@ def apply_kinect_noise(
     # Work on the bounding box of the non-empty pixels (over the batch) plus a margin that
     # lateral shifts cannot cross (they are clamped to it); outside it everything stays
     # empty, so the result is the same as on the full image, only faster for sparse frames.
-    valid = z > 0
-    rows = torch.nonzero(valid.any(dim=2).any(dim=0)).flatten()
+    rows = torch.nonzero(z.amax(dim=2).amax(dim=0) > 0).flatten()
     if rows.numel() == 0:
         return out
-    cols = torch.nonzero(valid.any(dim=1).any(dim=0)).flatten()
+    cols = torch.nonzero(z.amax(dim=1).amax(dim=0) > 0).flatten()
     m = _LATERAL_RADIUS_PX
     v0, v1 = max(int(rows[0]) - m, 0), min(int(rows[-1]) + m + 1, H)
     u0, u1 = max(int(cols[0]) - m, 0), min(int(cols[-1]) + m + 1, W)
@@ -575,20 +590,24 @@ def _noise_core(z, normals, Kb, params, generator):
     device, dt = z.device, z.dtype
     fx = float(Kb[0, 0, 0]) if Kb.shape[0] == 1 else Kb[:, 0, 0].view(B, 1, 1)
     fb = (fx if params.focal_px is None else float(params.focal_px)) * params.baseline_mm
-    valid = z > 0
+    nonempty = torch.sign(z)  # 1.0 / 0.0 (depth >= 0 was checked)
 
     # 1. incidence angle; both sigma formulas use ratio = theta / (pi/2 - theta), 0 where empty
-    cos = _incidence_cos(z, valid, None if normals is None else normals.detach(), Kb)
+    if normals is not None:
+        cos = _incidence_cos(z, None, normals.detach(), Kb)
+    else:
+        cos = _incidence_cos(z, z > 0, None, Kb)
     angle = torch.acos_(cos.clamp_(0.0, 1.0))
     ratio = angle.clamp_max(_MAX_ANGLE)
-    ratio = ratio.div_(ratio.neg().add_(math.pi / 2)).mul_(torch.sign(z))
+    ratio = ratio.div_(ratio.neg().add_(math.pi / 2)).mul_(nonempty)
 
     # 2. unmeasurable surface points: projector shadow, grazing-angle dropout
     if params.shadows:
         z = z.masked_fill(_projector_shadow(z, fx, params), 0.0)
     if params.grazing_start_deg < 90.0:
         a0, a1 = math.radians(params.grazing_start_deg), math.radians(params.grazing_full_deg)
-        cand = ((angle > a0) & valid).view(-1).nonzero().squeeze(1)  # uniforms only where p > 0
+        r0 = a0 / (math.pi / 2 - a0)  # ratio is monotonic in the angle and 0 where empty
+        cand = (ratio > r0).view(-1).nonzero().squeeze(1)  # uniforms only where p > 0
         if cand.numel():
             p_drop = angle.view(-1)[cand].sub_(a0).mul_(1.0 / (a1 - a0))
             dropped = cand[_rand(cand.shape, generator, device, dt) < p_drop]
@@ -598,7 +617,7 @@ def _noise_core(z, normals, Kb, params, generator):
     # 3. lateral noise: nearest-neighbour lookup at a random integer offset
     if params.lateral_sigma0_px > 0 or params.lateral_sigma_angle_px > 0:
         z, ratio = _lateral(z, ratio, params, generator)
-    valid = z > 0
+        nonempty = torch.sign(z)
 
     # 4. axial noise, the Gaussian's variance reduced by the quantisation's q^2 / 12
     res = params.disparity_resolution_px
@@ -613,15 +632,14 @@ def _noise_core(z, normals, Kb, params, generator):
             z2 = z * z
             q2 = z2.square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z2 * res / fb).square_() / 12.0
             sigma = torch.maximum(var - q2, var * 0.25).sqrt_()
-        z = torch.addcmul(z, sigma, _randn((B, H, W), generator, device, dt))
+        z = torch.addcmul(z, sigma.mul_(nonempty), _randn((B, H, W), generator, device, dt))  # empty stays 0
 
     # 5. disparity quantisation: k = round(d / res) disparity levels, z = f b / (k res)
-    if res > 0:
-        z = torch.div(fb / res, torch.div(fb / res, z).round_())  # z <= 0 gives z <= 0 or inf: dropped below
+    if res > 0:  # z = 0 stays 0 (d = inf); z < 0 stays < 0 or becomes inf: both dropped below
+        z = torch.div(fb / res, torch.div(fb / res, z).round_())
 
-    # 6. range clipping (and the pixels that were empty before the noise)
-    valid &= (z >= max(params.min_depth_mm, 1e-3)) & (z <= params.max_depth_mm)
-    return torch.where(valid, z, 0.0)
+    # 6. range clipping (empty pixels are 0 here, below any positive minimum)
+    return torch.where((z >= max(params.min_depth_mm, 1e-3)) & (z <= params.max_depth_mm), z, 0.0)
 
 
 #: Named noise models; ``None`` means clean depth.
