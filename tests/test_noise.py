@@ -85,7 +85,8 @@ def test_axial_sigma_formula_terms():
     assert p.axial_sigma(1000.0, theta) == pytest.approx(1.2 + 1.9 * 0.36 + 0.1 * (theta / (math.pi / 2 - theta)) ** 2)
     assert p.lateral_sigma_px(0.0) == pytest.approx(0.8)
     t = torch.tensor([0.0, theta])
-    assert torch.allclose(p.axial_sigma(torch.tensor(1000.0), t), torch.tensor([p.axial_sigma(1000.0), p.axial_sigma(1000.0, theta)]))
+    expected = torch.tensor([p.axial_sigma(1000.0), p.axial_sigma(1000.0, theta)])
+    assert torch.allclose(p.axial_sigma(torch.tensor(1000.0), t), expected)
 
 
 # --------------------------------------------------------------------------- quantisation
@@ -200,7 +201,11 @@ def test_projector_shadow_on_one_side_of_box():
 def test_lateral_noise_takes_existing_values_only():
     # No axial noise, no quantisation: every output value must be one of the input depths.
     params = KinectNoise(
-        axial_sigma0_mm=0.0, axial_sigma_quad_mm=0.0, axial_sigma_angle_mm=0.0, disparity_resolution_px=0.0, shadows=False
+        axial_sigma0_mm=0.0,
+        axial_sigma_quad_mm=0.0,
+        axial_sigma_angle_mm=0.0,
+        disparity_resolution_px=0.0,
+        shadows=False,
     )
     depth, normals = _box_on_wall(600.0, 1000.0)
     out = apply_kinect_noise(depth, normals, K, params, generator=_gen())

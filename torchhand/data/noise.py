@@ -268,7 +268,9 @@ def _check_inputs(depth, normals, K, params, generator) -> None:
     B, H, W = depth.shape
     if normals is not None:
         if not isinstance(normals, torch.Tensor):
-            raise TypeError(f"normals must be a torch.Tensor of shape (B, H, W, 3) or None, got {type(normals).__name__}")
+            raise TypeError(
+                f"normals must be a torch.Tensor of shape (B, H, W, 3) or None, got {type(normals).__name__}"
+            )
         if tuple(normals.shape) != (B, H, W, 3):
             raise ValueError(f"normals must have shape (B, H, W, 3) = {_fmt((B, H, W, 3))}, got {_fmt(normals.shape)}")
         if not normals.is_floating_point():
@@ -507,11 +509,10 @@ def apply_kinect_noise(
        projector shadows (exact per-row visibility test) and grazing-angle dropout
        (probability ramping linearly from ``grazing_start_deg`` to ``grazing_full_deg``);
     3. lateral noise: each pixel looks up the pixel at a random integer offset
-       ``round(sigma_L(angle) * N(0, 1))`` per axis (clamped to 4 px, 4 ``sigma_L`` at
-       75 degrees incidence, and to the image) and takes
-       its depth if the two differ by more than ``lateral_min_jump_mm`` (i.e. across a
-       depth edge or a hole), so edges and hole borders become jagged without new
-       depth values being invented;
+       ``round(sigma_L(angle) * N(0, 1))`` per axis (clamped to 4 px, i.e. 4 ``sigma_L``
+       at 75 degrees incidence, and to the image) and takes its depth if the two differ
+       by more than ``lateral_min_jump_mm`` (i.e. across a depth edge or a hole), so
+       edges and hole borders become jagged without new depth values being invented;
     4. axial Gaussian noise ``sigma_z(z, angle)``;
     5. disparity quantisation to ``disparity_resolution_px`` (``z = f b / d``);
     6. range clipping to ``[min_depth_mm, max_depth_mm]``;
@@ -630,7 +631,10 @@ def _noise_core(z, normals, Kb, params, generator):
         if res > 0 and params.compensate_quantisation:
             var = sigma.square_()
             z2 = z * z
-            q2 = z2.square_().mul_((res / fb) ** 2 / 12.0) if isinstance(fb, float) else (z2 * res / fb).square_() / 12.0
+            if isinstance(fb, float):
+                q2 = z2.square_().mul_((res / fb) ** 2 / 12.0)
+            else:
+                q2 = (z2 * res / fb).square_() / 12.0
             sigma = torch.maximum(var - q2, var * 0.25).sqrt_()
         z = torch.addcmul(z, sigma.mul_(nonempty), _randn((B, H, W), generator, device, dt))  # empty stays 0
 
