@@ -37,3 +37,13 @@ def write_json(path: Path, result: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2))
+
+
+def demo_scene():
+    """The shipped demo motion: (model names, theta (N, D), Scene, thesis camera)."""
+    from torchhand.camera import kinect_camera
+    from torchhand.demo import load_demo_motion
+    from torchhand.scene import Scene
+
+    names, theta = load_demo_motion()
+    return names, theta, Scene.from_names(names), kinect_camera()

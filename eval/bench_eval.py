@@ -17,10 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _common import machine, set_threads, write_json
-from torchhand.camera import kinect_camera
+from _common import demo_scene, machine, set_threads, write_json
 from torchhand.data.layout import Poses, write_poses
-from torchhand.demo import load_demo_motion
 from torchhand.evaluation import evaluate_many
 from torchhand.scene import Scene
 
@@ -49,9 +47,7 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
     set_threads(args.threads)
-    names, theta = load_demo_motion()
-    scene = Scene.from_names(names)
-    cam = kinect_camera()
+    names, theta, scene, cam = demo_scene()
     result = {"sequences": args.sequences, "frames": args.frames, "workers": args.workers, **machine()}
     with tempfile.TemporaryDirectory() as tmp:
         pairs = [make_pair(Path(tmp), k, scene, theta, cam, args.frames) for k in range(args.sequences)]

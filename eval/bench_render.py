@@ -15,9 +15,7 @@ from pathlib import Path
 
 import torch
 
-from _common import machine, set_threads, write_json
-from torchhand.camera import kinect_camera
-from torchhand.demo import load_demo_motion
+from _common import demo_scene, machine, set_threads, write_json
 from torchhand.render import render
 from torchhand.scene import Scene
 
@@ -29,9 +27,7 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
     set_threads(args.threads)
-    names, theta = load_demo_motion()
-    scene = Scene.from_names(names)
-    cam = kinect_camera()
+    names, theta, scene, cam = demo_scene()
     with torch.no_grad():
         verts = scene(theta[: args.frames]).vertices
     render(verts[:1], scene.faces, cam, scene.face_model_id, scene.face_bone_id)  # warm-up (ray cache)
