@@ -4,12 +4,10 @@
 
 Because the rest vertices are fixed, the sum is linear in the entries of the bone
 motions ``G``: with the static *skinning matrix* ``P[v, 4j + c] = kappa_vj V_c(0)``
-(homogeneous coordinate c), all posed vertices of a batch are one product
-``P @ G`` of a (V, 4J) matrix with a (4J, 3B) matrix. Sparse weights make ``P``
-sparse; it is stored as a sparse CSR tensor when that pays off (see
-:func:`skinning_matrix`) and as a dense one otherwise, so the dominant cost is one
-GEMM in the forward pass and one in the backward pass (a sparse CSR ``P`` is
-supported but slower on CPU for the shipped models).
+(homogeneous coordinate c), all posed vertices of a batch are one product of a
+(3B, 4J) matrix with ``P^T``: one GEMM in the forward pass and one in the backward
+pass. ``P`` is dense by default; a sparse CSR ``P`` is supported (see
+:func:`skinning_matrix`) but was slower on CPU for every shipped model.
 
 Weights are stored compactly as ``skin_index: (V, K)`` / ``skin_weight: (V, K)``
 (K = the largest number of non-zero weights of a vertex, padded with weight 0).
