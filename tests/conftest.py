@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import torch
 
-# torch warns once that sparse CSR support is in beta (the rope's skinning matrix is CSR).
+# torch warns once that sparse CSR support is in beta (the sparse skinning-matrix tests).
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
 
 
