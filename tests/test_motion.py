@@ -120,3 +120,29 @@ def test_real_motion_sequence_01_posed_via_theta_matches_viewer(hia_root, real_r
     assert err.median() < 0.5 and err.max() < 2.0, f"median {err.median():.3f} mm, max {err.max():.3f} mm"
     # the hand actually moves over these frames (the check is not trivially at rest)
     assert (ref - model.vertices_rest).norm(dim=-1).max() > 10.0
+
+
+def test_motion_rest_makes_the_fit_independent_of_the_bone_frame_convention():
+    """A MOTION whose bone frames are rotated about their own x axes (another rigging
+    convention) poses the mesh identically; with ``motion_rest`` the fit reproduces it."""
+    from torchhand.model import load_model
+    from torchhand.skinning import dense_weights
+
+    model = load_model("hand_right", dtype=F64)
+    g = torch.Generator().manual_seed(5)
+    theta = model.zero_pose(4)
+    theta[:, 6:] = (model.lower[6:] + (model.upper[6:] - model.lower[6:]) * torch.rand(4, 31, generator=g, dtype=F64))
+    theta[:, :3] = 10 * torch.randn(4, 3, generator=g, dtype=F64)
+    M = model.bone_transforms(theta)
+    c, s = torch.cos(torch.tensor(0.7, dtype=F64)), torch.sin(torch.tensor(0.7, dtype=F64))
+    Rx = torch.eye(4, dtype=F64)
+    Rx[1, 1], Rx[1, 2], Rx[2, 1], Rx[2, 2] = c, -s, s, c
+    M_other = M @ Rx  # same motion, other bone-frame convention
+    M0_other = model.rest_transforms @ Rx
+    W = dense_weights(model.skin_index, model.skin_weight, model.num_bones)
+    ref = pose_like_viewer(model.vertices_rest, W, M_other, M0_other)
+    fitted = motion_to_theta(model, M_other, motion_rest=M0_other)
+    err = (model(fitted).vertices - ref).norm(dim=-1).max()
+    assert err < 1e-3, float(err)
+    wrong = motion_to_theta(model, M_other, refine_vertices=0)  # without motion_rest
+    assert (model(wrong).vertices - ref).norm(dim=-1).max() > 1.0

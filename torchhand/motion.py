@@ -50,6 +50,7 @@ def motion_to_theta(
     motion: Dict[str, np.ndarray] | torch.Tensor,
     iterations: int = 30,
     refine_vertices: int = 500,
+    motion_rest: Dict[str, np.ndarray] | torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Fit theta (N, D) to MOTION transforms.
 
@@ -65,12 +66,22 @@ def motion_to_theta(
         motion: bone name -> (N, 4, 4), or a tensor (N, J, 4, 4) in bone order.
         iterations: LM iterations per stage.
         refine_vertices: number of vertices for stage 2 (0 skips it).
+        motion_rest: the MOTION's own rest pose (row 0; bone -> (4, 4) or (J, 4, 4)).
+            When given, the fit targets Mk M0^-1, so a model whose rigging frames were
+            built differently (e.g. the rope's, from SKEL) still reproduces the
+            viewer's posing. Without it, MOTION row 0 must equal the model's rigging pose.
     Returns:
         (N, D) theta in the model's dtype and device, not clamped to the limits.
     """
     M = motion if isinstance(motion, torch.Tensor) else motion_tensor(model, motion)
     N, J = M.shape[:2]
     rest = model.rest_transforms
+    if motion_rest is not None:
+        # Fit the motion relative to its own rest pose, Mk M0^-1 (what the viewer
+        # applies), re-expressed in this model's bone frames.
+        M0 = motion_rest if isinstance(motion_rest, torch.Tensor) else motion_tensor(
+            model, {b: np.asarray(m)[None] for b, m in motion_rest.items()})[0]
+        M = M @ torch.linalg.inv(M0) @ rest
     G_target = M @ torch.linalg.inv(rest)  # (N, J, 4, 4)
 
     # Root initialisation is exact: G_root = [R, c + t - R c].

@@ -68,7 +68,9 @@ def thesis_motion(hia_root, sequence: str, frames: Optional[slice] = None, dtype
         n_rows = len(next(iter(files.motion.values())))
         if rows.max() >= n_rows:
             raise FormatError(f"sequence {sequence}: frame rows up to {rows.max()} requested, MOTION has {n_rows}")
-        thetas.append(motion_to_theta(model, {b: m[rows] for b, m in files.motion.items()}))
+        # Row 0 is the rest pose the MOTION is expressed against (data README).
+        thetas.append(motion_to_theta(model, {b: m[rows] for b, m in files.motion.items()},
+                                      motion_rest={b: m[0] for b, m in files.motion.items()}))
     calib = read_calibration(hia_root / "Calibration" / "Cameras.txt")[0]
     T = np.eye(4)
     T[:3] = calib.Rt
