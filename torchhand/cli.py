@@ -157,6 +157,9 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(max(1, args.threads))
     try:
+        device = getattr(args, "device", "cpu")
+        if str(device).startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"--device {device}: no CUDA device is available (use --device cpu)")
         return args.func(args)
     except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError) as err:
         print(f"torchhand {args.command}: error: {err}", file=sys.stderr)
