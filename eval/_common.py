@@ -42,7 +42,7 @@ def write_json(path: Path, result: dict) -> None:
 def demo_scene():
     """The shipped demo motion: (model names, theta (N, D), Scene, thesis camera)."""
     from torchhand.camera import kinect_camera
-    from torchhand.demo import load_demo_motion
+    from torchhand.io.assets import load_demo_motion
     from torchhand.scene import Scene
 
     names, theta = load_demo_motion()

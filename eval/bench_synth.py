@@ -15,10 +15,7 @@ import time
 from pathlib import Path
 
 from _common import machine, set_threads, write_json
-from torchhand.camera import kinect_camera
-from torchhand.data.synth import SyntheticFrames, write_synthetic_sequence
-from torchhand.demo import load_demo_motion
-from torchhand.scene import Scene
+from torchhand.data.synth import demo_motion, write_synthetic_sequence
 
 
 def main(argv=None) -> None:
@@ -29,9 +26,8 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = ap.parse_args(argv)
     set_threads(args.threads)
-    names, theta = load_demo_motion()
-    frames = SyntheticFrames(Scene.from_names(names), theta[: args.frames], [kinect_camera()], "bench", {})
-    result = {"frames": len(frames.theta), "noise": args.noise, "models": names, **machine()}
+    frames = demo_motion(slice(0, args.frames))
+    result = {"frames": len(frames.theta), "noise": args.noise, "models": frames.scene.names, **machine()}
     with tempfile.TemporaryDirectory() as tmp:
         for key, rgb in (("depth_fps", False), ("depth_rgb_fps", True)):
             t0 = time.perf_counter()

@@ -7,29 +7,17 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 import torch
 from tqdm import tqdm
 
 from .camera import kinect_camera
-from .io.assets import model_dirs
+from .io.assets import load_demo_motion
 from .render import render
 from .scene import Scene
 from .viz import depth_to_color, draw_skeleton, write_video
 from .workspace import prepare_output_dir
 
-__all__ = ["load_demo_motion", "run_demo"]
-
-
-def load_demo_motion() -> tuple[list[str], torch.Tensor]:
-    """The shipped demo motion: model names and theta (N, D) (a thesis excerpt)."""
-    for d in model_dirs():
-        p = d / "demo_motion.npz"
-        if p.is_file():
-            with np.load(p, allow_pickle=False) as z:
-                meta = json.loads(bytes(z["meta"]).decode())
-                return meta["models"], torch.from_numpy(z["theta"])
-    raise FileNotFoundError(f"demo_motion.npz not found in {model_dirs()}")
+__all__ = ["run_demo"]
 
 
 def run_demo(out: Path, frames: int | None = None, force: bool = False, device: str = "cpu",

@@ -17,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from ..camera import Camera, kinect_camera
-from ..io.assets import THESIS_MODEL_NAMES
+from ..io.assets import THESIS_MODEL_NAMES, load_demo_motion
 from ..io.thesis import FormatError, read_calibration, read_thesis_model, sequence_models
 from ..kinematics import so3_exp, so3_log
 from ..motion import motion_to_theta
@@ -84,8 +84,6 @@ def thesis_motion(hia_root, sequence: str, frames: Optional[slice] = None, dtype
 def demo_motion(frames: Optional[slice] = None, dtype=torch.float32) -> SyntheticFrames:
     """The shipped demo motion (two hands and the ball, a thesis excerpt) seen by the
     thesis' camera; needs no thesis data."""
-    from ..demo import load_demo_motion
-
     names, theta = load_demo_motion()
     theta = theta[frames] if frames is not None else theta
     if len(theta) == 0:

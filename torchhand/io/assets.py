@@ -48,6 +48,7 @@ __all__ = [
     "model_dirs",
     "available_models",
     "find_model",
+    "load_demo_motion",
 ]
 
 FINGER_NAMES = ("thumb", "index", "middle", "ring", "little")
@@ -390,3 +391,17 @@ def find_model(name: str) -> Path:
         if (d / f"{name}.npz").is_file():
             return d / f"{name}.npz"
     raise LookupError(f"unknown model {name!r}; available models: {available_models()}")
+
+
+def load_demo_motion() -> "tuple[list[str], torch.Tensor]":
+    """The shipped demo motion (``demo_motion.npz``, an excerpt of thesis sequence 16):
+    the model names and theta (N, D) as a float32 tensor."""
+    import torch
+
+    for d in model_dirs():
+        p = d / "demo_motion.npz"
+        if p.is_file():
+            with np.load(p, allow_pickle=False) as z:
+                meta = json.loads(bytes(z["meta"]).decode("utf-8"))
+                return meta["models"], torch.from_numpy(z["theta"])
+    raise FileNotFoundError(f"demo_motion.npz not found in {model_dirs()}")
