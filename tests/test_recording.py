@@ -9,7 +9,7 @@ import pytest
 
 from torchhand.camera import kinect_camera
 from torchhand.data.layout import SequenceError, read_depth, read_init_pose, read_rgb, read_sequence_info
-from torchhand.io.recording import (
+from torchhand.data.recording import (
     RECORDING_SHAPE,
     convert_recording,
     list_recording_frames,

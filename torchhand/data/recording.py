@@ -56,7 +56,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..camera import kinect_camera
-from ..data.layout import SequenceError, SequenceInfo, frame_name, write_depth, write_rgb, write_sequence_info
+from .layout import SequenceError, SequenceInfo, frame_name, write_depth, write_rgb, write_sequence_info
 
 __all__ = [
     "RECORDING_FORMAT",
