@@ -17,7 +17,6 @@ import torch
 
 from _common import demo_scene, machine, set_threads, write_json
 from torchhand.render import render
-from torchhand.scene import Scene
 
 
 def main(argv=None) -> None:

@@ -11,7 +11,7 @@ on every asset because they are buffers::
 
 from __future__ import annotations
 
-from typing import List, NamedTuple, Optional, Sequence
+from typing import List, NamedTuple, Optional
 
 import numpy as np
 import torch

@@ -393,7 +393,7 @@ def find_model(name: str) -> Path:
     raise LookupError(f"unknown model {name!r}; available models: {available_models()}")
 
 
-def load_demo_motion() -> "tuple[list[str], torch.Tensor]":
+def load_demo_motion():
     """The shipped demo motion (``demo_motion.npz``, an excerpt of thesis sequence 16):
     the model names and theta (N, D) as a float32 tensor."""
     import torch
