@@ -2,12 +2,16 @@
 
     python eval/exp_tracking.py lo --hia-root ../shared/data/hands_in_action --frames 20 --work out/exp --json out/exp_lo.json
     python eval/exp_tracking.py m2d --hia-root ../shared/data/hands_in_action --sequences 09,16 --frames 10 --work out/exp --json out/exp_m2d.json
+    python eval/exp_tracking.py ablation --energies LO,LO+C --contact --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_c.json
 
 ``lo``: every sequence with MOTION files is rendered with the kinect noise model
 (frames 0..F-1), tracked with LO from its first-frame pose (``gt/`` is not read by
 the tracker) and scored; same-scene sequences are tracked as one batch.
 ``m2d``: model-to-data alone, point-to-point vs point-to-plane, for several
 iteration budgets (thesis Table 4.2).
+``ablation``: the same as ``lo`` for several energies (thesis Table 4.6), with the
+interpenetration of the tracked and the ground-truth poses; ``--contact`` keeps
+the sequences with more than one model (hand-hand and hand-object contact).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import torch
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence
 from torchhand.energies import Anatomy, ModelToData, Regularization
 from torchhand.evaluation import evaluate_sequence, summarize
-from torchhand.io.thesis import FormatError
+from torchhand.io.thesis import FormatError, sequence_models
 from torchhand.tracker import TrackerConfig, track_sequences
 
 
@@ -42,28 +46,54 @@ def render_sequences(hia_root: Path, seqs, frames: int, work: Path, noise: str =
     return out
 
 
-def run_lo(args) -> dict:
+def _sequences(args):
     cfg_dir = args.hia_root / "Configs"
     seqs = args.sequences.split(",") if args.sequences else sorted(p.name for p in cfg_dir.iterdir())
-    folders = render_sequences(args.hia_root, seqs, args.frames, args.work)
-    cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
+    if args.contact:
+        seqs = [s for s in seqs if len(sequence_models(args.hia_root, s)[0]) > 1]
+    return seqs
+
+
+def track_and_score(args, folders, energy: str) -> dict:
+    """Track the rendered sequences with one energy and score them."""
+    cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.iterations)
+    out = args.work / f"tracked_{energy.replace('+', '_')}"
     t0 = time.perf_counter()
-    summaries = track_sequences(list(folders.values()), args.work / "tracked_lo", cfg, force=True)
+    summaries = track_sequences(list(folders.values()), out, cfg, force=True)
     elapsed = time.perf_counter() - t0
     results = []
     for s, folder in folders.items():
-        r = evaluate_sequence(args.work / "tracked_lo" / f"hia_{s}", folder / "gt")
+        r = evaluate_sequence(out / f"hia_{s}", folder / "gt", with_penetration=args.penetration)
         worst = max(r["per_frame"]["mm"])
         results.append({"sequence": s, "frames": r["frames"], "mean_px": r["mean_px"], "median_px": r["median_px"],
                         "mean_mm": r["mean_mm"], "median_mm": r["median_mm"], "worst_frame_mm": worst,
                         "lost": worst > 20.0, "penetration": r.get("penetration")})
-    pooled = summarize([evaluate_sequence(args.work / "tracked_lo" / f"hia_{s}", f / "gt", with_penetration=False)
+        print(energy, results[-1])
+    pooled = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                         for s, f in folders.items()])
-    return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
-            "iterations": args.iterations, "sequences": results,
+    return {"energy": energy, "sequences": results,
             "overall": {k: pooled[k] for k in ("frames", "mean_px", "median_px", "mean_mm", "median_mm")},
             "track_seconds": elapsed, "tracker": summaries}
+
+
+def run_lo(args) -> dict:
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
+    res = track_and_score(args, folders, "LO")
+    return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
+            "iterations": args.iterations, **{k: v for k, v in res.items() if k != "energy"}}
+
+
+def run_ablation(args) -> dict:
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
+    gt_penetration = {}
+    if args.penetration:  # the ground truth's own interpenetration, for reference
+        for s, f in folders.items():
+            r = evaluate_sequence(f / "gt", f / "gt")
+            gt_penetration[s] = r.get("penetration")
+    runs = [track_and_score(args, folders, e) for e in args.energies.split(",")]
+    return {"experiment": "energy ablation on kinect renders", "frames_per_sequence": args.frames,
+            "metric": args.metric, "iterations": args.iterations, "gt_penetration": gt_penetration, "runs": runs}
 
 
 def run_m2d(args) -> dict:
@@ -88,7 +118,7 @@ def run_m2d(args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("experiment", choices=["lo", "m2d"])
+    ap.add_argument("experiment", choices=["lo", "m2d", "ablation"])
     ap.add_argument("--hia-root", type=Path, required=True)
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
@@ -96,12 +126,15 @@ def main(argv=None) -> int:
     ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])
     ap.add_argument("--work", type=Path, default=Path("out/exp"))
     ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--energies", default="LO,LO+C", help="ablation: comma-separated energies")
+    ap.add_argument("--contact", action="store_true", help="only sequences with more than one model")
+    ap.add_argument("--no-penetration", dest="penetration", action="store_false")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
-    result = run_lo(args) if args.experiment == "lo" else run_m2d(args)
+    result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation}[args.experiment](args)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2))
-    print(json.dumps({k: v for k, v in result.items() if k != "tracker"}, indent=1)[:4000])
+    print(json.dumps({k: v for k, v in result.items() if k not in ("tracker", "runs")}, indent=1)[:4000])
     return 0
 
 

@@ -6,7 +6,6 @@ Both sides use the ``gt/`` layout (datasets/README.md): ``theta.npy``,
 
 from __future__ import annotations
 
-import warnings
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
@@ -104,10 +103,6 @@ def _penetration(poses: Poses) -> Dict:
         p = penetration(meshes)
         pairs.append(p.pairs)
         depth = max(depth, p.max_depth_mm)
-    if any(p is None for p in pairs):
-        warnings.warn("python-fcl is not installed: intersecting triangle pairs are not counted "
-                      "(pip install 'torchhand[fcl]')", RuntimeWarning)
-        return {"pairs_per_frame": None, "max_depth_mm": depth}
     return {"pairs_per_frame": float(np.mean(pairs)), "max_pairs": int(max(pairs)), "max_depth_mm": depth}
 
 

@@ -8,7 +8,7 @@ the camera frame. The curve is the fraction of keypoints within a 3D threshold.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional, Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -39,11 +39,10 @@ def auc(thresholds: np.ndarray, curve: np.ndarray) -> float:
 
 
 class Penetration(NamedTuple):
-    """pairs: intersecting triangle pairs between different models (None when
-    python-fcl is not installed); max_depth_mm: deepest vertex of one model inside
-    another (0 when none)."""
+    """pairs: intersecting triangle pairs between different models; max_depth_mm:
+    deepest vertex of one model inside another (0 when none)."""
 
-    pairs: Optional[int]
+    pairs: int
     max_depth_mm: float
 
 
@@ -55,7 +54,9 @@ def penetration(meshes: Sequence[tuple]) -> Penetration:
     Returns:
         :class:`Penetration`. The depth is the largest negative signed distance of a
         vertex of one model to another model's surface (open3d; the thesis meshes are
-        closed, so inside is well defined). Pairs are counted with python-fcl.
+        closed, so inside is well defined). Pairs are counted with
+        :func:`torchhand.collision.detect_collisions` (the same pairs as python-fcl,
+        see tests/test_collision.py).
     """
     import open3d as o3d
 
@@ -72,26 +73,20 @@ def penetration(meshes: Sequence[tuple]) -> Penetration:
                 continue
             sd = scene.compute_signed_distance(o3d.core.Tensor(np.asarray(vb[near], np.float32))).numpy()
             depth = max(depth, float(-sd.min()) if sd.min() < 0 else 0.0)
-    return Penetration(_fcl_pairs(meshes), depth)
+    return Penetration(_model_pairs(meshes), depth)
 
 
-def _fcl_pairs(meshes) -> Optional[int]:
-    try:
-        import fcl
-    except ImportError:
-        return None
-    objs = []
-    for v, f in meshes:
-        m = fcl.BVHModel()
-        m.beginModel(len(v), len(f))
-        m.addSubModel(np.asarray(v, np.float64), np.asarray(f, np.int32))
-        m.endModel()
-        objs.append(fcl.CollisionObject(m, fcl.Transform()))
-    total = 0
-    for a in range(len(objs)):
-        for b in range(a + 1, len(objs)):
-            req = fcl.CollisionRequest(num_max_contacts=1_000_000, enable_contact=True)
-            res = fcl.CollisionResult()
-            fcl.collide(objs[a], objs[b], req, res)
-            total += len({(c.b1, c.b2) for c in res.contacts})
-    return total
+def _model_pairs(meshes) -> int:
+    """Intersecting triangle pairs between different meshes (not within one)."""
+    import torch
+
+    from .collision import CollisionMesh, detect_collisions
+
+    if len(meshes) < 2:
+        return 0
+    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])
+    vertices = torch.as_tensor(np.concatenate([np.asarray(v, np.float64) for v, _ in meshes]))[None]
+    faces = torch.as_tensor(np.concatenate([np.asarray(f, np.int64) + o for (_, f), o in zip(meshes, offsets)]))
+    part = torch.cat([torch.full((len(f),), k, dtype=torch.int64) for k, (_, f) in enumerate(meshes)])
+    mesh = CollisionMesh(faces, part, torch.eye(len(meshes), dtype=torch.bool), part, vertices[0])
+    return len(detect_collisions(vertices, mesh))

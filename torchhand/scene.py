@@ -148,6 +148,31 @@ class Scene(nn.Module):
             J[:, self.vertex_slices[n], :, self.slices[n]] = m.jacobian(theta[:, self.slices[n]], fk=fk)
         return J
 
+    def vertex_jacobian(self, outputs: SceneOutput, vertex_ids: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3, D) Jacobian of some scene vertices, for ``outputs`` at theta.
+
+        vertex_ids: (B, N) int64 scene vertex indices (any models, repeats allowed).
+        Each model contributes only its own vertices' rows and its own columns.
+        """
+        B, N = vertex_ids.shape
+        like = outputs.vertices
+        J = like.new_zeros(B, N, 3, self.num_dofs)
+        for k, (n, m) in enumerate(zip(self.names, self.models)):
+            vs, cols = self.vertex_slices[n], self.slices[n]
+            mine = (vertex_ids >= vs.start) & (vertex_ids < vs.stop)
+            n_k = int(mine.sum(1).max()) if N else 0
+            if n_k == 0:
+                continue
+            # this model's columns first in every row, so its Jacobian is (B, n_k) only
+            order = torch.argsort((~mine).to(torch.int8), dim=1, stable=True)[:, :n_k]
+            local = (torch.gather(vertex_ids, 1, order) - vs.start).clamp(0, m.num_vertices - 1)
+            Jk = m.jacobian(None, local, fk=(outputs.models[k].G, outputs.models[k].twists))
+            Jk = Jk * torch.gather(mine, 1, order)[..., None, None].to(like.dtype)
+            Jm = like.new_zeros(B, N, 3, cols.stop - cols.start)
+            Jm.scatter_(1, order[..., None, None].expand_as(Jk), Jk)
+            J[..., cols] = Jm
+        return J
+
     def clamp(self, theta: torch.Tensor) -> torch.Tensor:
         return torch.cat([m.clamp(theta[:, s]) for m, s in zip(self.models, self.slices.values())], 1)
 

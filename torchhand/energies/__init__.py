@@ -1,7 +1,8 @@
 """Energy terms of the tracking objective (thesis Eq. 4.5), one module per term.
 
-``parse_energy("LO")`` builds the terms named on the command line: ``LO`` is
-model-to-data plus data-to-model; anatomy and regularisation are always added.
+``parse_energy("LO+C")`` builds the terms named on the command line: ``LO`` is
+model-to-data plus data-to-model, ``C`` adds collisions; anatomy and
+regularisation are always added.
 """
 
 from __future__ import annotations
@@ -10,15 +11,17 @@ from typing import List
 
 from .anatomy import Anatomy
 from .base import EnergyTerm, Residuals, TrackState
+from .collision import Collision
 from .data_to_model import DataToModel
 from .model_to_data import ModelToData
 from .regularization import Regularization
 
-__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Anatomy", "Regularization",
+__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Collision", "Anatomy",
+           "Regularization",
            "parse_energy", "ENERGY_COMPONENTS"]
 
-#: components understood by parse_energy; C and S arrive with collisions and salient points
-ENERGY_COMPONENTS = {"LO": "model-to-data + data-to-model"}
+#: components understood by parse_energy after ``LO``
+ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)"}
 
 
 def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
@@ -29,6 +32,10 @@ def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
     extra = "".join(parts[1:])
     unknown = [c for c in extra if c not in ENERGY_COMPONENTS]
     if unknown:
-        raise ValueError(f"energy {spec!r}: unknown components {unknown}; this version supports "
-                         f"{sorted(ENERGY_COMPONENTS)} (collisions 'C' and salient points 'S' are not available yet)")
-    return [ModelToData(metric=metric), DataToModel(), Anatomy(), Regularization()]
+        raise ValueError(f"energy {spec!r}: unknown components {unknown}; known after LO: {sorted(ENERGY_COMPONENTS)}")
+    if len(set(extra)) != len(extra):
+        raise ValueError(f"energy {spec!r} names a component twice")
+    terms: List[EnergyTerm] = [ModelToData(metric=metric), DataToModel()]
+    if "C" in extra:
+        terms.append(Collision())
+    return terms + [Anatomy(), Regularization()]

@@ -376,8 +376,13 @@ def model_dirs() -> List[Path]:
     return [d for d in dirs if d.is_dir()]
 
 
+#: shipped ``.npz`` files in the model folders that are not models
+NON_MODEL_FILES = frozenset({"demo_motion"})
+
+
 def available_models() -> List[str]:
-    return sorted({p.stem for d in model_dirs() for p in d.glob("*.npz")})
+    """Names of the models in :func:`model_dirs` (the demo motion is not a model)."""
+    return sorted({p.stem for d in model_dirs() for p in d.glob("*.npz")} - NON_MODEL_FILES)
 
 
 def find_model(name: str) -> Path:
