@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="track sequences from their first-frame pose (never reads gt/)")
     p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--energy", default="LO", help="energy terms: LO (model-to-data + data-to-model), LO+C (with collisions)")
+    p.add_argument("--energy", default="LO", help="energy terms: LO (model-to-data + data-to-model), LO+C (collisions), LO+S (salient points), LO+CS")
     p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
                    help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")

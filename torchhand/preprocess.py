@@ -53,7 +53,9 @@ class DepthFrame(NamedTuple):
     depth: (H, W) mm after masking and smoothing (0 = invalid); mask: (H, W) bool;
     points: (H, W, 3) camera-frame points; normals: (H, W, 3) camera-frame normals
     facing the camera; edges: (E, 2) int64 (row, col) of the depth-discontinuity
-    pixels on the near side; edge_depth: (E,) mm, the 3x3 average depth at them.
+    pixels on the near side; edge_depth: (E,) mm, the 3x3 average depth at them;
+    raw: (H, W) the input depth in mm as given (NaN and out-of-range values set to 0),
+    for terms that run their own detectors on it (salient points).
     """
 
     depth: torch.Tensor
@@ -62,6 +64,7 @@ class DepthFrame(NamedTuple):
     normals: torch.Tensor
     edges: torch.Tensor
     edge_depth: torch.Tensor
+    raw: Optional[torch.Tensor] = None
 
 
 def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig = PreprocessConfig(),
@@ -116,7 +119,8 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     normals = depth_to_normals(dt[None], K)[0]
     return DepthFrame(dt, torch.as_tensor(valid, device=device), points, normals,
                       torch.as_tensor(rc, dtype=torch.int64, device=device),
-                      torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device))
+                      torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device),
+                      torch.as_tensor(np.where(np.isfinite(depth) & (depth > 0), depth, 0), device=device))
 
 
 def _remove_plane(d: np.ndarray, camera: Camera, distance: float) -> np.ndarray:

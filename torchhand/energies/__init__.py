@@ -1,8 +1,8 @@
 """Energy terms of the tracking objective (thesis Eq. 4.5), one module per term.
 
 ``parse_energy("LO+C")`` builds the terms named on the command line: ``LO`` is
-model-to-data plus data-to-model, ``C`` adds collisions; anatomy and
-regularisation are always added.
+model-to-data plus data-to-model, ``C`` adds collisions and ``S`` salient points
+(``LO+CS``: both); anatomy and regularisation are always added.
 """
 
 from __future__ import annotations
@@ -15,17 +15,19 @@ from .collision import Collision
 from .data_to_model import DataToModel
 from .model_to_data import ModelToData
 from .regularization import Regularization
+from .salient import Salient
 
-__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Collision", "Anatomy",
+__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient", "Anatomy",
            "Regularization",
            "parse_energy", "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
-ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)"}
+ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)",
+                     "S": "salient points (detected fingertips, Eq. 4.14-4.15)"}
 
 
 def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
-    """Terms for an energy string like ``LO`` (later ``LO+C``, ``LO+S``, ``LO+CS``)."""
+    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+CS``."""
     parts = spec.replace(" ", "").split("+")
     if parts[0] != "LO":
         raise ValueError(f"energy {spec!r} must start with LO (model-to-data + data-to-model)")
@@ -38,4 +40,6 @@ def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
     terms: List[EnergyTerm] = [ModelToData(metric=metric), DataToModel()]
     if "C" in extra:
         terms.append(Collision())
+    if "S" in extra:
+        terms.append(Salient())
     return terms + [Anatomy(), Regularization()]
