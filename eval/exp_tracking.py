@@ -3,6 +3,7 @@
     python eval/exp_tracking.py lo --hia-root ../shared/data/hands_in_action --frames 20 --work out/exp --json out/exp_lo.json
     python eval/exp_tracking.py m2d --hia-root ../shared/data/hands_in_action --sequences 09,16 --frames 10 --work out/exp --json out/exp_m2d.json
     python eval/exp_tracking.py ablation --energies LO,LO+C --contact --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_c.json
+    python eval/exp_tracking.py detector-quality --sequences 01,16 --rates 0,0.3,0.6,1 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_s_noise.json
 
 ``lo``: every sequence with MOTION files is rendered with the kinect noise model
 (frames 0..F-1), tracked with LO from its first-frame pose (``gt/`` is not read by
@@ -12,6 +13,12 @@ iteration budgets (thesis Table 4.2).
 ``ablation``: the same as ``lo`` for several energies (thesis Table 4.6), with the
 interpenetration of the tracked and the ground-truth poses; ``--contact`` keeps
 the sequences with more than one model (hand-hand and hand-object contact).
+``detector-quality``: LO+S with simulated fingertip detections following Ballan et
+al. (2012, Sec. 5): the projected ground-truth fingertips that the renderer shows
+(at least 30 mm^2 visible) are kept with probability ``rate``, 10 % of them add an
+outlier uniformly within 200 px, and every detection gets 5 px Gaussian jitter.
+These oracle detections are built from ``gt/`` by this script, outside the tracker,
+which still reads only the depth.
 """
 
 from __future__ import annotations
@@ -24,7 +31,16 @@ from pathlib import Path
 import torch
 
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence
-from torchhand.energies import Anatomy, ModelToData, Regularization
+import hashlib
+
+import numpy as np
+
+from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info
+from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient
+from torchhand.energies.salient import simulated_detector
+from torchhand.render import render
+from torchhand.salient.data import VISIBLE_MM2, fingertip_faces, fingertip_targets
+from torchhand.scene import Scene
 from torchhand.evaluation import evaluate_sequence, summarize
 from torchhand.io.thesis import FormatError, sequence_models
 from torchhand.tracker import TrackerConfig, track_sequences
@@ -96,6 +112,64 @@ def run_ablation(args) -> dict:
             "metric": args.metric, "iterations": args.iterations, "gt_penetration": gt_penetration, "runs": runs}
 
 
+def _depth_key(depth) -> str:
+    d = np.asarray(depth.cpu() if isinstance(depth, torch.Tensor) else depth, np.float32)
+    return hashlib.sha1(np.ascontiguousarray(d).tobytes()).hexdigest()
+
+
+def ballan_detections(folder: Path, rate: float, seed: int, fp_rate: float = 0.1, radius: float = 200.0,
+                      jitter: float = 5.0) -> dict:
+    """Simulated detections of a rendered sequence, keyed by the hash of each raw depth
+    frame: {key: (N, 3) rows of u, v, score}."""
+    info = read_sequence_info(folder)
+    gt = read_poses(folder / "gt")
+    scene = Scene.from_names(gt.models)
+    cam = info.cameras[0]
+    tips = fingertip_faces(scene)
+    rng = np.random.default_rng(seed)
+    table = {}
+    for k in range(len(gt.theta)):
+        with torch.no_grad():
+            V = scene(torch.as_tensor(gt.theta[k : k + 1], dtype=torch.float32)).vertices
+        rend = render(V, scene.faces, cam, scene.face_model_id, scene.face_bone_id)
+        t = fingertip_targets(V, rend.face_id, cam, tips)
+        uv = t.uv[0].numpy()[t.area_mm2[0].numpy() >= VISIBLE_MM2]
+        kept = uv[rng.uniform(size=len(uv)) < rate]
+        outl = uv[rng.uniform(size=len(uv)) < fp_rate]
+        ang, r = rng.uniform(0, 2 * np.pi, len(outl)), radius * np.sqrt(rng.uniform(size=len(outl)))
+        outl = outl + np.c_[r * np.cos(ang), r * np.sin(ang)]
+        det = np.concatenate([kept, outl]) + rng.normal(0, jitter, (len(kept) + len(outl), 2))
+        det = np.clip(det, 0, [cam.width - 1, cam.height - 1])
+        depth = read_depth(camera_dir(folder, 0) / "depth" / frame_name(k), info.depth_unit_mm)
+        raw = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+        table[_depth_key(raw)] = np.c_[det, np.full(len(det), 5.0)]
+    return table
+
+
+def run_detector_quality(args) -> dict:
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
+    rows = []
+    for rate in [float(r) for r in args.rates.split(",")]:
+        table = {}
+        for k, f in enumerate(folders.values()):
+            table.update(ballan_detections(f, rate, seed=k))
+        det = simulated_detector(lambda d: table.get(_depth_key(d)))
+        cfg = TrackerConfig(energy="LO+S", metric=args.metric, max_iterations=args.iterations,
+                            first_frame_iterations=args.iterations)
+        out = args.work / f"tracked_s_rate{rate:g}"
+        track_sequences(list(folders.values()), out, cfg, force=True,
+                        make_terms=lambda: [ModelToData(metric=args.metric), DataToModel(), Salient(detector=det),
+                                            Anatomy(), Regularization()])
+        res = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
+                         for s, f in folders.items()])
+        rows.append({"detection_rate": rate, "mean_px": res["mean_px"], "mean_mm": res["mean_mm"],
+                     "median_mm": res["median_mm"]})
+        print(rows[-1])
+    return {"experiment": "LO+S against simulated detector quality (Ballan et al. 2012 protocol)",
+            "sequences": list(folders), "frames_per_sequence": args.frames, "false_positive_rate": 0.1,
+            "outlier_radius_px": 200, "jitter_px": 5, "rows": rows}
+
+
 def run_m2d(args) -> dict:
     seqs = args.sequences.split(",") if args.sequences else ["09", "16"]
     folders = render_sequences(args.hia_root, seqs, args.frames, args.work)
@@ -118,7 +192,7 @@ def run_m2d(args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("experiment", choices=["lo", "m2d", "ablation"])
+    ap.add_argument("experiment", choices=["lo", "m2d", "ablation", "detector-quality"])
     ap.add_argument("--hia-root", type=Path, required=True)
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
@@ -129,9 +203,11 @@ def main(argv=None) -> int:
     ap.add_argument("--energies", default="LO,LO+C", help="ablation: comma-separated energies")
     ap.add_argument("--contact", action="store_true", help="only sequences with more than one model")
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
+    ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
-    result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation}[args.experiment](args)
+    result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation,
+              "detector-quality": run_detector_quality}[args.experiment](args)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k not in ("tracker", "runs")}, indent=1)[:4000])
