@@ -1,0 +1,563 @@
+"""Fingertip (salient point) detector: a tiny fully-convolutional network with Hough voting.
+
+The thesis (Ch. 4.2, Eq. 4.14-4.15; Sec. 4.3.1.5) and Ballan et al. (ECCV 2012, Sec. 4)
+detect fingertips with a Hough forest: every image patch casts a weighted vote for the
+position of the fingertip centre, and detections are the maxima of the accumulated
+votes. :class:`SalientNet` keeps the voting and replaces the forest by a small network:
+
+1. the depth map (mm, 0 = invalid) is normalised inside the network (see
+   :func:`normalise_depth`);
+2. a stride-4 encoder predicts, per output cell, a fingertip score (logit) and a 2D
+   offset (px) from the cell centre to the fingertip centre;
+3. each cell votes at ``cell centre + offset`` with weight ``sigmoid(score)``; votes
+   are splatted bilinearly (scatter-add) into a Hough map at stride 2 and smoothed by
+   a fixed Gaussian. All of this is part of ``forward`` and of the exported ONNX graph.
+
+Peak picking (:func:`detect_peaks`: max-pool non-maximum suppression, threshold,
+top-k, sub-cell refinement) is post-processing outside ``forward``.
+:class:`SalientDetector` (torch) and :class:`OnnxSalientDetector` (ONNX Runtime) wrap
+network, padding, input checks and peak picking behind one ``detect(depth)`` call.
+
+Pixel coordinates follow :mod:`torchhand.camera`: pixel centres at integer
+coordinates, ``u`` = column (x), ``v`` = row (y).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import List, NamedTuple, Optional, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..io.assets import model_dirs
+
+__all__ = [
+    "SalientConfig",
+    "SalientOutput",
+    "Detections",
+    "SalientNet",
+    "normalise_depth",
+    "hough_votes",
+    "detect_peaks",
+    "SalientDetector",
+    "OnnxSalientDetector",
+    "export_onnx",
+    "DEFAULT_WEIGHTS",
+    "DEFAULT_ONNX",
+    "WEIGHTS_FORMAT",
+]
+
+
+
+def _shipped(name: str) -> Path:
+    """A shipped file of the model folders (installed package or source checkout)."""
+    dirs = model_dirs()
+    for d in dirs:
+        if (d / name).is_file():
+            return d / name
+    return (dirs[0] if dirs else Path(__file__).resolve().parents[2] / "models") / name
+
+
+#: Shipped weights (state dict + network config), see ``models/README.md``.
+DEFAULT_WEIGHTS = _shipped("salient_fingertips.pt")
+#: The same network exported to ONNX (dynamic batch, height and width).
+DEFAULT_ONNX = _shipped("salient_fingertips.onnx")
+#: Tag stored in weight files written by :meth:`SalientNet.save`.
+WEIGHTS_FORMAT = "torchhand.salient.SalientNet/1"
+
+#: Encoder stride: the score/offset maps are (H/4, W/4); inputs must be multiples of it.
+STRIDE = 4
+#: Stride of the Hough map, (H/2, W/2).
+HOUGH_STRIDE = 2
+
+
+@dataclass(frozen=True)
+class SalientConfig:
+    """Architecture of :class:`SalientNet` (stored in the weights file).
+
+    Attributes:
+        channels: width of the stride-2 and stride-4 feature maps.
+        dilations: dilation of each 3x3 conv at stride 4 (their number sets the depth;
+            receptive field 7 + 8 * sum(dilations) px).
+        depth_scale_mm: depth range (mm) that maps to 1 in the normalised input.
+        depth_clip: normalised depths are clipped to [0, depth_clip].
+        offset_scale_px: the head's raw offset output is multiplied by this (px).
+        hough_sigma: std of the Gaussian smoothing the Hough map, in Hough cells.
+    """
+
+    channels: tuple = (12, 20)
+    dilations: tuple = (1, 2, 4, 1)
+    depth_scale_mm: float = 150.0
+    depth_clip: float = 3.0
+    offset_scale_px: float = 8.0
+    hough_sigma: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "channels", tuple(int(c) for c in self.channels))
+        object.__setattr__(self, "dilations", tuple(int(d) for d in self.dilations))
+        if len(self.channels) != 2 or min(self.channels) < 1:
+            raise ValueError(f"SalientConfig.channels must be two positive ints, got {self.channels}")
+        if not self.dilations or min(self.dilations) < 1:
+            raise ValueError(f"SalientConfig.dilations must be positive ints, got {self.dilations}")
+        for name in ("depth_scale_mm", "depth_clip", "offset_scale_px", "hough_sigma"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"SalientConfig.{name} must be a positive number, got {value!r}")
+
+
+class SalientOutput(NamedTuple):
+    """Raw outputs of :class:`SalientNet` for a (B, 1, H, W) input.
+
+    Attributes:
+        logits: (B, 1, H/4, W/4) fingertip score logits per cell.
+        offsets: (B, 2, H/4, W/4) offset (du, dv) in input pixels from the cell centre
+            ``(4 j + 1.5, 4 i + 1.5)`` (column j, row i) to the voted fingertip centre.
+        hough: (B, 1, H/2, W/2) smoothed Hough map; cell (i, j) is centred on pixel
+            ``(2 j + 0.5, 2 i + 0.5)``. Its values are sums of sigmoid scores.
+    """
+
+    logits: torch.Tensor
+    offsets: torch.Tensor
+    hough: torch.Tensor
+
+
+class Detections(NamedTuple):
+    """Fingertip detections of one depth frame, sorted by decreasing score.
+
+    Attributes:
+        uv: (N, 2) float pixel coordinates in the input image (u = column, v = row).
+        score: (N,) Hough-map value at the peak (about the number of cells voting for
+            it times their mean score; higher is more confident).
+        depth: (N,) input depth (mm) at the rounded pixel; 0 where invalid.
+    """
+
+    uv: torch.Tensor
+    score: torch.Tensor
+    depth: torch.Tensor
+
+
+# ------------------------------------------------------------------------- pure functions
+
+
+def normalise_depth(depth: torch.Tensor, scale_mm: float, clip: float) -> torch.Tensor:
+    """Network input from depth: a validity channel and depth relative to the nearest point.
+
+    ``rel = clamp((d - d_near) / scale_mm, 0, clip)`` with ``d_near`` the smallest valid
+    depth of the frame (hands are usually the nearest surfaces); invalid pixels (0)
+    get ``rel = clip``, like far background. Translation invariant in depth, so the
+    net does not learn absolute distances. An empty frame gives valid = 0, rel = clip.
+
+    Args:
+        depth: (B, 1, H, W) depth in mm, 0 where invalid.
+
+    Returns:
+        (B, 2, H, W): [valid (0/1), rel].
+    """
+    valid = depth > 0
+    far = depth.new_full((1,), 1e6)
+    near = torch.where(valid, depth, far).amin(dim=(2, 3), keepdim=True)
+    rel = ((depth - near) / scale_mm).clamp(0.0, clip)
+    rel = torch.where(valid, rel, depth.new_full((1,), clip))
+    return torch.cat([valid.to(depth.dtype), rel], 1)
+
+
+def hough_votes(scores: torch.Tensor, offsets: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Accumulate weighted votes into a Hough map by bilinear splatting (scatter-add).
+
+    Cell (i, j) of the score map votes at pixel ``(4 j + 1.5 + du, 4 i + 1.5 + dv)``
+    with weight ``scores[b, 0, i, j]``; the vote is spread bilinearly over the four
+    nearest Hough cells (Hough cell (r, c) is centred on pixel ``(2 c + 0.5, 2 r + 0.5)``).
+    Votes that land outside the map are dropped. Differentiable in both inputs.
+
+    Args:
+        scores: (B, 1, h, w) non-negative vote weights.
+        offsets: (B, 2, h, w) vote offsets (du, dv) in pixels.
+        height, width: size (Hh, Wh) of the Hough map.
+
+    Returns:
+        (B, 1, Hh, Wh) accumulated votes.
+    """
+    B, _, h, w = scores.shape
+    jj = torch.arange(w, device=scores.device).to(scores.dtype)
+    ii = torch.arange(h, device=scores.device).to(scores.dtype)
+    # Vote position in Hough cells: (pixel - 0.5) / 2.
+    hx = (jj[None, None, :] * STRIDE + 1.5 + offsets[:, 0] - 0.5) / HOUGH_STRIDE  # (B, h, w)
+    hy = (ii[None, :, None] * STRIDE + 1.5 + offsets[:, 1] - 0.5) / HOUGH_STRIDE
+    x0 = torch.floor(hx)
+    y0 = torch.floor(hy)
+    fx = hx - x0
+    fy = hy - y0
+    weight = scores[:, 0]
+    hough = scores.new_zeros(B, height * width)
+    for dy, wy in ((0, 1 - fy), (1, fy)):
+        for dx, wx in ((0, 1 - fx), (1, fx)):
+            cx = x0 + dx
+            cy = y0 + dy
+            inside = (cx >= 0) & (cx <= width - 1) & (cy >= 0) & (cy <= height - 1)
+            idx = (cy.clamp(0, height - 1) * width + cx.clamp(0, width - 1)).long()
+            val = torch.where(inside, weight * wx * wy, torch.zeros_like(weight))
+            hough = hough.scatter_add(1, idx.reshape(B, -1), val.reshape(B, -1))
+    return hough.reshape(B, 1, height, width)
+
+
+def _gaussian_kernel(sigma: float) -> torch.Tensor:
+    r = max(1, int(math.ceil(2 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = g[:, None] * g[None, :]
+    # Normalised to sum 1, so the smoothed map keeps the total vote mass.
+    return (k / k.sum()).float()[None, None]
+
+
+# --------------------------------------------------------------------------------- network
+
+
+def _conv(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, padding=dilation, dilation=dilation, bias=False),
+                         nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class SalientNet(nn.Module):
+    """Fingertip score, offset and Hough-vote network on depth.
+
+    Args:
+        config: the architecture (default :class:`SalientConfig`).
+
+    ``forward(depth)`` takes (B, 1, H, W) depth in mm (0 = invalid) with H and W
+    multiples of 4 and returns a :class:`SalientOutput`. The same code runs on any
+    device and dtype; it is traced as-is into ONNX by :func:`export_onnx`.
+    """
+
+    def __init__(self, config: Optional[SalientConfig] = None):
+        super().__init__()
+        self.config = config if config is not None else SalientConfig()
+        c1, c2 = self.config.channels
+        layers = [_conv(2, c1, stride=2), _conv(c1, c2, stride=2)]
+        layers += [_conv(c2, c2, dilation=d) for d in self.config.dilations]
+        self.encoder = nn.Sequential(*layers)
+        self.head = nn.Conv2d(c2, 3, 1)
+        nn.init.zeros_(self.head.weight)
+        with torch.no_grad():
+            self.head.bias.copy_(torch.tensor([-4.0, 0.0, 0.0]))  # start with few, weak votes
+        self.register_buffer("smooth", _gaussian_kernel(self.config.hough_sigma), persistent=False)
+
+    def forward(self, depth: torch.Tensor) -> SalientOutput:
+        if not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
+            _check_net_input(depth)
+        cfg = self.config
+        x = normalise_depth(depth, cfg.depth_scale_mm, cfg.depth_clip)
+        out = self.head(self.encoder(x))
+        logits = out[:, :1]
+        offsets = out[:, 1:] * cfg.offset_scale_px
+        H, W = depth.shape[2], depth.shape[3]
+        hough = hough_votes(torch.sigmoid(logits), offsets, H // HOUGH_STRIDE, W // HOUGH_STRIDE)
+        pad = self.smooth.shape[-1] // 2
+        hough = F.conv2d(hough, self.smooth.to(hough.dtype), padding=pad)
+        return SalientOutput(logits, offsets, hough)
+
+    # ------------------------------------------------------------------ weights files
+    def save(self, path) -> Path:
+        """Write ``{"format", "config", "state_dict"}`` with :func:`torch.save`."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
+        torch.save({"format": WEIGHTS_FORMAT, "config": asdict(self.config), "state_dict": state}, path)
+        return path
+
+    @classmethod
+    def load(cls, path, map_location="cpu") -> "SalientNet":
+        """Read a file written by :meth:`save`; errors name the file and what is wrong."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: salient detector weights not found")
+        try:
+            blob = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as e:  # pickle, zip and torch errors all mean the same here
+            raise ValueError(f"{path}: not a readable torch weights file ({type(e).__name__}: {e})") from None
+        if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT:
+            found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
+            raise ValueError(f"{path}: not salient detector weights (format {found!r}, expected {WEIGHTS_FORMAT!r})")
+        try:
+            config = SalientConfig(**blob["config"])
+        except (TypeError, ValueError, KeyError) as e:
+            raise ValueError(f"{path}: invalid network config: {e}") from None
+        net = cls(config)
+        try:
+            net.load_state_dict(blob["state_dict"])
+        except (RuntimeError, KeyError) as e:
+            raise ValueError(f"{path}: weights do not fit the network of its config {config}: {e}") from None
+        return net.to(map_location).eval()
+
+
+def _check_net_input(depth) -> None:
+    if not isinstance(depth, torch.Tensor):
+        raise TypeError(f"depth must be a torch.Tensor of shape (B, 1, H, W), got {type(depth).__name__}")
+    if depth.ndim != 4 or depth.shape[1] != 1:
+        raise ValueError(f"depth must have shape (B, 1, H, W) (one depth channel), got {tuple(depth.shape)}")
+    if not depth.is_floating_point():
+        raise TypeError(f"depth must be a floating point tensor (mm), got {depth.dtype}")
+    if depth.shape[2] % STRIDE or depth.shape[3] % STRIDE:
+        raise ValueError(f"depth height and width must be multiples of {STRIDE}, got {tuple(depth.shape[2:])}; "
+                         "SalientDetector.detect pads any size")
+
+
+# --------------------------------------------------------------------------- peak picking
+
+
+def detect_peaks(
+    hough: torch.Tensor,
+    threshold: float = 0.5,
+    max_detections: int = 20,
+    nms_radius: int = 2,
+    image_size: Optional[tuple] = None,
+) -> List[Detections]:
+    """Fingertip detections from Hough maps: local maxima above a threshold, top-k.
+
+    A Hough cell is a peak if it equals the maximum of its ``(2 r + 1)^2`` neighbourhood
+    (max-pool NMS, r = ``nms_radius`` cells = 2 r px) and exceeds ``threshold``; of a
+    plateau of equal maxima only the first (row-major) cell is kept. Its
+    position is refined to the vote-weighted centroid of its 3x3 neighbourhood and
+    mapped to input pixels, ``u = 2 c + 0.5``. ``depth`` of the detections is 0 (use
+    :class:`SalientDetector` to get it filled in).
+
+    Args:
+        hough: (B, 1, Hh, Wh) Hough maps (:attr:`SalientOutput.hough`).
+        threshold: smallest peak value kept.
+        max_detections: at most this many per image (the highest).
+        nms_radius: NMS neighbourhood radius in Hough cells.
+        image_size: optional (H, W) of the unpadded input; peaks outside are dropped.
+
+    Returns:
+        one :class:`Detections` per batch element, sorted by decreasing score.
+    """
+    if not isinstance(hough, torch.Tensor) or hough.ndim != 4 or hough.shape[1] != 1:
+        shape = tuple(hough.shape) if isinstance(hough, torch.Tensor) else type(hough).__name__
+        raise ValueError(f"hough must be a tensor of shape (B, 1, Hh, Wh), got {shape}")
+    B, _, Hh, Wh = hough.shape
+    k = 2 * nms_radius + 1
+    # separable max-pool (rows, then columns): the (2 r + 1)^2 neighbourhood maximum
+    local_max = F.max_pool2d(F.max_pool2d(hough, (1, k), 1, (0, nms_radius)), (k, 1), 1, (nms_radius, 0))
+    peak = (hough == local_max) & (hough > threshold)
+    ramp = hough.new_tensor([-1.0, 0.0, 1.0])
+    padded = F.pad(hough, (1, 1, 1, 1))
+    three = torch.arange(3, device=hough.device)
+    flat = torch.where(peak, hough, hough.new_zeros(())).flatten(1)
+    # candidates: a few more than needed, as plateaus of equal maxima give several
+    n = min(4 * max_detections, flat.shape[1])
+    score, idx = flat.topk(n, dim=1)
+    out = []
+    for b in range(B):
+        keep = score[b] > 0
+        s, i = score[b][keep], idx[b][keep]
+        # of a plateau (equal peaks within the radius) keep the first in row-major order
+        i, order = torch.sort(i)
+        s = s[order]
+        rr, cc = torch.div(i, Wh, rounding_mode="floor"), i % Wh
+        near = ((rr[:, None] - rr[None]).abs() <= nms_radius) & ((cc[:, None] - cc[None]).abs() <= nms_radius)
+        earlier = torch.ones_like(near).tril(-1)
+        dup = (near & earlier & (s[:, None] == s[None])).any(1)
+        s, i = s[~dup], i[~dup]
+        s, order = torch.sort(s, descending=True, stable=True)
+        s, i = s[:max_detections], i[order][:max_detections]
+        r = torch.div(i, Wh, rounding_mode="floor")
+        c = i - r * Wh
+        # sub-cell position: the vote-weighted centroid of the peak's 3x3 neighbourhood
+        patch = padded[b, 0][(r[:, None, None] + three[None, :, None]), (c[:, None, None] + three[None, None, :])]
+        total = patch.sum((1, 2)).clamp_min(torch.finfo(hough.dtype).tiny)
+        u = (c.to(hough.dtype) + (patch * ramp).sum((1, 2)) / total) * HOUGH_STRIDE + 0.5
+        v = (r.to(hough.dtype) + (patch * ramp[:, None]).sum((1, 2)) / total) * HOUGH_STRIDE + 0.5
+        uv = torch.stack([u, v], 1)
+        if image_size is not None:
+            inside = (uv[:, 0] <= image_size[1] - 0.5) & (uv[:, 1] <= image_size[0] - 0.5)
+            uv, s = uv[inside], s[inside]
+        out.append(Detections(uv, s, s.new_zeros(s.shape)))
+    return out
+
+
+# ---------------------------------------------------------------------- frame-level API
+
+ArrayLike = Union[np.ndarray, torch.Tensor]
+
+
+def _check_frame(depth) -> np.ndarray | torch.Tensor:
+    """Validate one (H, W) depth frame; returns it (unchanged type)."""
+    if not isinstance(depth, (np.ndarray, torch.Tensor)):
+        raise TypeError(f"depth must be a numpy array or torch tensor of shape (H, W) in mm, got {type(depth).__name__}")
+    if depth.ndim != 2:
+        raise ValueError(f"depth must have shape (H, W) (one depth frame, mm), got {tuple(depth.shape)}")
+    if isinstance(depth, np.ndarray):
+        if not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)) \
+                or depth.dtype == np.bool_:
+            raise TypeError(f"depth must be a float or integer array (mm), got dtype {depth.dtype}")
+        bad = np.isnan(depth).any() if np.issubdtype(depth.dtype, np.floating) else False
+        neg = (depth < 0).any()
+    else:
+        if depth.dtype in (torch.bool, torch.complex64, torch.complex128):
+            raise TypeError(f"depth must be a float or integer tensor (mm), got dtype {depth.dtype}")
+        bad = bool(torch.isnan(depth).any()) if depth.is_floating_point() else False
+        neg = bool((depth < 0).any())
+    if bad:
+        raise ValueError("depth contains NaN; mark invalid pixels with 0")
+    if neg:
+        raise ValueError("depth contains negative values; depth is in mm with 0 marking invalid pixels")
+    if min(depth.shape) < 1:
+        raise ValueError(f"depth must not be empty, got shape {tuple(depth.shape)}")
+    return depth
+
+
+def _padded(depth: np.ndarray) -> np.ndarray:
+    """(H, W) -> (1, 1, H', W') float32, zero-padded (invalid) at the bottom/right to multiples of 4."""
+    H, W = depth.shape
+    Hp, Wp = -(-H // STRIDE) * STRIDE, -(-W // STRIDE) * STRIDE
+    out = np.zeros((1, 1, Hp, Wp), np.float32)
+    out[0, 0, :H, :W] = np.where(np.isfinite(depth), depth, 0)  # +inf counts as invalid
+    return out
+
+
+def _finish(dets: Detections, depth_np: np.ndarray) -> Detections:
+    H, W = depth_np.shape
+    if len(dets.score) == 0:
+        return dets
+    cols = dets.uv[:, 0].round().long().clamp(0, W - 1).cpu().numpy()
+    rows = dets.uv[:, 1].round().long().clamp(0, H - 1).cpu().numpy()
+    d = torch.as_tensor(depth_np[rows, cols].astype(np.float32), device=dets.uv.device).to(dets.uv.dtype)
+    return Detections(dets.uv, dets.score, d)
+
+
+def _empty(device="cpu") -> Detections:
+    z = torch.zeros(0, dtype=torch.float32, device=device)
+    return Detections(z.reshape(0, 2), z, z)
+
+
+class SalientDetector:
+    """Fingertip detection on single depth frames with a :class:`SalientNet`.
+
+    Args:
+        net: the network (moved to ``device`` and set to eval mode).
+        device: where the network runs ("cpu", "cuda", ...).
+        threshold, max_detections, nms_radius: see :func:`detect_peaks`.
+
+    ``detect`` pads any (H, W) frame with invalid pixels to multiples of 4.
+    """
+
+    def __init__(self, net: SalientNet, device="cpu", threshold: float = 0.5, max_detections: int = 20,
+                 nms_radius: int = 2):
+        self.device = torch.device(device)
+        self.net = net.to(self.device).eval()
+        self.threshold = float(threshold)
+        self.max_detections = int(max_detections)
+        self.nms_radius = int(nms_radius)
+
+    @classmethod
+    def load(cls, path=None, device="cpu", **kwargs) -> "SalientDetector":
+        """Detector from a weights file (default: the shipped ``models/salient_fingertips.pt``)."""
+        return cls(SalientNet.load(DEFAULT_WEIGHTS if path is None else path), device=device, **kwargs)
+
+    @classmethod
+    def load_onnx(cls, path=None, threads: int = 2, **kwargs) -> "OnnxSalientDetector":
+        """ONNX Runtime detector (default: the shipped ``models/salient_fingertips.onnx``)."""
+        return OnnxSalientDetector(DEFAULT_ONNX if path is None else path, threads=threads, **kwargs)
+
+    def detect(self, depth: ArrayLike) -> Detections:
+        """Fingertips in one depth frame.
+
+        Args:
+            depth: (H, W) depth in mm (float or integer, numpy or torch), 0 = invalid.
+
+        Returns:
+            :class:`Detections` on ``self.device`` (float32), pixel coordinates of the
+            input frame. A frame without valid pixels gives zero detections.
+
+        Raises:
+            TypeError / ValueError: not a 2D numeric array, NaN or negative values.
+        """
+        depth = _check_frame(depth)
+        depth_np = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else depth
+        depth_np = depth_np.astype(np.float32, copy=False)
+        if not (depth_np > 0).any():
+            return _empty(self.device)
+        x = torch.from_numpy(_padded(depth_np)).to(self.device)
+        with torch.no_grad():
+            hough = self.net(x).hough
+        dets = detect_peaks(hough, self.threshold, self.max_detections, self.nms_radius, depth_np.shape)[0]
+        return _finish(dets, depth_np)
+
+
+class OnnxSalientDetector:
+    """:class:`SalientDetector` running the exported graph with ONNX Runtime (CPU).
+
+    Args:
+        path: ``.onnx`` file written by :func:`export_onnx`.
+        threads: ``intra_op_num_threads`` of the session.
+        threshold, max_detections, nms_radius: see :func:`detect_peaks`.
+    """
+
+    def __init__(self, path, threads: int = 2, threshold: float = 0.5, max_detections: int = 20,
+                 nms_radius: int = 2):
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"{self.path}: ONNX salient detector not found")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+        except Exception as e:
+            raise ValueError(f"{self.path}: not a loadable ONNX model ({type(e).__name__}: {e})") from None
+        inputs = [i.name for i in self.session.get_inputs()]
+        outputs = [o.name for o in self.session.get_outputs()]
+        if inputs != ["depth"] or outputs != list(SalientOutput._fields):
+            raise ValueError(f"{self.path}: not a salient detector graph (inputs {inputs}, outputs {outputs}; "
+                             f"expected ['depth'] and {list(SalientOutput._fields)})")
+        self.threshold = float(threshold)
+        self.max_detections = int(max_detections)
+        self.nms_radius = int(nms_radius)
+
+    def run(self, depth: np.ndarray) -> SalientOutput:
+        """Raw outputs for a (B, 1, H, W) float32 array (H, W multiples of 4)."""
+        outs = self.session.run(None, {"depth": np.ascontiguousarray(depth, np.float32)})
+        return SalientOutput(*(torch.from_numpy(o) for o in outs))
+
+    def detect(self, depth: ArrayLike) -> Detections:
+        """Same contract as :meth:`SalientDetector.detect`; tensors on the CPU."""
+        depth = _check_frame(depth)
+        depth_np = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else depth
+        depth_np = depth_np.astype(np.float32, copy=False)
+        if not (depth_np > 0).any():
+            return _empty()
+        hough = self.run(_padded(depth_np)).hough
+        dets = detect_peaks(hough, self.threshold, self.max_detections, self.nms_radius, depth_np.shape)[0]
+        return _finish(dets, depth_np)
+
+
+def export_onnx(net: SalientNet, path, height: int = 240, width: int = 320, opset: int = 17) -> Path:
+    """Export ``net`` (legacy TorchScript-based exporter) with dynamic batch, height, width.
+
+    Inputs: ``depth`` (B, 1, H, W) float32 mm; outputs ``logits``, ``offsets``, ``hough``
+    as in :class:`SalientOutput`. The Hough voting exports as ScatterElements with
+    ``reduction="add"`` (opset >= 16).
+    """
+    if opset < 16:
+        raise ValueError(f"opset must be >= 16 (ScatterElements with reduction='add'), got {opset}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    net = net.to("cpu", torch.float32).eval()
+    example = torch.zeros(1, 1, height, width)
+    example[0, 0, height // 4: 3 * height // 4, width // 4: 3 * width // 4] = 600.0
+    cells = {0: "batch", 2: "height_4", 3: "width_4"}
+    axes = {"depth": {0: "batch", 2: "height", 3: "width"}, "logits": cells, "offsets": cells,
+            "hough": {0: "batch", 2: "height_2", 3: "width_2"}}
+    # the legacy (TorchScript) exporter on purpose: the dynamo exporter needs onnxscript
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(net, (example,), str(path), dynamo=False, opset_version=opset, input_names=["depth"],
+                          output_names=list(SalientOutput._fields), dynamic_axes=axes)
+    return path
