@@ -12,7 +12,9 @@ the tracker) and scored; same-scene sequences are tracked as one batch.
 iteration budgets (thesis Table 4.2).
 ``ablation``: the same as ``lo`` for several energies (thesis Table 4.6), with the
 interpenetration of the tracked and the ground-truth poses; ``--contact`` keeps
-the sequences with more than one model (hand-hand and hand-object contact).
+the sequences with more than one model (hand-hand and hand-object contact), and
+``--window contact`` renders, per sequence, the window in which the ground-truth
+models are closer than 5 mm in most frames.
 ``detector-quality``: LO+S with simulated fingertip detections following Ballan et
 al. (2012, Sec. 5): the projected ground-truth fingertips that the renderer shows
 (at least 30 mm^2 visible) are kept with probability ``rate``, 10 % of them add an
@@ -46,14 +48,36 @@ from torchhand.io.thesis import FormatError, sequence_models
 from torchhand.tracker import TrackerConfig, track_sequences
 
 
-def render_sequences(hia_root: Path, seqs, frames: int, work: Path, noise: str = "kinect"):
-    """Render (or reuse) frames 0..frames-1 of each sequence; returns {seq: folder}."""
+def contact_window(hia_root: Path, sequence: str, frames: int, near_mm: float = 5.0) -> int:
+    """First frame of the ``frames``-long window of a thesis sequence in which most
+    frames have two models closer than ``near_mm`` (ground-truth poses)."""
+    from scipy.spatial import cKDTree
+
+    fr = thesis_motion(hia_root, sequence, dtype=torch.float32)
+    scene = fr.scene
+    close = np.zeros(len(fr.theta), bool)
+    for k in range(len(fr.theta)):
+        with torch.no_grad():
+            V = scene(fr.theta[k : k + 1]).vertices[0].numpy()
+        parts = [V[s][::4] for s in scene.vertex_slices.values()]
+        for a in range(len(parts)):
+            for b in range(a + 1, len(parts)):
+                if cKDTree(parts[a]).query(parts[b], k=1, distance_upper_bound=near_mm)[0].min() < near_mm:
+                    close[k] = True
+    counts = np.convolve(close.astype(int), np.ones(frames, int), mode="valid")
+    return int(np.argmax(counts)) if len(counts) else 0
+
+
+def render_sequences(hia_root: Path, seqs, frames: int, work: Path, noise: str = "kinect", window: str = "start"):
+    """Render (or reuse) ``frames`` frames of each sequence, from frame 0 or (``window =
+    "contact"``) from :func:`contact_window`; returns {seq: folder}."""
     out = {}
     for s in seqs:
-        folder = work / f"hia_{s}_{noise}_{frames}"
+        folder = work / (f"hia_{s}_{noise}_{frames}" if window == "start" else f"hia_{s}_{noise}_{frames}_contact")
         if not (folder / "gt" / "meta.json").is_file():
             try:
-                fr = thesis_motion(hia_root, s, slice(0, frames), dtype=torch.float32)
+                start = 0 if window == "start" else contact_window(hia_root, s, frames)
+                fr = thesis_motion(hia_root, s, slice(start, start + frames), dtype=torch.float32)
             except FormatError:
                 print(f"sequence {s}: no MOTION files, skipped")
                 continue
@@ -101,7 +125,7 @@ def run_lo(args) -> dict:
 
 
 def run_ablation(args) -> dict:
-    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work, window=args.window)
     gt_penetration = {}
     if args.penetration:  # the ground truth's own interpenetration, for reference
         for s, f in folders.items():
@@ -204,6 +228,8 @@ def main(argv=None) -> int:
     ap.add_argument("--contact", action="store_true", help="only sequences with more than one model")
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
     ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")
+    ap.add_argument("--window", choices=["start", "contact"], default="start",
+                    help="ablation: render from frame 0, or the window where the models touch most")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation,

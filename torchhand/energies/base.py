@@ -24,7 +24,7 @@ from ..preprocess import DepthFrame
 from ..render import RenderResult
 from ..scene import Scene, SceneOutput
 
-__all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns"]
+__all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals"]
 
 
 class Residuals(NamedTuple):
@@ -76,3 +76,9 @@ def scatter_columns(J_model: torch.Tensor, cols: slice, D: int) -> torch.Tensor:
     J = J_model.new_zeros(J_model.shape[0], J_model.shape[1], D)
     J[:, :, cols] = J_model
     return J
+
+
+def no_residuals(theta: torch.Tensor, with_jacobian: bool) -> Residuals:
+    """The residuals of a term without correspondences: (B, 0) and (B, 0, D)."""
+    B, D = theta.shape
+    return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 
 from ..collision import DEFAULT_SIGMA, CollisionMesh, conic_field, detect_collisions, intruders
-from .base import EnergyTerm, Residuals, TrackState
+from .base import EnergyTerm, Residuals, TrackState, no_residuals
 from .model_to_data import vertex_normals
 
 __all__ = ["Collision"]
@@ -93,7 +93,7 @@ class Collision(EnergyTerm):
         B, D = theta.shape
         m = self.vids.shape[1]
         if m == 0:
-            return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+            return no_residuals(theta, with_jacobian)
         sw = self.weight**0.5
         b = torch.arange(B, device=theta.device)[:, None, None]
         X = posed.vertices.detach()[b, self.vids]  # (B, m, 4, 3)

@@ -16,7 +16,7 @@ import torch
 
 from ..camera import pixel_rays, unproject_pixels
 from ..kinematics import skew
-from .base import EnergyTerm, Residuals, TrackState, scatter_columns
+from .base import EnergyTerm, Residuals, TrackState, no_residuals, scatter_columns
 from .model_to_data import _pad_rows
 
 __all__ = ["DataToModel"]
@@ -97,5 +97,5 @@ class DataToModel(EnergyTerm):
                 cols = self._scene.slices[self._scene.names[k]]
                 Js.append(sw * scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D))
         if not rs:
-            return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+            return no_residuals(theta, with_jacobian)
         return Residuals(torch.cat(rs, 1), torch.cat(Js, 1) if with_jacobian else None)

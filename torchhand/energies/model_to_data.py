@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .base import EnergyTerm, Residuals, TrackState, scatter_columns
+from .base import EnergyTerm, Residuals, TrackState, no_residuals, scatter_columns
 
 __all__ = ["ModelToData", "vertex_normals", "visible_vertex_mask"]
 
@@ -129,7 +129,7 @@ class ModelToData(EnergyTerm):
                 cols = self._scene.slices[self._scene.names[k]]
                 Js.append(sw * scatter_columns(Jv.reshape(B, -1, Jv.shape[-1]), cols, D))
         if not rs:
-            return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+            return no_residuals(theta, with_jacobian)
         return Residuals(torch.cat(rs, 1), torch.cat(Js, 1) if with_jacobian else None)
 
 

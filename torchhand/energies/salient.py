@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from ..salient.association import associate
 from ..salient.data import fingertip_faces
-from .base import EnergyTerm, Residuals, TrackState
+from .base import EnergyTerm, Residuals, TrackState, no_residuals
 from .model_to_data import visible_vertex_mask
 
 __all__ = ["Salient"]
@@ -178,7 +178,7 @@ class Salient(EnergyTerm):
         B, D = theta.shape
         n = self.ids.shape[1]
         if n == 0:
-            return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+            return no_residuals(theta, with_jacobian)
         sw = self.weight**0.5
         b = torch.arange(B, device=theta.device)[:, None]
         r = sw * (posed.vertices[b, self.ids] - self.X) * self.mask[..., None]  # (B, n, 3)
