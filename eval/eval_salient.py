@@ -92,8 +92,8 @@ def main(argv=None) -> None:
     for name, img in (("320x240", frame[::2, ::2]), ("640x480", frame)):
         x = np.ascontiguousarray(img[None, None])
         t = median_seconds(lambda: ort_det.run(x), args.repeats, warmup=10)
-        td = median_seconds(lambda: ort_det.detect(img), args.repeats // 2, warmup=5)
-        tt = median_seconds(lambda: det.detect(img), args.repeats // 4, warmup=3)
+        td = median_seconds(lambda: ort_det.detect(img), max(1, args.repeats // 2), warmup=5)
+        tt = median_seconds(lambda: det.detect(img), max(1, args.repeats // 4), warmup=3)
         speed[f"ort_fps_{name}"] = 1.0 / t
         speed[f"ort_detect_fps_{name}"] = 1.0 / td
         speed[f"torch_detect_fps_{name}"] = 1.0 / tt
