@@ -171,7 +171,7 @@ def ballan_detections(folder: Path, rate: float, seed: int, fp_rate: float = 0.1
 
 
 def run_detector_quality(args) -> dict:
-    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work, window=args.window)
     rows = []
     for rate in [float(r) for r in args.rates.split(",")]:
         table = {}
@@ -229,7 +229,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
     ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")
     ap.add_argument("--window", choices=["start", "contact"], default="start",
-                    help="ablation: render from frame 0, or the window where the models touch most")
+                    help="ablation, detector-quality: render from frame 0, or the window where the models touch most")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation,
