@@ -35,6 +35,7 @@ pushed back half a millimetre before it reaches the receiving triangle.
 
 from __future__ import annotations
 
+import copy
 from typing import List, NamedTuple, Optional, Sequence
 
 import torch
@@ -107,6 +108,7 @@ class CollisionMesh:
         self.face_model = torch.zeros_like(self.face_part) if face_model is None else face_model.long()
         self.excluded = excluded
         self.num_parts = P
+        self.num_vertices_needed = int(self.faces.max()) + 1 if F else 0
         # bit sets: the part of each face, and the parts it may collide with
         words = max(1, -(-P // _WORD_BITS))
         bit = torch.arange(P, device=faces.device)
@@ -153,6 +155,24 @@ class CollisionMesh:
         allow = _or_reduce(torch.cat([self.face_allowed, zero])[gather].view(n_leaves, leaf_size, words), 1)
         self.node_bits = _levels(bits, lambda x, y: x | y, 0)
         self.node_allowed = _levels(allow, lambda x, y: x | y, 0)
+        self._copies = {faces.device: self}
+
+    _TENSORS = ("faces", "face_part", "face_model", "excluded", "face_bits", "face_allowed", "slot_face",
+                "slot_empty")
+
+    def to(self, device) -> "CollisionMesh":
+        """This mesh with its tensors on ``device`` (copies are cached per device)."""
+        device = torch.device(device)
+        for d, m in self._copies.items():
+            if d.type == device.type and (device.index is None or d.index == device.index):
+                return m
+        other = copy.copy(self)
+        for name in self._TENSORS:
+            setattr(other, name, getattr(self, name).to(device))
+        other.node_bits = [x.to(device) for x in self.node_bits]
+        other.node_allowed = [x.to(device) for x in self.node_allowed]
+        self._copies[device] = other
+        return other
 
     @classmethod
     def from_scene(cls, scene, self_collisions: bool = True, models: Optional[Sequence[str]] = None,
@@ -247,13 +267,10 @@ def _morton_codes(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid, code, 1 << 31)  # degenerate faces sort last
 
 
-def _boxes_overlap(lo: torch.Tensor, hi: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
-    """Whether boxes i and j overlap; lo, hi: (3, N) coordinates first; i, j: (M,)."""
-    keep = None
-    for k in range(3):
-        ok = (lo[k].index_select(0, i) <= hi[k].index_select(0, j)) & (lo[k].index_select(0, j) <= hi[k].index_select(0, i))
-        keep = ok if keep is None else keep & ok
-    return keep
+def _boxes_overlap(boxes: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+    """Whether boxes i and j overlap; boxes: (N, 6) rows of (lo xyz, hi xyz); i, j: (M,)."""
+    a, b = boxes.index_select(0, i), boxes.index_select(0, j)
+    return ((a[:, :3] <= b[:, 3:]) & (b[:, :3] <= a[:, 3:])).all(-1)
 
 
 def _bits_meet(allowed: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
@@ -271,14 +288,15 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         have no normal and no cone.
     """
     check_tensor(vertices, "vertices", ("B", "V", 3))
-    if len(mesh.faces) and int(mesh.faces.max()) >= vertices.shape[1]:
-        raise ValueError(f"faces index vertex {int(mesh.faces.max())} but vertices has {vertices.shape[1]}")
+    if mesh.num_vertices_needed > vertices.shape[1]:
+        raise ValueError(f"faces index vertex {mesh.num_vertices_needed - 1} but vertices has {vertices.shape[1]}")
     B, F, dev = vertices.shape[0], mesh.faces.shape[0], vertices.device
     empty = torch.zeros(0, dtype=torch.int64, device=dev)
     if F < 2 or B == 0:
         return CollisionPairs(empty, empty, empty)
-    faces, leaf_size, sizes = mesh.faces.to(dev), mesh.leaf_size, mesh.level_sizes
-    slot_face = mesh.slot_face.to(dev)
+    mesh = mesh.to(dev)
+    faces, leaf_size, sizes = mesh.faces, mesh.leaf_size, mesh.level_sizes
+    slot_face = mesh.slot_face
     slots = slot_face.shape[0]
     n_leaves = sizes[-1]
     with torch.no_grad():
@@ -288,17 +306,18 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         xyz = vertices.detach().permute(2, 0, 1).index_select(2, corners).view(3, B, 3, slots)
         slo = torch.minimum(torch.minimum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
         shi = torch.maximum(torch.maximum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
-        empty_slot = mesh.slot_empty.to(dev)
+        empty_slot = mesh.slot_empty
         slo = slo.masked_fill(empty_slot, float("inf"))
         shi = shi.masked_fill(empty_slot, float("-inf"))
 
         # box levels of the tree, root first, flattened over the batch: node k of
-        # element b on a level of n nodes is column b * n + k of a (3, B * n) tensor
+        # element b on a level of n nodes is row b * n + k of a (B * n, 6) tensor
         # (single-index gathers are much faster than (b, k) indexing)
         lo_leaf = slo.view(3, B, n_leaves, leaf_size).amin(-1)
         hi_leaf = shi.view(3, B, n_leaves, leaf_size).amax(-1)
-        los = [x.reshape(3, -1) for x in _levels(lo_leaf, torch.minimum, float("inf"), dim=2)]
-        his = [x.reshape(3, -1) for x in _levels(hi_leaf, torch.maximum, float("-inf"), dim=2)]
+        boxes = [torch.cat([lo.reshape(3, -1), hi.reshape(3, -1)]).T.contiguous()  # (B * n, 6) rows
+                 for lo, hi in zip(_levels(lo_leaf, torch.minimum, float("inf"), dim=2),
+                                   _levels(hi_leaf, torch.maximum, float("-inf"), dim=2))]
 
         # simultaneous traversal of the tree against itself, one level at a time,
         # from the deepest level of at most 64 nodes (all its pairs are tested);
@@ -312,9 +331,9 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         cj = torch.tensor([0, 1, 0, 1], device=dev)
         for level in range(start, len(sizes)):
             n = sizes[level]
-            allow, bits = mesh.node_allowed[level].to(dev), mesh.node_bits[level].to(dev)
+            allow, bits = mesh.node_allowed[level], mesh.node_bits[level]
             keep = _bits_meet(allow.index_select(0, i % n), bits.index_select(0, j % n))
-            keep &= _boxes_overlap(los[level], his[level], i, j)
+            keep &= _boxes_overlap(boxes[level], i, j)
             sel = torch.nonzero(keep)[:, 0]
             i, j = i.index_select(0, sel), j.index_select(0, sel)
             if level + 1 < len(sizes):  # node (b, k) has children (b, 2k), (b, 2k + 1) below
@@ -334,15 +353,16 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         a = torch.arange(leaf_size, device=dev)
         si = (i[:, None, None] * leaf_size + a[None, :, None]).expand(-1, leaf_size, leaf_size).reshape(-1)
         sj = (j[:, None, None] * leaf_size + a[None, None, :]).expand(-1, leaf_size, leaf_size).reshape(-1)
-        keep = (si < sj) & _boxes_overlap(slo.reshape(3, -1), shi.reshape(3, -1), si, sj)
+        slot_boxes = torch.cat([slo.reshape(3, -1), shi.reshape(3, -1)]).T.contiguous()
+        keep = (si < sj) & _boxes_overlap(slot_boxes, si, sj)
         sel = torch.nonzero(keep)[:, 0]
         si, sj = si.index_select(0, sel), sj.index_select(0, sel)
         b = torch.div(si, slots, rounding_mode="floor")
         fs, ft = slot_face.index_select(0, si - b * slots), slot_face.index_select(0, sj - b * slots)
-        part = mesh.face_part.to(dev)
+        part = mesh.face_part
         pa, pb = part.index_select(0, fs), part.index_select(0, ft)
-        keep = ~mesh.excluded.to(dev).reshape(-1).index_select(0, pa * mesh.num_parts + pb)
-        fm = mesh.face_model.to(dev)
+        keep = ~mesh.excluded.reshape(-1).index_select(0, pa * mesh.num_parts + pb)
+        fm = mesh.face_model
         va, vb = faces.index_select(0, fs), faces.index_select(0, ft)
         share = (va[:, :, None] == vb[:, None, :]).any(-1).any(-1) & (fm.index_select(0, fs) == fm.index_select(0, ft))
         sel = torch.nonzero(keep & ~share)[:, 0]
@@ -453,7 +473,8 @@ def collision_energy(vertices: torch.Tensor, faces: torch.Tensor, pairs: Collisi
     vertices: (B, V, 3); faces: (F, 3); pairs: found at (any) pose -> (B,) energy
     ``sum Psi^2`` over the intruders of every pair (Eq. 4.12 has the same value).
     """
-    rows = intruders(pairs, faces.to(vertices.device))
+    faces = faces.to(vertices.device)
+    rows = intruders(pairs, faces)
     psi = conic_field(vertices[rows.batch, rows.vertex], vertices[rows.batch[:, None], faces[rows.face]], sigma)
     return vertices.new_zeros(vertices.shape[0]).index_add(0, rows.batch, psi.square())
 
