@@ -267,8 +267,13 @@ def _morton_codes(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid, code, 1 << 31)  # degenerate faces sort last
 
 
+def _box_rows(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """(N, 6) rows of (lo xyz, hi xyz) from (3, N) bounds."""
+    return torch.cat([lo, hi]).T.contiguous()
+
+
 def _boxes_overlap(boxes: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
-    """Whether boxes i and j overlap; boxes: (N, 6) rows of (lo xyz, hi xyz); i, j: (M,)."""
+    """Whether boxes i and j (M,) of :func:`_box_rows` overlap."""
     a, b = boxes.index_select(0, i), boxes.index_select(0, j)
     return ((a[:, :3] <= b[:, 3:]) & (b[:, :3] <= a[:, 3:])).all(-1)
 
@@ -303,7 +308,9 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         # refit: the boxes of the faces in the static slot order, coordinates first
         # (3, B, slots); empty slots and degenerate faces get empty boxes
         corners = faces.index_select(0, slot_face.clamp_min(0)).T.reshape(-1)  # (3 * slots,) corner-major
-        xyz = vertices.detach().permute(2, 0, 1).index_select(2, corners).view(3, B, 3, slots)
+        base = (torch.arange(B, device=dev) * vertices.shape[1])[:, None]
+        rows = vertices.detach().reshape(-1, 3).index_select(0, (base + corners).reshape(-1))  # row gathers are fast
+        xyz = rows.view(B, 3, slots, 3).permute(3, 0, 1, 2)  # (xyz, B, corner, slot)
         slo = torch.minimum(torch.minimum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
         shi = torch.maximum(torch.maximum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
         empty_slot = mesh.slot_empty
@@ -311,11 +318,11 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         shi = shi.masked_fill(empty_slot, float("-inf"))
 
         # box levels of the tree, root first, flattened over the batch: node k of
-        # element b on a level of n nodes is row b * n + k of a (B * n, 6) tensor
+        # element b on a level of n nodes is row b * n + k of the level's box rows
         # (single-index gathers are much faster than (b, k) indexing)
         lo_leaf = slo.view(3, B, n_leaves, leaf_size).amin(-1)
         hi_leaf = shi.view(3, B, n_leaves, leaf_size).amax(-1)
-        boxes = [torch.cat([lo.reshape(3, -1), hi.reshape(3, -1)]).T.contiguous()  # (B * n, 6) rows
+        boxes = [_box_rows(lo.reshape(3, -1), hi.reshape(3, -1))
                  for lo, hi in zip(_levels(lo_leaf, torch.minimum, float("inf"), dim=2),
                                    _levels(hi_leaf, torch.maximum, float("-inf"), dim=2))]
 
@@ -353,7 +360,7 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         a = torch.arange(leaf_size, device=dev)
         si = (i[:, None, None] * leaf_size + a[None, :, None]).expand(-1, leaf_size, leaf_size).reshape(-1)
         sj = (j[:, None, None] * leaf_size + a[None, None, :]).expand(-1, leaf_size, leaf_size).reshape(-1)
-        slot_boxes = torch.cat([slo.reshape(3, -1), shi.reshape(3, -1)]).T.contiguous()
+        slot_boxes = _box_rows(slo.reshape(3, -1), shi.reshape(3, -1))
         keep = (si < sj) & _boxes_overlap(slot_boxes, si, sj)
         sel = torch.nonzero(keep)[:, 0]
         si, sj = si.index_select(0, sel), sj.index_select(0, sel)
