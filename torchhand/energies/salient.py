@@ -44,8 +44,9 @@ class Salient(EnergyTerm):
         detector: an object with ``detect(depth (H, W) mm) -> Detections`` (default:
             the shipped network, through ONNX Runtime on CPU or torch on CUDA).
         lam: lambda of Eq. 4.14 (1.2).
-        confidence_weighted: w_s = c_s / c_thr (the detector's threshold) instead of 1
-            (the thesis' second option).
+        min_score: c_thr, the smallest detection score used (the thesis keeps only
+            confident detections, c_thr = 3 for its forest; 0.5 for the shipped network).
+        confidence_weighted: w_s = c_s / c_thr instead of 1 (the thesis' second option).
         unit_mm: mm per unit of w_st (10: centimetres).
         near_mm: no correspondences for a pair closer than this (10).
         min_inside: fraction of a fingertip's visible vertices that must project into
@@ -56,7 +57,8 @@ class Salient(EnergyTerm):
 
     name = "salient"
 
-    def __init__(self, weight: float = 1.0, detector=None, lam: float = 1.2, confidence_weighted: bool = False,
+    def __init__(self, weight: float = 1.0, detector=None, lam: float = 1.2, min_score: float = 0.5,
+                 confidence_weighted: bool = False,
                  unit_mm: float = 10.0, near_mm: float = 10.0, min_inside: float = 0.5, box: int = 8,
                  depth_band: float = 25.0):
         super().__init__(weight)
@@ -64,6 +66,7 @@ class Salient(EnergyTerm):
             raise ValueError(f"need lam >= 0, unit_mm > 0 and box >= 1; got {lam}, {unit_mm}, {box}")
         self._detector = detector
         self.lam, self.confidence_weighted, self.unit_mm = float(lam), confidence_weighted, float(unit_mm)
+        self.min_score = float(min_score)
         self.near_mm, self.min_inside, self.box, self.depth_band = near_mm, min_inside, int(box), depth_band
         self._cache: Dict[int, tuple] = {}
         self._tips, self._tips_scene = None, None
@@ -92,6 +95,8 @@ class Salient(EnergyTerm):
         T_wc = camera.T_wc.to(pts.device, pts.dtype)
         cents, clouds, boxes, conf = [], [], [], []
         for (u, v), c in zip(det.uv.tolist(), det.score.tolist()):
+            if c < self.min_score:
+                continue
             u0, u1 = max(0, int(round(u)) - self.box), min(W, int(round(u)) + self.box + 1)
             v0, v1 = max(0, int(round(v)) - self.box), min(H, int(round(v)) + self.box + 1)
             z = depth[v0:v1, u0:u1].to(pts.dtype)
@@ -137,8 +142,7 @@ class Salient(EnergyTerm):
             c_t = (V[b][index] * w[..., None]).sum(1) / w.sum(1, keepdim=True).clamp_min(1)  # (T, 3)
             dist = torch.cdist(cent.to(dt), c_t).cpu().numpy()  # (S, T) mm
             cost = np.where(has.cpu().numpy()[None], dist / self.unit_mm, np.inf)
-            c_thr = float(getattr(self._detector, "threshold", 1.0)) or 1.0
-            ws = conf / c_thr if self.confidence_weighted else None
+            ws = conf / max(self.min_score, 1e-9) if self.confidence_weighted else None
             a = associate(cost, self.lam, ws)
             assigned[b] = len(a.detection)
             ids, targets = [], []

@@ -71,6 +71,13 @@ DEFAULT_ONNX = _shipped("salient_fingertips.onnx")
 #: Tag stored in weight files written by :meth:`SalientNet.save`.
 WEIGHTS_FORMAT = "torchhand.salient.SalientNet/1"
 
+#: Peak picking defaults: a low threshold and many candidates, so that a precision-recall
+#: curve (and a consumer such as the tracker, which applies its own confidence
+#: threshold) sees every plausible fingertip; NMS over 3x3 Hough cells (6 px).
+DEFAULT_THRESHOLD = 0.05
+DEFAULT_MAX_DETECTIONS = 40
+DEFAULT_NMS_RADIUS = 1
+
 #: Encoder stride: the score/offset maps are (H/4, W/4); inputs must be multiples of it.
 STRIDE = 4
 #: Stride of the Hough map, (H/2, W/2).
@@ -312,9 +319,9 @@ def _check_net_input(depth) -> None:
 
 def detect_peaks(
     hough: torch.Tensor,
-    threshold: float = 0.5,
-    max_detections: int = 20,
-    nms_radius: int = 2,
+    threshold: float = DEFAULT_THRESHOLD,
+    max_detections: int = DEFAULT_MAX_DETECTIONS,
+    nms_radius: int = DEFAULT_NMS_RADIUS,
     image_size: Optional[tuple] = None,
 ) -> List[Detections]:
     """Fingertip detections from Hough maps: local maxima above a threshold, top-k.
@@ -446,8 +453,8 @@ class SalientDetector:
     ``detect`` pads any (H, W) frame with invalid pixels to multiples of 4.
     """
 
-    def __init__(self, net: SalientNet, device="cpu", threshold: float = 0.5, max_detections: int = 20,
-                 nms_radius: int = 2):
+    def __init__(self, net: SalientNet, device="cpu", threshold: float = DEFAULT_THRESHOLD,
+                 max_detections: int = DEFAULT_MAX_DETECTIONS, nms_radius: int = DEFAULT_NMS_RADIUS):
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
         self.threshold = float(threshold)
@@ -498,8 +505,8 @@ class OnnxSalientDetector:
         threshold, max_detections, nms_radius: see :func:`detect_peaks`.
     """
 
-    def __init__(self, path, threads: int = 2, threshold: float = 0.5, max_detections: int = 20,
-                 nms_radius: int = 2):
+    def __init__(self, path, threads: int = 2, threshold: float = DEFAULT_THRESHOLD,
+                 max_detections: int = DEFAULT_MAX_DETECTIONS, nms_radius: int = DEFAULT_NMS_RADIUS):
         import onnxruntime as ort
 
         self.path = Path(path)
