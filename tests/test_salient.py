@@ -326,6 +326,27 @@ def test_train_resume_is_exact(tmp_path):
     assert half.state_dict()["head.weight"].abs().sum() > 0
 
 
+def test_fine_tuning_starts_from_given_weights(tmp_path):
+    from train.salient import train
+
+    data = _fake_frames()
+    cfg = _tiny_cfg()
+    start = SalientNet(SalientConfig(**cfg.network))
+    with torch.no_grad():
+        start.head.bias.fill_(0.25)
+    start.save(tmp_path / "start.pt")
+    (tmp_path / "ft").mkdir()
+    # learning rate 0: the parameters stay exactly the starting weights
+    tuned = train(_tiny_cfg(lr=0.0, init_weights=str(tmp_path / "start.pt")), tmp_path / "ft", data, data,
+                  resume=False, progress=False)
+    torch.testing.assert_close(tuned.head.bias, start.head.bias)
+    other = SalientNet(SalientConfig(channels=(5, 5), dilations=(1,)))
+    other.save(tmp_path / "other.pt")
+    with pytest.raises(SystemExit, match="other.pt"):
+        train(_tiny_cfg(init_weights=str(tmp_path / "other.pt")), tmp_path / "ft", data, data, resume=False,
+              progress=False)
+
+
 def test_cli_refuses_overwrite_and_config_mismatch(tmp_path):
     from dataclasses import asdict
 

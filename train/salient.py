@@ -82,6 +82,8 @@ class TrainConfig:
     offset_weight: float = 0.1
     checkpoint_every: int = 250
     threads: int = 2
+    # --- fine-tuning: start from these weights (a SalientNet.save file) instead of random
+    init_weights: str = ""
 
     def data_key(self) -> str:
         d = {k: getattr(self, k) for k in ("train_sequences", "val_sequences", "sequence_frames",
@@ -300,6 +302,11 @@ def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: Sali
     np.random.seed(cfg.seed)
     g = torch.Generator().manual_seed(cfg.seed)
     net = SalientNet(SalientConfig(**cfg.network))
+    if cfg.init_weights:
+        start = SalientNet.load(cfg.init_weights)
+        if start.config != net.config:
+            raise SystemExit(f"{cfg.init_weights}: network {start.config} differs from the config's {net.config}")
+        net.load_state_dict(start.state_dict())
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.1)
     step = 0
