@@ -125,16 +125,25 @@ def test_salient_term_pulls_displaced_fingertips_and_jacobian_is_exact(hand_fram
     assert step[0] < -8.0
 
 
-def test_salient_term_ignores_far_detections_and_empty_frames(hand_frame):
+def test_salient_term_drops_detections_off_the_surface_or_below_min_score(hand_frame):
     scene, cam, theta, depth, uv, z = hand_frame
-    far = np.array([[5.0, 5.0, 9.0]])  # a detection on no surface: dropped
-    term = Salient(detector=simulated_detector(lambda d: far))
+    k = int(np.argmin(np.abs(depth[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)] - z)))
+    rows = np.array([[5.0, 5.0, 9.0],  # on no surface
+                     [uv[k, 0], uv[k, 1], 0.2],  # on a fingertip, but not confident
+                     [uv[k, 0], uv[k, 1], 0.9]])  # on a fingertip, confident
+    term = Salient(detector=simulated_detector(lambda d: rows), min_score=0.5)
     state, _ = _state(scene, cam, theta, depth)
+    cent, clouds, boxes, conf = term._regions(state.frames[0], cam)
+    assert len(cent) == 1 and conf.tolist() == pytest.approx([0.9]) and len(clouds[0]) > 0
+    moved = theta.clone()
+    moved[0, 0] += 20.0
+    state, posed = _state(scene, cam, moved, depth)
     term.prepare(state)
-    assert term.count[0] == 0 and term.residuals(theta, scene(theta), True).r.shape == (1, 0)
+    assert term.assigned[0] == 1 and term.count[0] > 0
     none = Salient(detector=simulated_detector(lambda d: None))
     none.prepare(state)
-    assert none.count[0] == 0
+    assert none.assigned[0] == 0 and none.count[0] == 0
+    assert none.residuals(moved, posed, True).r.shape == (1, 0)
 
 
 def test_parse_energy_with_salient_points():

@@ -52,6 +52,7 @@ __all__ = [
     "intruders",
     "collision_energy",
     "collision_loss",
+    "pair_sets",
 ]
 
 #: sigma of Eq. 4.10-4.11 (thesis: 0.5)
@@ -289,8 +290,9 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         vertices: (B, V, 3) posed vertices (finite).
         mesh: :class:`CollisionMesh` with faces indexing V.
     Returns:
-        :class:`CollisionPairs`. Degenerate (zero-area) triangles are skipped: they
-        have no normal and no cone.
+        :class:`CollisionPairs`. Faces of zero area on the rest mesh are never tested
+        (they have no normal and no cone); a face that degenerates at some pose is
+        still tested, and as a receiver adds no penalty (:func:`conic_field`).
     """
     check_tensor(vertices, "vertices", ("B", "V", 3))
     if mesh.num_vertices_needed > vertices.shape[1]:

@@ -13,7 +13,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from .data.layout import Poses, SequenceError, read_poses
-from .metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
+from .metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, max_depth, model_pair_counts, pck_curve
 
 __all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize"]
 
@@ -97,12 +97,9 @@ def _penetration(poses: Poses) -> Dict:
     with torch.no_grad():
         out = scene(torch.as_tensor(poses.theta, dtype=torch.float64))
     faces = [m.faces.numpy() for m in scene.models]
-    pairs, depth = [], 0.0
-    for k in range(len(poses.theta)):
-        meshes = [(o.vertices[k].numpy(), f) for o, f in zip(out.models, faces)]
-        p = penetration(meshes)
-        pairs.append(p.pairs)
-        depth = max(depth, p.max_depth_mm)
+    pairs = model_pair_counts(out.vertices, scene.faces, scene.face_model_id)
+    depth = max(max_depth([(o.vertices[k].numpy(), f) for o, f in zip(out.models, faces)])
+                for k in range(len(poses.theta)))
     return {"pairs_per_frame": float(np.mean(pairs)), "max_pairs": int(max(pairs)), "max_depth_mm": depth}
 
 

@@ -12,7 +12,8 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-__all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "PCK_THRESHOLDS_MM"]
+__all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "max_depth", "model_pair_counts",
+           "PCK_THRESHOLDS_MM"]
 
 #: thresholds of the PCK curve, 0..50 mm in 1 mm steps
 PCK_THRESHOLDS_MM = np.arange(0.0, 50.0 + 1e-9, 1.0)
@@ -58,6 +59,18 @@ def penetration(meshes: Sequence[tuple]) -> Penetration:
         :func:`torchhand.collision.detect_collisions` (the same pairs as python-fcl,
         see tests/test_collision.py).
     """
+    import torch
+
+    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])
+    vertices = torch.as_tensor(np.concatenate([np.asarray(v, np.float64) for v, _ in meshes]))[None]
+    faces = torch.as_tensor(np.concatenate([np.asarray(f, np.int64) + o for (_, f), o in zip(meshes, offsets)]))
+    model = torch.cat([torch.full((len(f),), k, dtype=torch.int64) for k, (_, f) in enumerate(meshes)])
+    return Penetration(int(model_pair_counts(vertices, faces, model)[0]), max_depth(meshes))
+
+
+def max_depth(meshes: Sequence[tuple]) -> float:
+    """Deepest vertex of one mesh inside another (mm, 0 when none); meshes as in
+    :func:`penetration`."""
     import open3d as o3d
 
     depth = 0.0
@@ -73,20 +86,23 @@ def penetration(meshes: Sequence[tuple]) -> Penetration:
                 continue
             sd = scene.compute_signed_distance(o3d.core.Tensor(np.asarray(vb[near], np.float32))).numpy()
             depth = max(depth, float(-sd.min()) if sd.min() < 0 else 0.0)
-    return Penetration(_model_pairs(meshes), depth)
+    return depth
 
 
-def _model_pairs(meshes) -> int:
-    """Intersecting triangle pairs between different meshes (not within one)."""
+def model_pair_counts(vertices, faces, face_model, chunk: int = 16) -> np.ndarray:
+    """Intersecting triangle pairs between different models (not within one), per frame.
+
+    vertices: (N, V, 3) tensor, N frames of one scene; faces: (F, 3); face_model: (F,)
+    model of each face -> (N,) counts. The hierarchy is built once for all frames.
+    """
     import torch
 
     from .collision import CollisionMesh, detect_collisions
 
-    if len(meshes) < 2:
-        return 0
-    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])
-    vertices = torch.as_tensor(np.concatenate([np.asarray(v, np.float64) for v, _ in meshes]))[None]
-    faces = torch.as_tensor(np.concatenate([np.asarray(f, np.int64) + o for (_, f), o in zip(meshes, offsets)]))
-    part = torch.cat([torch.full((len(f),), k, dtype=torch.int64) for k, (_, f) in enumerate(meshes)])
-    mesh = CollisionMesh(faces, part, torch.eye(len(meshes), dtype=torch.bool), part, vertices[0])
-    return len(detect_collisions(vertices, mesh))
+    K = int(face_model.max()) + 1 if len(face_model) else 0
+    if K < 2:
+        return np.zeros(len(vertices), np.int64)
+    mesh = CollisionMesh(faces, face_model, torch.eye(K, dtype=torch.bool), face_model, vertices[0])
+    counts = [detect_collisions(vertices[i : i + chunk], mesh).counts(len(vertices[i : i + chunk]))
+              for i in range(0, len(vertices), chunk)]
+    return torch.cat(counts).cpu().numpy()

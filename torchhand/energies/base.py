@@ -14,14 +14,14 @@ contributes (C_all of the thesis scales the anatomy and regularisation weights).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import List, NamedTuple, Optional
 
 import torch
 
 from ..camera import Camera
 from ..preprocess import DepthFrame
-from ..render import RenderResult
+from ..render import RenderResult, visible_vertices
 from ..scene import Scene, SceneOutput
 
 __all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals"]
@@ -53,6 +53,14 @@ class TrackState:
     cameras: List[Camera]
     render: RenderResult
     data_labels: torch.Tensor
+    _visible: Optional[torch.Tensor] = field(default=None, repr=False)
+
+    def visible_vertices(self) -> torch.Tensor:
+        """(B, V) bool: the vertices of the faces hit in ``render`` (found once per state,
+        shared by the terms that need visibility)."""
+        if self._visible is None:
+            self._visible = visible_vertices(self.render, self.scene.faces, self.scene.num_vertices)
+        return self._visible
 
 
 class EnergyTerm:

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from .base import EnergyTerm, Residuals, TrackState, no_residuals, scatter_columns
 
-__all__ = ["ModelToData", "vertex_normals", "visible_vertex_mask"]
+__all__ = ["ModelToData", "vertex_normals"]
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -29,19 +29,6 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     for i in range(3):
         n.index_add_(1, faces[:, i], fn)
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def visible_vertex_mask(face_id: torch.Tensor, faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
-    """Vertices of the faces hit in one render: face_id (H, W) -> (V,) bool.
-
-    Scatters into masks instead of sorting with ``unique`` (which dominated the
-    tracker's time).
-    """
-    hit = torch.zeros(len(faces) + 1, dtype=torch.bool, device=faces.device)
-    hit[face_id.reshape(-1)] = True  # -1 (empty pixels) lands in the extra last slot
-    vis = torch.zeros(num_vertices, dtype=torch.bool, device=faces.device)
-    vis[faces[hit[:-1]].reshape(-1)] = True
-    return vis
 
 
 class ModelToData(EnergyTerm):
@@ -71,7 +58,7 @@ class ModelToData(EnergyTerm):
         dev, dt = state.theta.device, state.theta.dtype
         self.per_model = []
         count = torch.zeros(B, dtype=torch.int64)
-        visible = [visible_vertex_mask(state.render.face_id[b], scene.faces, scene.num_vertices) for b in range(B)]
+        visible = state.visible_vertices()
         for k, (name, model) in enumerate(zip(scene.names, scene.models)):
             vs = scene.vertex_slices[name]
             rows = []

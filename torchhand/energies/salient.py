@@ -31,7 +31,6 @@ from scipy.spatial import cKDTree
 from ..salient.association import associate
 from ..salient.data import fingertip_faces
 from .base import EnergyTerm, Residuals, TrackState, no_residuals
-from .model_to_data import visible_vertex_mask
 
 __all__ = ["Salient"]
 
@@ -118,7 +117,9 @@ class Salient(EnergyTerm):
             conf.append(c)
         out = (torch.stack(cents) if cents else pts.new_zeros(0, 3), clouds,
                np.asarray(boxes, np.float64).reshape(-1, 4), np.asarray(conf, np.float64))
-        self._cache = {key: (frame, out)} if len(self._cache) > 64 else {**self._cache, key: (frame, out)}
+        if len(self._cache) >= 64:  # frames of earlier tracker steps; the cached frame keeps its id unique
+            self._cache.clear()
+        self._cache[key] = (frame, out)
         return out
 
     # ------------------------------------------------------------------- prepare
@@ -132,7 +133,7 @@ class Salient(EnergyTerm):
         rows, count, assigned = [], torch.zeros(B, dtype=torch.int64), torch.zeros(B, dtype=torch.int64)
         for b in range(B):
             cent, clouds, boxes, conf = self._regions(state.frames[b], state.cameras[b])
-            vis = visible_vertex_mask(state.render.face_id[b], scene.faces, scene.num_vertices)
+            vis = state.visible_vertices()[b]
             tip_vis = mask & vis[index]  # (T, G)
             has = tip_vis.any(1)
             if len(cent) == 0 or not bool(has.any()):
