@@ -38,17 +38,10 @@ def test_motion_to_theta_recovers_random_in_limit_poses(model64, name):
     assert err < 1e-3, f"{name}: vertices differ by {err:.3g} mm"
 
 
-def test_motion_to_theta_recovers_small_rope_poses(model64):
+@pytest.mark.parametrize("scale, batch", [(0.2, 2), (1.0, 1)], ids=["small", "full-range"])
+def test_motion_to_theta_recovers_in_limit_rope_poses(model64, scale, batch):
     model = model64("rope")
-    theta = 0.2 * random_theta(model, 2, torch.Generator().manual_seed(61))
-    recovered = motion_to_theta(model, theta_to_motion(model, theta), refine_vertices=0)
-    err = (model(recovered).vertices - model(theta).vertices).norm(dim=-1).max()
-    assert err < 1e-3, f"vertices differ by {err:.3g} mm"
-
-
-def test_motion_to_theta_recovers_random_in_limit_rope_pose(model64):
-    model = model64("rope")
-    theta = random_theta(model, 1, torch.Generator().manual_seed(61))
+    theta = scale * random_theta(model, batch, torch.Generator().manual_seed(61))
     recovered = motion_to_theta(model, theta_to_motion(model, theta), refine_vertices=0)
     err = (model(recovered).vertices - model(theta).vertices).norm(dim=-1).max()
     assert err < 1e-3, f"vertices differ by {err:.3g} mm"

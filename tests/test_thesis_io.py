@@ -3,11 +3,8 @@
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pytest
-import torch
 
 from torchhand.io import (
     FormatError,
@@ -31,6 +28,15 @@ from torchhand.io import (
     sequence_models,
     write_motion,
 )
+
+
+def _assert_motion_round_trip(motion, path) -> None:
+    """write_motion then read_motion gives the same bones, in order, to 1e-6."""
+    write_motion(path, motion)
+    back = read_motion(path)
+    assert list(back) == list(motion)
+    for b in motion:
+        np.testing.assert_allclose(back[b], motion[b], rtol=0, atol=1e-6)
 
 
 def _names_file_and_line(err: pytest.ExceptionInfo, path, line: int | None = None) -> None:
@@ -162,16 +168,6 @@ def test_truncated_motion_one_bone_with_fewer_rows(tmp_thesis_model):
     assert "'B1': 2" in str(err.value)
 
 
-def test_motion_row_with_wrong_number_count_names_line(tmp_thesis_model):
-    t = tmp_thesis_model
-    lines = list(t.lines["MOTION"])
-    lines[2] = " ".join(lines[2].split()[:11])  # a row of 11 numbers, line 3
-    path = t.rewrite("MOTION", lines)
-    with pytest.raises(FormatError, match="expected 12 numbers") as err:
-        read_motion(path)
-    _names_file_and_line(err, path, 3)
-
-
 def test_motion_rows_before_any_bone_name_report_the_missing_name(tmp_thesis_model):
     t = tmp_thesis_model
     lines = list(t.lines["MOTION"])
@@ -192,35 +188,28 @@ def test_skin_row_count_differs_from_off_vertex_count(tmp_thesis_model):
     assert f"{len(t.vertices) - 2} weight rows" in msg and f"{len(t.vertices)} vertices" in msg
 
 
-def test_skin_weights_not_summing_to_one_names_vertex_and_line(tmp_thesis_model):
+# One line of a file replaced: (file, 0-based line, new text or f(old text), reader,
+# expected message, 1-based line the message must name).
+ONE_LINE_ERRORS = [
+    ("MOTION", 2, lambda old: " ".join(old.split()[:11]), lambda p, t: read_motion(p), "expected 12 numbers", 3),
+    ("SKIN", 7, "0.5000 0.2000 0.0000 ", lambda p, t: read_skin(p, num_vertices=len(t.vertices)),
+     r"vertex 5 sum to 0\.7000, expected 1", 8),
+    ("SKIN", 6, "1.2000 -0.2000 0.0000 ", lambda p, t: read_skin(p), "negative skinning weight for vertex 4", 7),
+    ("SKIN", 1, "Root B1", lambda p, t: read_skin(p), "expected 3 bone names, got 2", 2),
+    ("SKEL", 0, "many", lambda p, t: read_skel(p), "number of motion rows", 1),
+]
+
+
+@pytest.mark.parametrize("kind, index, text, reader, match, line", ONE_LINE_ERRORS,
+                         ids=["motion-row-length", "skin-sum", "skin-negative", "skin-bone-names", "skel-header"])
+def test_a_bad_line_gives_an_error_naming_file_and_line(tmp_thesis_model, kind, index, text, reader, match, line):
     t = tmp_thesis_model
-    lines = list(t.lines["SKIN"])
-    v = 5
-    lines[2 + v] = "0.5000 0.2000 0.0000 "  # sums to 0.7
-    path = t.rewrite("SKIN", lines)
-    with pytest.raises(FormatError, match=r"vertex 5 sum to 0\.7000, expected 1") as err:
-        read_skin(path, num_vertices=len(t.vertices))
-    _names_file_and_line(err, path, v + 3)
-
-
-def test_negative_skin_weight_is_rejected(tmp_thesis_model):
-    t = tmp_thesis_model
-    lines = list(t.lines["SKIN"])
-    lines[2 + 4] = "1.2000 -0.2000 0.0000 "
-    path = t.rewrite("SKIN", lines)
-    with pytest.raises(FormatError, match="negative skinning weight for vertex 4") as err:
-        read_skin(path)
-    _names_file_and_line(err, path, 7)
-
-
-def test_skin_with_wrong_number_of_bone_names(tmp_thesis_model):
-    t = tmp_thesis_model
-    lines = list(t.lines["SKIN"])
-    lines[1] = "Root B1"
-    path = t.rewrite("SKIN", lines)
-    with pytest.raises(FormatError, match="expected 3 bone names, got 2") as err:
-        read_skin(path)
-    _names_file_and_line(err, path, 2)
+    lines = list(t.lines[kind])
+    lines[index] = text(lines[index]) if callable(text) else text
+    path = t.rewrite(kind, lines)
+    with pytest.raises(FormatError, match=match) as err:
+        reader(path, t)
+    _names_file_and_line(err, path, line)
 
 
 def test_non_numeric_token_in_limits_names_line(tmp_thesis_model):
@@ -244,16 +233,6 @@ def test_limits_block_with_missing_line_names_bone(tmp_thesis_model):
     with pytest.raises(FormatError, match="'B2' has 7 lines, expected 8") as err:
         read_limits(path)
     _names_file_and_line(err, path, i + 1)
-
-
-def test_skel_header_not_an_integer(tmp_thesis_model):
-    t = tmp_thesis_model
-    lines = list(t.lines["SKEL"])
-    lines[0] = "many"
-    path = t.rewrite("SKEL", lines)
-    with pytest.raises(FormatError, match="number of motion rows") as err:
-        read_skel(path)
-    _names_file_and_line(err, path, 1)
 
 
 def test_off_face_id_out_of_range(tmp_thesis_model):
@@ -310,12 +289,7 @@ def test_write_read_motion_round_trip_random_transforms(tmp_path):
         M[:, :3, :3] = Rotation.random(7, random_state=rng).as_matrix()
         M[:, :3, 3] = rng.uniform(-900, 900, (7, 3))
         motion[b] = M
-    path = tmp_path / "x.MOTION"
-    write_motion(path, motion)
-    back = read_motion(path)
-    assert list(back) == list(motion)
-    for b in motion:
-        np.testing.assert_allclose(back[b], motion[b], rtol=0, atol=1e-6)
+    _assert_motion_round_trip(motion, tmp_path / "x.MOTION")
 
 
 # ================================================================ real data
@@ -355,13 +329,7 @@ def test_read_motion_rows_match_skel_first_line(hia_root, real_right_hand):
 
 
 def test_write_read_motion_round_trip_real_motion(real_right_hand, tmp_path):
-    motion = real_right_hand.motion
-    path = tmp_path / "copy.MOTION"
-    write_motion(path, motion)
-    back = read_motion(path)
-    assert list(back) == list(motion)
-    for b in motion:
-        np.testing.assert_allclose(back[b], motion[b], rtol=0, atol=1e-6)
+    _assert_motion_round_trip(real_right_hand.motion, tmp_path / "copy.MOTION")
 
 
 def test_camera_intrinsics(hia_root):
