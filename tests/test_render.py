@@ -148,6 +148,28 @@ def test_batch_with_different_poses(sphere):
     torch.testing.assert_close(single.depth[0], r.depth[1])
 
 
+def test_cropped_render_equals_the_whole_image(sphere, monkeypatch):
+    """Outputs are computed on the union of the projected boxes; casting every pixel of
+    the image gives the same maps, also for a batch whose boxes differ and touch the
+    image border."""
+    import torchhand.render as tr
+
+    vertices, faces = sphere
+    batch = torch.stack([vertices + torch.tensor([-60.0, 10.0, 0.0]), vertices + torch.tensor([290.0, 0.0, 0.0])])
+    cam = kinect_camera()
+    cropped = render(batch, faces, cam)
+    monkeypatch.setattr(tr, "_regions_of_interest", lambda v, c: [(0, c.height, 0, c.width)] * v.shape[0])
+    whole = render(batch, faces, cam)
+    assert int(cropped.silhouette_edges.sum()) > 100
+    assert int(cropped.depth[1, :, -1].gt(0).sum()) > 0  # the second sphere leaves the image
+    for name, a, b in zip(RenderResult._fields, cropped, whole):
+        assert torch.equal(a, b), name
+    without = render(batch, faces, cam, normals=False)
+    assert without.normals is None
+    for name, a, b in zip(RenderResult._fields, cropped, without):
+        assert name == "normals" or torch.equal(a, b), name
+
+
 def test_extrinsics_move_the_scene(sphere):
     vertices, faces = sphere
     T = torch.eye(4)

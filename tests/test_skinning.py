@@ -158,9 +158,10 @@ def test_jacobian_with_vertex_ids_equals_rows_of_full_jacobian(model64, name):
     full = model.jacobian(theta)
     assert full.shape == (2, model.num_vertices, 3, model.num_dofs)
     ids = torch.randperm(model.num_vertices, generator=torch.Generator().manual_seed(27))[:97]
-    torch.testing.assert_close(model.jacobian(theta, ids), full[:, ids], rtol=0, atol=0)
+    # matrix products of other sizes may sum in another order: equal to rounding
+    torch.testing.assert_close(model.jacobian(theta, ids), full[:, ids], rtol=0, atol=1e-12)
     fk = model.kinematics(theta)  # passing precomputed kinematics gives the same
-    torch.testing.assert_close(model.jacobian(theta, ids, fk=fk), full[:, ids], rtol=0, atol=0)
+    torch.testing.assert_close(model.jacobian(theta, ids, fk=fk), model.jacobian(theta, ids), rtol=0, atol=0)
 
 
 def test_jacobian_with_per_batch_vertex_ids_equals_rows_of_full_jacobian(model64):
@@ -172,7 +173,7 @@ def test_jacobian_with_per_batch_vertex_ids_equals_rows_of_full_jacobian(model64
     J = model.jacobian(theta, ids)
     assert J.shape == (3, 40, 3, model.num_dofs)
     for b in range(3):
-        torch.testing.assert_close(J[b], full[b, ids[b]], rtol=1e-12, atol=1e-12)  # another einsum path
+        torch.testing.assert_close(J[b], full[b, ids[b]], rtol=1e-12, atol=1e-12)  # another product path
 
 
 def test_jacobian_of_dof_is_zero_on_vertices_it_does_not_move(model64):

@@ -156,3 +156,28 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     assert result["frames"] == 4 and result["mean_mm"] < 6.0
     with pytest.raises(FileExistsError):
         track_sequences([seq], out, cfg, progress=False)
+
+
+def test_label_data_equals_the_whole_image_transform():
+    """Labels come from a distance transform on the rendered box widened by the radius;
+    the same transform on the whole image gives the same labels."""
+    import cv2
+
+    from torchhand.preprocess import DepthFrame
+    from torchhand.tracker import label_data
+
+    rng = np.random.default_rng(3)
+    ids = np.full((120, 160), -1, np.int64)
+    ids[30:60, 40:70], ids[50:90, 65:100] = 0, 1  # two touching models
+    valid = rng.random(ids.shape) < 0.7
+    z = torch.zeros(ids.shape)
+    frame = DepthFrame(z, torch.as_tensor(valid), z[..., None].expand(-1, -1, 3), z[..., None].expand(-1, -1, 3),
+                       torch.zeros(0, 2, dtype=torch.int64), torch.zeros(0))
+    labels = label_data(frame, torch.as_tensor(ids), 12.0).numpy()
+    dist, lab = cv2.distanceTransformWithLabels(np.where(ids >= 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    expected = np.where((dist <= 12.0) & valid, ids[ids >= 0][lab - 1], -1)
+    assert (labels == 0).sum() > 500 and (labels == 1).sum() > 500 and (labels == -1).sum() > 500
+    np.testing.assert_array_equal(labels, expected)
+    empty = label_data(frame, torch.full(ids.shape, -1), 12.0)
+    assert bool((empty == -1).all())

@@ -88,9 +88,16 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
         d = np.where(mask, d, 0).astype(np.float32)
     if config.remove_plane:
         d = _remove_plane(d, camera, config.plane_distance)
-    valid = d > 0
-    if not valid.any():
+    valid_full = d > 0
+    if not valid_full.any():
         raise EmptyFrameError(f"no valid depth between {config.near} and {config.far} mm")
+    # Every filter below is local (at most max(bilateral, hole_size) px wide) and
+    # background is 0, so it runs on the bounding box of the valid pixels plus a
+    # margin and gives the same result as on the whole image at a fraction of the
+    # cost (the hands fill a few per cent of a 640x480 frame).
+    r0, r1, c0, c1 = _crop_box(valid_full, _margin(config))
+    d = d[r0:r1, c0:c1]
+    valid = valid_full[r0:r1, c0:c1]
     if config.bilateral is not None:
         dia, s_depth, s_space = config.bilateral
         smooth = cv2.bilateralFilter(d, int(dia), float(s_depth), float(s_space))
@@ -114,13 +121,34 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     rc = np.argwhere(edges)
 
     dt = torch.as_tensor(d, dtype=dtype, device=device)
-    K = camera.K.to(device=device, dtype=dtype)
-    points = depth_to_points(dt[None], K)[0]
-    normals = depth_to_normals(dt[None], K)[0]
-    return DepthFrame(dt, torch.as_tensor(valid, device=device), points, normals,
-                      torch.as_tensor(rc, dtype=torch.int64, device=device),
+    K = camera.K.to(device=device, dtype=dtype).clone()
+    K[0, 2] -= c0  # the crop's intrinsics
+    K[1, 2] -= r0
+    H, W = valid_full.shape
+    full_depth = torch.zeros(H, W, dtype=dtype, device=device)
+    points = torch.zeros(H, W, 3, dtype=dtype, device=device)
+    normals = torch.zeros(H, W, 3, dtype=dtype, device=device)
+    full_depth[r0:r1, c0:c1] = dt
+    points[r0:r1, c0:c1] = depth_to_points(dt[None], K)[0]
+    normals[r0:r1, c0:c1] = depth_to_normals(dt[None], K)[0]
+    return DepthFrame(full_depth, torch.as_tensor(valid_full, device=device), points, normals,
+                      torch.as_tensor(rc + [r0, c0], dtype=torch.int64, device=device).reshape(-1, 2),
                       torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device),
                       torch.as_tensor(np.where(np.isfinite(depth) & (depth > 0), depth, 0), device=device))
+
+
+def _margin(config: PreprocessConfig) -> int:
+    """Pixels around the valid region that the local filters can reach."""
+    dia = int(config.bilateral[0]) if config.bilateral is not None else 0
+    return max(dia, config.hole_size, 3) + 2
+
+
+def _crop_box(valid: np.ndarray, margin: int) -> tuple:
+    """(r0, r1, c0, c1): the bounding box of ``valid`` widened by ``margin``, clipped."""
+    rows, cols = np.nonzero(valid.any(1))[0], np.nonzero(valid.any(0))[0]
+    H, W = valid.shape
+    return (max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, H),
+            max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W))
 
 
 def _remove_plane(d: np.ndarray, camera: Camera, distance: float) -> np.ndarray:

@@ -37,7 +37,8 @@ class RenderResult(NamedTuple):
         model_id: (B, H, W) int64 ``face_model_id`` of the hit triangle; -1 where empty.
         bone_id: (B, H, W) int64 ``face_bone_id`` of the hit triangle; -1 where empty.
         normals: (B, H, W, 3) float32 camera-frame unit normals of the hit triangle,
-            oriented towards the camera; 0 where empty.
+            oriented towards the camera; 0 where empty. None when rendered with
+            ``normals=False``.
         silhouette_edges: (B, H, W) bool, see :func:`silhouette_edges`.
         barycentric: (B, H, W, 2) float32 ``(u, v)`` of the hit, i.e. the hit point is
             ``(1 - u - v) * v0 + u * v1 + v * v2`` of the face's vertices; 0 where empty.
@@ -150,6 +151,7 @@ def render(
     face_bone_id: torch.Tensor | None = None,
     *,
     edge_threshold: float = DEFAULT_EDGE_THRESHOLD_MM,
+    normals: bool = True,
 ) -> RenderResult:
     """Ray-cast depth, ids, normals and silhouette edges of a posed triangle soup.
 
@@ -160,6 +162,7 @@ def render(
         face_model_id: (F,) int64 model index per face; zeros if None.
         face_bone_id: (F,) int64 bone index per face; zeros if None.
         edge_threshold: depth jump (mm) for :func:`silhouette_edges`.
+        normals: compute the pixel normals (the tracker does not need them).
 
     Returns:
         RenderResult with (B, H, W) maps on ``vertices.device``.
@@ -189,26 +192,32 @@ def render(
 
     H, W = camera.height, camera.width
     device = vertices.device
-    t_hit = np.full((B, H, W), np.inf, dtype=np.float32)
-    prim = np.full((B, H, W), _INVALID_ID, dtype=np.uint32)
-    uvs = np.zeros((B, H, W, 2), dtype=np.float32)
-    if num_faces > 0:
+    per_problem = _regions_of_interest(vertices, camera) if num_faces > 0 else [(0, 0, 0, 0)] * B
+    rois = [r for r in per_problem if r[1] > r[0] and r[3] > r[2]]  # empty: nothing projects into the image
+    # Every per-pixel output is computed on the union of the regions of interest (all
+    # pixels outside it are empty) and pasted into the full image at the end.
+    r0, r1 = min((r[0] for r in rois), default=0), max((r[1] for r in rois), default=0)
+    c0, c1 = min((r[2] for r in rois), default=0), max((r[3] for r in rois), default=0)
+    h, w = r1 - r0, c1 - c0
+    t_hit = np.full((B, h, w), np.inf, dtype=np.float32)
+    prim = np.full((B, h, w), _INVALID_ID, dtype=np.uint32)
+    uvs = np.zeros((B, h, w, 2), dtype=np.float32)
+    if rois:
         rays = _rays_for(camera)
         verts_np = np.ascontiguousarray(vertices.to("cpu", torch.float32).numpy())
         faces_o3d = o3d.core.Tensor(faces.cpu().numpy().astype(np.uint32))
-        rois = _regions_of_interest(vertices, camera)
         # open3d builds one BVH per scene, so each batch element needs its own scene.
-        for b in range(B):
-            r0, r1, c0, c1 = rois[b]
-            if r1 <= r0 or c1 <= c0:
-                continue  # nothing projects into the image
+        for b, (b0, b1, d0, d1) in enumerate(per_problem):
+            if b1 <= b0 or d1 <= d0:
+                continue
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.core.Tensor(verts_np[b]), faces_o3d)
             # Only pixels inside the projected bounding box can be hit.
-            hit = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[r0:r1, c0:c1])))
-            t_hit[b, r0:r1, c0:c1] = hit["t_hit"].numpy()
-            prim[b, r0:r1, c0:c1] = hit["primitive_ids"].numpy()
-            uvs[b, r0:r1, c0:c1] = hit["primitive_uvs"].numpy()
+            hit = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[b0:b1, d0:d1])))
+            box = (b, slice(b0 - r0, b1 - r0), slice(d0 - c0, d1 - c0))
+            t_hit[box] = hit["t_hit"].numpy()
+            prim[box] = hit["primitive_ids"].numpy()
+            uvs[box] = hit["primitive_uvs"].numpy()
 
     t_hit_t = torch.from_numpy(t_hit).to(device)
     hit_mask = torch.isfinite(t_hit_t)
@@ -216,18 +225,31 @@ def render(
     depth = torch.where(hit_mask, t_hit_t, 0.0)
     empty = torch.tensor(-1, dtype=torch.int64, device=device)
     face_id = torch.where(hit_mask, torch.from_numpy(prim.astype(np.int64)).to(device), empty)
-    if num_faces > 0:
+    if rois:
         safe_id = face_id.clamp(min=0)
         model_id = torch.where(hit_mask, model_ids[safe_id], empty)
         bone_id = torch.where(hit_mask, bone_ids[safe_id], empty)
-        normals = _pixel_normals(vertices, faces, camera, face_id, hit_mask)
+        pixel_normals = _pixel_normals(vertices, faces, camera, face_id, hit_mask) if normals else None
     else:
         model_id = torch.full_like(face_id, -1)
         bone_id = torch.full_like(face_id, -1)
-        normals = depth.new_zeros(B, H, W, 3)
+        pixel_normals = depth.new_zeros(B, h, w, 3) if normals else None
     barycentric = torch.from_numpy(uvs).to(device) * hit_mask[..., None]
-    edges = silhouette_edges(depth, edge_threshold)
-    return RenderResult(depth, face_id, model_id, bone_id, normals, edges, barycentric)
+    # The regions keep a 2 px empty border inside the image, so the crop's edges are
+    # those of the whole image.
+    edges = silhouette_edges(depth, edge_threshold) if rois else hit_mask
+    box = (slice(r0, r1), slice(c0, c1))
+    return RenderResult(_paste(depth, box, H, W, 0), _paste(face_id, box, H, W, -1), _paste(model_id, box, H, W, -1),
+                        _paste(bone_id, box, H, W, -1),
+                        None if pixel_normals is None else _paste(pixel_normals, box, H, W, 0), _paste(edges, box, H, W, False),
+                        _paste(barycentric, box, H, W, 0))
+
+
+def _paste(crop: torch.Tensor, box: tuple, H: int, W: int, fill) -> torch.Tensor:
+    """A (B, h, w, ...) crop placed at ``box`` (row and column slices) of a (B, H, W, ...) map."""
+    out = torch.full((crop.shape[0], H, W, *crop.shape[3:]), fill, dtype=crop.dtype, device=crop.device)
+    out[:, box[0], box[1]] = crop
+    return out
 
 
 def _pixel_normals(

@@ -17,6 +17,7 @@ import torch
 from torch import nn
 
 from ._checks import check_tensor
+from .mesh import vertex_faces
 from .model import ArticulatedModel, ModelOutput, load_model
 
 __all__ = ["Scene", "SceneOutput"]
@@ -71,6 +72,7 @@ class Scene(nn.Module):
         self.register_buffer("face_model_id", torch.cat(face_model), persistent=False)
         self.register_buffer("face_bone_id", torch.cat(face_bone), persistent=False)
         self.register_buffer("vertex_model_id", torch.cat(vertex_model), persistent=False)
+        self.register_buffer("vertex_faces", vertex_faces(self.faces, vstart), persistent=False)  # one-rings
 
     @classmethod
     def from_names(cls, names: Sequence[str], dtype: torch.dtype = torch.float32, device=None) -> "Scene":

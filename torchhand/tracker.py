@@ -72,15 +72,26 @@ def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torc
     frame: preprocessed data; model_id: (H, W) rendered ids (-1 empty) -> (H, W) int64.
     """
     ids = model_id.cpu().numpy()
-    hit = ids >= 0
+    valid = frame.mask.cpu().numpy()
     labels = np.full(ids.shape, -1, np.int64)
-    if hit.any():
+    rendered = ids >= 0
+    rows, cols = np.nonzero(rendered.any(1))[0], np.nonzero(rendered.any(0))[0]
+    if len(rows):
+        # only pixels within `radius` of the rendered pixels' box can get a label
+        r = int(np.ceil(radius))
+        r0, r1 = max(rows[0] - r, 0), min(rows[-1] + 1 + r, ids.shape[0])
+        c0, c1 = max(cols[0] - r, 0), min(cols[-1] + 1 + r, ids.shape[1])
+        crop, hit = ids[r0:r1, c0:c1], rendered[r0:r1, c0:c1]
         dist, lab = cv2.distanceTransformWithLabels(np.where(hit, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
                                                     labelType=cv2.DIST_LABEL_PIXEL)
-        nearest = ids[hit][lab - 1]  # labels enumerate the zero (rendered) pixels row-major
-        labels = np.where(dist <= radius, nearest, -1)
-    valid = frame.mask.cpu().numpy()
-    return torch.as_tensor(np.where(valid, labels, -1), device=model_id.device)
+        nearest = crop[hit][lab - 1]  # labels enumerate the zero (rendered) pixels row-major
+        labels[r0:r1, c0:c1] = np.where((dist <= radius) & valid[r0:r1, c0:c1], nearest, -1)
+    return torch.as_tensor(labels, device=model_id.device)
+
+
+def _same_camera(a: Camera, b: Camera) -> bool:
+    return a is b or (a.width == b.width and a.height == b.height and torch.equal(a.K, b.K)
+                      and torch.equal(a.T_cw, b.T_cw))
 
 
 class Tracker:
@@ -104,21 +115,26 @@ class Tracker:
     # ------------------------------------------------------------------ frames
     def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera]) -> RenderResult:
         s = self.scene
-        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id)
+        if all(_same_camera(c, cameras[0]) for c in cameras):  # one camera: one call for the batch
+            return render(vertices, s.faces, cameras[0], s.face_model_id, s.face_bone_id, normals=False)
+        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id, normals=False)
                  for b in range(len(cameras))]
-        return RenderResult(*(torch.cat(x, 0) for x in zip(*parts)))
+        return RenderResult(*(None if x[0] is None else torch.cat(x, 0) for x in zip(*parts)))
 
-    def _state(self, theta, previous, frames, cameras) -> TrackState:
-        posed = self.scene(theta, validate=False)
+    def _state(self, theta, previous, frames, cameras, posed=None, labels=None) -> TrackState:
+        posed = posed if posed is not None else self.scene(theta, validate=False)
         rend = self._render(posed.vertices.detach(), cameras)
-        labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius) for b, f in enumerate(frames)])
+        if labels is None:
+            labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
+                                  for b, f in enumerate(frames)])
         return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels)
 
-    def _residual_fn(self):
+    def _residual_fn(self, state: TrackState):
         scene = self.scene
 
         def fn(theta, with_jacobian):
-            posed = scene(theta, validate=False)
+            # the solver's first call is at the state's pose, already posed
+            posed = state.posed if torch.equal(theta, state.theta) else scene(theta, validate=False)
             parts = [t.residuals(theta, posed, with_jacobian) for t in self.terms]
             r = torch.cat([p.r for p in parts], 1)
             J = torch.cat([p.J for p in parts], 1) if with_jacobian else None
@@ -130,6 +146,11 @@ class Tracker:
               cameras: Sequence[Camera], iterations: int):
         """Algorithm 1 for a batch: alternate correspondences and LM steps.
 
+        The data pixels are labelled with the model ids rendered at the start pose
+        and keep these labels for the frame (the models move a few mm within a frame,
+        the labels reach ``label_radius`` px around them); visibility, silhouettes
+        and correspondences are renewed in every iteration.
+
         Returns (theta (B, D), iterations (B,), energy per correspondence (B,)).
         """
         theta = start.clone()
@@ -139,20 +160,24 @@ class Tracker:
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
         damping = theta.new_full((B,), 1e-3)
         energy = theta.new_zeros(B)
-        fn = self._residual_fn()
+        posed, labels = None, None
         for it in range(iterations):
             with torch.no_grad():
-                state = self._state(theta, previous, frames, cameras)
+                state = self._state(theta, previous, frames, cameras, posed, labels)
+                labels = state.data_labels  # labelled once per frame, at its start pose
                 for t in self.data_terms:
                     t.prepare(state)
                 count = sum(t.count for t in self.data_terms).to(theta)
                 self._last_count = count.cpu()
                 for t in self.prior_terms:
                     t.prepare(state, count)
-                res = levenberg_marquardt(fn, theta, lower, upper, max_iterations=self.config.inner_iterations,
-                                         damping=damping)
-                moved = (self.scene(res.theta, validate=False).vertices - state.posed.vertices).norm(dim=-1).amax(-1)
+                res = levenberg_marquardt(self._residual_fn(state), theta, lower, upper,
+                                          max_iterations=self.config.inner_iterations, damping=damping)
+                posed = self.scene(res.theta, validate=False)
+                moved = (posed.vertices - state.posed.vertices).norm(dim=-1).amax(-1)
             theta = torch.where(active[:, None], res.theta, theta)
+            if not bool(active.all()):
+                posed = None  # problems that stopped keep their theta: pose again
             damping = torch.where(active, res.damping, damping)
             energy = torch.where(active, res.cost / count.clamp_min(1), energy)
             iters = iters + active.long()

@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 
 from ..collision import DEFAULT_SIGMA, CollisionMesh, conic_field, detect_collisions, intruders
+from ..mesh import vertex_normals
 from .base import EnergyTerm, Residuals, TrackState, no_residuals
-from .model_to_data import vertex_normals
 
 __all__ = ["Collision"]
 

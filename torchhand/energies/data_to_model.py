@@ -56,11 +56,15 @@ class DataToModel(EnergyTerm):
                 rc = frame.edges[sel]
                 # Nearest model silhouette pixel of every pixel (labels index the zero pixels
                 # in row-major order).
-                src = np.where(edge, 0, 255).astype(np.uint8)
-                _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-                zero_rc = np.argwhere(edge)
+                # The transform runs on the box around both pixel sets, which holds every
+                # nearest pixel.
                 rcn = rc.cpu().numpy()
-                p = torch.as_tensor(zero_rc[labels[rcn[:, 0], rcn[:, 1]] - 1], device=dev)
+                zero_rc = np.argwhere(edge)
+                lo = np.minimum(zero_rc.min(0), rcn.min(0))
+                hi = np.maximum(zero_rc.max(0), rcn.max(0)) + 1
+                src = np.where(edge[lo[0] : hi[0], lo[1] : hi[1]], 0, 255).astype(np.uint8)
+                _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+                p = torch.as_tensor(zero_rc[labels[rcn[:, 0] - lo[0], rcn[:, 1] - lo[1]] - 1], device=dev)
                 fid = rend.face_id[b][p[:, 0], p[:, 1]]
                 bary = rend.barycentric[b][p[:, 0], p[:, 1]].to(dt)
                 w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)

@@ -16,19 +16,10 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from ..mesh import vertex_normals
 from .base import EnergyTerm, Residuals, TrackState, no_residuals, scatter_columns
 
-__all__ = ["ModelToData", "vertex_normals"]
-
-
-def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted vertex normals. vertices: (B, V, 3), faces: (F, 3) -> (B, V, 3)."""
-    v0, v1, v2 = (vertices[:, faces[:, i]] for i in range(3))
-    fn = torch.cross(v1 - v0, v2 - v0, dim=-1)
-    n = torch.zeros_like(vertices)
-    for i in range(3):
-        n.index_add_(1, faces[:, i], fn)
-    return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+__all__ = ["ModelToData"]
 
 
 class ModelToData(EnergyTerm):
@@ -54,39 +45,66 @@ class ModelToData(EnergyTerm):
     def prepare(self, state: TrackState) -> None:
         scene, B = state.scene, state.theta.shape[0]
         self._scene = scene
-        normals = vertex_normals(state.posed.vertices, scene.faces)
         dev, dt = state.theta.device, state.theta.dtype
         self.per_model = []
         count = torch.zeros(B, dtype=torch.int64)
         visible = state.visible_vertices()
+        # the data side (points of a model's label, in the world frame, and their KD-tree)
+        # is kept while the frame and the label mask stay the same (most outer iterations)
+        self._data = {key: v for key, v in getattr(self, "_data", {}).items()
+                      if any(v[0] is f for f in state.frames)}
+        # visible vertices (a stride subsample) of every model and problem, and their
+        # normals, one call per problem
+        vis, nrm = [[None] * B for _ in scene.models], [[None] * B for _ in scene.models]
+        for b in range(B):
+            for k, name in enumerate(scene.names):
+                vs = scene.vertex_slices[name]
+                ids = torch.nonzero(visible[b][vs])[:, 0] + vs.start
+                if len(ids) > self.max_vertices:
+                    ids = ids[torch.linspace(0, len(ids) - 1, self.max_vertices, device=ids.device).long()]
+                vis[k][b] = ids
+            n = vertex_normals(state.posed.vertices[b : b + 1], scene.faces, torch.cat([v[b] for v in vis]),
+                               scene.vertex_faces)[0]
+            for k, part in enumerate(n.split([len(v[b]) for v in vis])):
+                nrm[k][b] = part
         for k, (name, model) in enumerate(zip(scene.names, scene.models)):
             vs = scene.vertex_slices[name]
             rows = []
             for b in range(B):
-                frame, T_wc = state.frames[b], state.cameras[b].T_wc.to(dev, dt)
-                vis = torch.nonzero(visible[b][vs])[:, 0] + vs.start
-                if len(vis) > self.max_vertices:
-                    vis = vis[torch.linspace(0, len(vis) - 1, self.max_vertices, device=vis.device).long()]
-                sel = state.data_labels[b] == k
-                pts = frame.points[sel]
-                if len(vis) == 0 or len(pts) == 0:
+                data = self._data_points(state, b, k)
+                if len(vis[k][b]) == 0 or data is None:
                     rows.append(None)
                     continue
-                pts_w = pts @ T_wc[:3, :3].T + T_wc[:3, 3]
-                nrm_w = frame.normals[sel] @ T_wc[:3, :3].T
-                V = state.posed.vertices[b, vis]
-                dist, j = cKDTree(pts_w.detach().cpu().numpy()).query(V.detach().cpu().numpy(), k=1, workers=-1)
+                pts_w, nrm_w, tree = data
+                V = state.posed.vertices[b, vis[k][b]]
+                dist, j = tree.query(V.detach().cpu().numpy(), k=1)
                 j = torch.as_tensor(j, device=dev)
                 X, nX = pts_w[j], nrm_w[j]
-                nV = normals[b, vis]
+                nV = nrm[k][b]
                 d = torch.as_tensor(dist, device=dev, dtype=dt)
                 keep = (d <= self.max_distance) & ((nV * nX).sum(-1) >= self.cos_max)
-                local = vis - vs.start
+                local = vis[k][b] - vs.start
                 keep = keep & self._bone_inliers(d, model.vertex_bone[local], keep, model.num_bones)
                 rows.append((local[keep], X[keep], nV[keep]))
                 count[b] += int(keep.sum())
             self.per_model.append(_pad_rows(rows, B, dev, dt))
         self.count = count
+
+    def _data_points(self, state: TrackState, b: int, k: int):
+        """(points, normals, KD-tree) of the data pixels labelled k in problem b, world
+        frame; None when there are none. Reused while frame and labels are unchanged."""
+        frame, camera, sel = state.frames[b], state.cameras[b], state.data_labels[b] == k
+        hit = self._data.get((id(frame), k))
+        if hit is not None and hit[0] is frame and hit[1] is camera and torch.equal(hit[2], sel):
+            return hit[3]
+        data = None
+        if bool(sel.any()):
+            T_wc = camera.T_wc.to(state.theta)
+            pts_w = frame.points[sel] @ T_wc[:3, :3].T + T_wc[:3, 3]
+            nrm_w = frame.normals[sel] @ T_wc[:3, :3].T
+            data = (pts_w, nrm_w, cKDTree(pts_w.detach().cpu().numpy()))
+        self._data[(id(frame), k)] = (frame, camera, sel, data)
+        return data
 
     def _bone_inliers(self, d, bone, keep, J):
         """Per-bone rejection of distances beyond mean + sigma * std (Ballan Sec. 3)."""

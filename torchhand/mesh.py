@@ -1,0 +1,56 @@
+"""Mesh topology helpers: vertex one-rings and area-weighted vertex normals."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+__all__ = ["vertex_faces", "vertex_normals"]
+
+
+def vertex_faces(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """The faces around every vertex: (V, R) int64, padded with F (one past the last face).
+
+    faces: (F, 3) int64 vertex indices; R is the largest vertex degree.
+    """
+    F = faces.shape[0]
+    vid = faces.reshape(-1)
+    fid = torch.arange(F, device=faces.device).repeat_interleave(3)
+    order = torch.argsort(vid, stable=True)
+    vid, fid = vid[order], fid[order]
+    degree = torch.bincount(vid, minlength=num_vertices)
+    start = torch.cumsum(degree, 0) - degree
+    slot = torch.arange(len(vid), device=faces.device) - start[vid]
+    ring = torch.full((num_vertices, int(degree.max()) if F else 0), F, dtype=torch.int64, device=faces.device)
+    ring[vid, slot] = fid
+    return ring
+
+
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[torch.Tensor] = None,
+                   ring: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Area-weighted unit vertex normals (the sum of the adjacent faces' cross products).
+
+    Args:
+        vertices: (B, V, 3); faces: (F, 3) int64.
+        ids: optional (N,) or (B, N) vertices to compute the normals of (all by default).
+        ring: :func:`vertex_faces` of ``faces``; needed with ``ids``.
+    Returns:
+        (B, V, 3), or (B, N, 3) with ``ids``.
+    """
+    tri = vertices[:, faces]  # (B, F, 3, 3)
+    fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])  # twice the area
+    if ids is None:
+        n = torch.zeros_like(vertices)
+        for i in range(3):
+            n.index_add_(1, faces[:, i], fn)
+    else:
+        if ring is None:
+            raise ValueError("vertex_normals with ids needs ring=vertex_faces(faces, V)")
+        fn = torch.cat([fn, fn.new_zeros(fn.shape[0], 1, 3)], 1)  # the ring's pad face: zero
+        r = ring[ids]  # ([B,] N, R)
+        if r.dim() == 2:
+            n = fn[:, r].sum(-2)
+        else:
+            n = fn[torch.arange(fn.shape[0], device=fn.device)[:, None, None], r].sum(-2)
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
