@@ -2,9 +2,14 @@
 
     python eval/bench_track.py --hia-root ../shared/data/hands_in_action --json out/bench_track.json
 
-Three measurements, side by side in one run:
-- ``one_hand``: seconds per frame for sequence 09 (one hand), ``--frames`` frames;
-- ``two_hands_object``: seconds per frame for sequence 16 (two hands and the ball);
+Measurements, side by side in one run:
+- ``one_hand``: seconds per frame for sequence 09 (one hand), ``--frames`` frames,
+  at most ``--iterations`` iterations per frame;
+- ``two_hands_object``: the same for sequence 16 (two hands and the ball);
+- ``caps``: both scenes again with the iteration caps of ``--caps`` (speed against
+  accuracy), and per scene the fastest cap within the accuracy targets (mean error
+  <= 3 px and <= 6 mm, no frame above 20 mm); ``seconds_per_frame_after_first``
+  leaves out frame 0, which has its own budget (``first_frame_iterations``);
 - ``batched_vs_sequential``: 8 windows of sequence 12 (one hand), tracked one after
   another and then as one batch; frames per second of both and their ratio.
 Accuracy (mean keypoint error) is reported next to each timing.
@@ -16,6 +21,7 @@ import argparse
 import json
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -50,19 +56,22 @@ def main(argv=None) -> None:
     ap.add_argument("--iterations", type=int, default=10)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--caps", default="2,3,5", help="comma-separated iteration caps for the speed-accuracy sweep ('' skips it)")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations)
     result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, **machine()}
+    caps = [int(c) for c in args.caps.split(",") if c.strip()]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
+        result["caps"] = {}
         for key, seq in (("one_hand", "09"), ("two_hands_object", "16")):
             root = render(args.hia_root, seq, 0, args.frames, tmp / key)
-            wall, secs = timed_track([root], tmp / f"{key}_out", cfg)
-            ev = evaluate_sequence(tmp / f"{key}_out" / f"hia_{seq}_0", root / "gt", with_penetration=False)
-            result[key] = {"sequence": seq, "seconds_per_frame": secs / args.frames,
-                           "seconds_per_frame_with_io": wall / args.frames, "mean_mm": ev["mean_mm"],
-                           "mean_px": ev["mean_px"]}
+            result[key] = {"sequence": seq, **scored_run(root, tmp / f"{key}_out", cfg)}
+            sweep = [{"cap": c, **scored_run(root, tmp / f"{key}_cap{c}", replace(cfg, max_iterations=c))} for c in caps]
+            ok = [r for r in sweep + [{"cap": args.iterations, **result[key]}] if within_targets(r)]
+            result["caps"][key] = {"runs": sweep, "fastest_within_targets": min(ok, key=lambda r: r["seconds_per_frame"])
+                                   if ok else None}
         windows = [render(args.hia_root, "12", 80 * k, args.frames // 2, tmp / f"w{k}") for k in range(args.batch)]
         seq_secs = sum(timed_track([w], tmp / f"seq_out{k}", cfg)[1] for k, w in enumerate(windows))
         bat_secs = timed_track(windows, tmp / "batch_out", cfg)[1]
@@ -71,6 +80,24 @@ def main(argv=None) -> None:
                                            "sequential_fps": n / seq_secs, "batched_fps": n / bat_secs,
                                            "speedup": seq_secs / bat_secs}
     write_json(args.json, result)
+
+
+def scored_run(root: Path, out: Path, cfg: TrackerConfig) -> dict:
+    """Track one rendered sequence and score it against its ground truth."""
+    wall, secs = timed_track([root], out, cfg)
+    info = json.loads((root / "sequence.json").read_text())
+    n, tracked = info["frames"], out / info["name"]
+    ev = evaluate_sequence(tracked, root / "gt", with_penetration=False)
+    log = json.loads((tracked / "track_log.json").read_text())
+    after_first = sum(f["seconds"] for f in log["frames"][1:]) / max(n - 1, 1)
+    return {"seconds_per_frame": secs / n, "seconds_per_frame_with_io": wall / n,
+            "seconds_per_frame_after_first": after_first,
+            "iterations_per_frame": sum(f["iterations"] for f in log["frames"]) / n,
+            "mean_mm": ev["mean_mm"], "mean_px": ev["mean_px"], "worst_frame_mm": max(ev["per_frame"]["mm"])}
+
+
+def within_targets(run: dict) -> bool:
+    return run["mean_px"] <= 3.0 and run["mean_mm"] <= 6.0 and run["worst_frame_mm"] <= 20.0
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import torch
 
 from torchhand.camera import kinect_camera
 from torchhand.data.layout import Poses, read_poses, write_poses
-from torchhand.evaluation import EvaluationError, evaluate_many, evaluate_sequence, summarize
+from torchhand.evaluation import EvaluationError, evaluate_many, evaluate_sequence
 from torchhand.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
 from torchhand.scene import Scene
 

@@ -151,7 +151,6 @@ def test_solve_damped_tends_to_least_squares_and_keeps_unobserved_dofs():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_linear_problem_solves_in_both_dtypes(dtype):
-    kinds = torch.tensor([LINEAR])
     A32, b32 = A.to(dtype), B_LIN.to(dtype)
 
     def residuals(theta, with_jacobian):

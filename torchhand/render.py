@@ -295,11 +295,9 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     if face_id.numel() > 0 and int(face_id.max()) >= num_faces:
         raise ValueError(f"render_result.face_id references face {int(face_id.max())} but faces has {num_faces} rows")
     faces = faces.long().to(face_id.device)
-    face_hit = face_id.new_zeros(B, num_faces + 1, dtype=torch.bool)
-    # Empty pixels (-1) land in the spare last column, which is dropped.
-    face_hit.scatter_(1, torch.where(face_id < 0, num_faces, face_id).flatten(1), True)
-    face_hit = face_hit[:, :num_faces]
+    hit = (face_id >= 0).flatten(1)
+    b_idx = torch.arange(B, device=face_id.device)[:, None].expand_as(hit)[hit]
+    f_idx = face_id.flatten(1)[hit]  # a face once per pixel it covers
     visible = face_id.new_zeros(B, num_vertices, dtype=torch.bool)
-    b_idx, f_idx = face_hit.nonzero(as_tuple=True)
     visible[b_idx[:, None], faces[f_idx]] = True
     return visible

@@ -2,7 +2,7 @@
 
 For each visible vertex (visibility from the renderer) the closest data point of the
 same model (data pixels are labelled by the rendered model ids) is found with a
-KD-tree (scipy). Pairs farther than 10 mm or whose normals differ by more than 45
+KD-tree (scipy), built once per frame and model while the labels stay the same. Pairs farther than 10 mm or whose normals differ by more than 45
 degrees are discarded, and, per bone, pairs beyond mean + 2 sigma of that bone's
 distances (Ballan et al. 2012, Sec. 3). Point-to-point gives 3 residuals per pair;
 point-to-plane gives 1, ``n^T (V - X)`` with the model normal fixed at the pose
