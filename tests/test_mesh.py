@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 import trimesh
 
-from torchhand.mesh import vertex_faces, vertex_normals
+from torchhand.mesh import is_closed_outward, vertex_faces, vertex_normals
 from torchhand.scene import Scene
 
 
@@ -32,3 +32,17 @@ def test_vertex_faces_lists_every_face_of_a_vertex():
     assert ring.shape == (6, 3)
     as_sets = [set(r[r < 3].tolist()) for r in ring]
     assert as_sets == [{0, 1}, {0}, {0, 1, 2}, {1, 2}, {2}, set()]
+
+
+def test_closed_outward_meshes_are_recognised():
+    box = trimesh.creation.box(extents=(10, 20, 30))
+    V, F = torch.tensor(box.vertices), torch.tensor(box.faces)
+    assert is_closed_outward(V, F)
+    assert not is_closed_outward(V, F.flip(1))  # inward normals
+    assert not is_closed_outward(V, F[1:])  # a hole
+    flipped = F.clone()
+    flipped[0] = flipped[0].flip(0)  # one face wound the other way
+    assert not is_closed_outward(V, flipped)
+    for name in ("hand_right", "hand_left", "ball", "cube", "pipe", "rope"):
+        model = Scene.from_names([name]).models[0]
+        assert is_closed_outward(model.vertices_rest, model.faces), name

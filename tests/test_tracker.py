@@ -102,14 +102,20 @@ def test_frame_from_perturbed_pose_converges_to_the_truth(hand_frame):
 
 
 def test_batched_problems_are_independent(hand_frame):
+    """Problems of a batch stop on their own (the others go on, solved as a smaller
+    batch) and give what each gives alone."""
     scene, theta, cam, depth = hand_frame
-    tracker = Tracker(scene, TrackerConfig(max_iterations=5, first_frame_iterations=5))
-    start = theta.repeat(2, 1)
+    cfg = TrackerConfig(max_iterations=8, first_frame_iterations=8, min_vertex_motion=0.5)
+    start = theta.repeat(3, 1)
     start[1, :3] += 3.0
-    both = tracker.track_frame([depth, depth], [cam, cam], start, first=True)
-    one = Tracker(scene, TrackerConfig(max_iterations=5, first_frame_iterations=5)).track_frame(
-        [depth], [cam], start[1:], first=True)
-    torch.testing.assert_close(both.theta[1:], one.theta, atol=1e-6, rtol=0)
+    start[2, :3] += torch.tensor([6.0, -4.0, 5.0], dtype=F64)
+    batch = Tracker(scene, cfg).track_frame([depth] * 3, [cam] * 3, start, first=True)
+    assert batch.iterations[0] < batch.iterations[2], batch.iterations
+    for b in range(3):
+        one = Tracker(scene, cfg).track_frame([depth], [cam], start[b : b + 1], first=True)
+        torch.testing.assert_close(batch.theta[b : b + 1], one.theta, atol=1e-6, rtol=0)
+        assert int(batch.iterations[b]) == int(one.iterations[0])
+        torch.testing.assert_close(batch.energy[b : b + 1], one.energy)
 
 
 def test_empty_and_missing_frames_keep_the_previous_pose(hand_frame):

@@ -6,7 +6,7 @@ from typing import Optional
 
 import torch
 
-__all__ = ["vertex_faces", "vertex_normals"]
+__all__ = ["vertex_faces", "vertex_normals", "is_closed_outward"]
 
 
 def vertex_faces(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
@@ -54,3 +54,21 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
         else:
             n = fn[torch.arange(fn.shape[0], device=fn.device)[:, None, None], r].sum(-2)
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def is_closed_outward(vertices: torch.Tensor, faces: torch.Tensor) -> bool:
+    """True when the mesh is closed with consistent winding and outward normals: every
+    directed edge occurs once and its reverse once, and the signed volume is positive.
+
+    vertices: (V, 3); faces: (F, 3) int64.
+    """
+    if faces.shape[0] == 0:
+        return False
+    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).cpu()
+    V = int(vertices.shape[0])
+    key, rev = e[:, 0] * V + e[:, 1], e[:, 1] * V + e[:, 0]
+    unique, counts = torch.unique(key, return_counts=True)
+    if bool((counts != 1).any()) or not bool(torch.isin(rev, unique).all()):
+        return False
+    v = vertices.detach().double().cpu()[faces.cpu()]
+    return float(torch.linalg.cross(v[:, 0], v[:, 1], dim=-1).mul(v[:, 2]).sum()) > 0

@@ -152,6 +152,7 @@ def render(
     *,
     edge_threshold: float = DEFAULT_EDGE_THRESHOLD_MM,
     normals: bool = True,
+    cull_back_faces: bool = False,
 ) -> RenderResult:
     """Ray-cast depth, ids, normals and silhouette edges of a posed triangle soup.
 
@@ -163,6 +164,10 @@ def render(
         face_bone_id: (F,) int64 bone index per face; zeros if None.
         edge_threshold: depth jump (mm) for :func:`silhouette_edges`.
         normals: compute the pixel normals (the tracker does not need them).
+        cull_back_faces: leave the faces turned away from the camera out of the ray
+            caster's BVH (about half of them, so it builds twice as fast). Exact for
+            closed meshes with outward normals seen from outside, as every shipped
+            model is: a ray enters a closed mesh through a front face first.
 
     Returns:
         RenderResult with (B, H, W) maps on ``vertices.device``.
@@ -205,18 +210,27 @@ def render(
     if rois:
         rays = _rays_for(camera)
         verts_np = np.ascontiguousarray(vertices.to("cpu", torch.float32).numpy())
-        faces_o3d = o3d.core.Tensor(faces.cpu().numpy().astype(np.uint32))
+        faces_np = faces.cpu().numpy().astype(np.uint32)
+        faces_o3d = o3d.core.Tensor(faces_np)
+        front = _front_faces(vertices, faces, camera) if cull_back_faces else None
         # open3d builds one BVH per scene, so each batch element needs its own scene.
         for b, (b0, b1, d0, d1) in enumerate(per_problem):
             if b1 <= b0 or d1 <= d0:
                 continue
+            kept = None if front is None else np.flatnonzero(front[b])
+            if kept is not None and len(kept) == 0:
+                continue  # every face turned away: nothing can be hit
             scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(o3d.core.Tensor(verts_np[b]), faces_o3d)
+            scene.add_triangles(o3d.core.Tensor(verts_np[b]),
+                                faces_o3d if kept is None else o3d.core.Tensor(faces_np[kept]))
             # Only pixels inside the projected bounding box can be hit.
             hit = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[b0:b1, d0:d1])))
             box = (b, slice(b0 - r0, b1 - r0), slice(d0 - c0, d1 - c0))
             t_hit[box] = hit["t_hit"].numpy()
-            prim[box] = hit["primitive_ids"].numpy()
+            ids = hit["primitive_ids"].numpy()
+            if kept is not None:  # back to indices of all faces
+                ids = np.where(ids == _INVALID_ID, _INVALID_ID, kept[np.minimum(ids, len(kept) - 1)]).astype(np.uint32)
+            prim[box] = ids
             uvs[box] = hit["primitive_uvs"].numpy()
 
     t_hit_t = torch.from_numpy(t_hit).to(device)
@@ -243,6 +257,14 @@ def render(
                         _paste(bone_id, box, H, W, -1),
                         None if pixel_normals is None else _paste(pixel_normals, box, H, W, 0), _paste(edges, box, H, W, False),
                         _paste(barycentric, box, H, W, 0))
+
+
+def _front_faces(vertices: torch.Tensor, faces: torch.Tensor, camera: Camera) -> np.ndarray:
+    """(B, F) bool: faces whose front (counter-clockwise) side, or edge, faces the camera."""
+    T = camera.T_cw.to(device=vertices.device, dtype=vertices.dtype)
+    tri = _transform(T, vertices)[:, faces]  # camera frame: the camera is the origin
+    n = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1)
+    return ((n * tri[:, :, 0]).sum(-1) <= 0).cpu().numpy()
 
 
 def _paste(crop: torch.Tensor, box: tuple, H: int, W: int, fill) -> torch.Tensor:

@@ -19,6 +19,7 @@ import torch
 
 from .camera import Camera
 from .energies import Anatomy, EnergyTerm, Regularization, TrackState, parse_energy
+from .mesh import is_closed_outward
 from .preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
 from .render import RenderResult, render
 from .scene import Scene
@@ -111,14 +112,17 @@ class Tracker:
         self.data_terms = [t for t in self.terms if not isinstance(t, (Anatomy, Regularization))]
         self.prior_terms = [t for t in self.terms if isinstance(t, (Anatomy, Regularization))]
         self._energy_history: List[torch.Tensor] = []
+        # back faces can be left out of the renders when every mesh is closed and outward
+        self._cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
 
     # ------------------------------------------------------------------ frames
     def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera]) -> RenderResult:
         s = self.scene
         if all(_same_camera(c, cameras[0]) for c in cameras):  # one camera: one call for the batch
-            return render(vertices, s.faces, cameras[0], s.face_model_id, s.face_bone_id, normals=False)
-        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id, normals=False)
-                 for b in range(len(cameras))]
+            return render(vertices, s.faces, cameras[0], s.face_model_id, s.face_bone_id, normals=False,
+                          cull_back_faces=self._cull)
+        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id, normals=False,
+                        cull_back_faces=self._cull) for b in range(len(cameras))]
         return RenderResult(*(None if x[0] is None else torch.cat(x, 0) for x in zip(*parts)))
 
     def _state(self, theta, previous, frames, cameras, posed=None, labels=None) -> TrackState:
@@ -130,16 +134,27 @@ class Tracker:
         return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels)
 
     def _residual_fn(self, state: TrackState):
+        """The stacked residuals for the solver; ``fn.posed(theta)`` returns the scene at
+        a theta the solver evaluated last (or at the state's), posing it otherwise."""
         scene = self.scene
+        seen = [(state.theta, state.posed)]
+
+        def posed_at(theta):
+            for th, out in seen:
+                if th.shape == theta.shape and torch.equal(th, theta):
+                    return out
+            out = scene(theta, validate=False)
+            seen[1:] = [(theta, out)]  # keep the state's pose and the latest one
+            return out
 
         def fn(theta, with_jacobian):
-            # the solver's first call is at the state's pose, already posed
-            posed = state.posed if torch.equal(theta, state.theta) else scene(theta, validate=False)
+            posed = posed_at(theta)
             parts = [t.residuals(theta, posed, with_jacobian) for t in self.terms]
             r = torch.cat([p.r for p in parts], 1)
             J = torch.cat([p.J for p in parts], 1) if with_jacobian else None
             return r, J
 
+        fn.posed = posed_at
         return fn
 
     def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[DepthFrame],
@@ -156,34 +171,39 @@ class Tracker:
         theta = start.clone()
         B = theta.shape[0]
         lower, upper = self.scene.lower, self.scene.upper
-        active = torch.ones(B, dtype=torch.bool, device=theta.device)
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
         damping = theta.new_full((B,), 1e-3)
         energy = theta.new_zeros(B)
+        self._last_count = torch.zeros(B, dtype=theta.dtype)
+        # Only the problems still moving are solved: `idx` lists them. `posed` and
+        # `labels` belong to the problems of `idx` of the previous iteration.
+        idx = torch.arange(B, device=theta.device)
         posed, labels = None, None
         for it in range(iterations):
             with torch.no_grad():
-                state = self._state(theta, previous, frames, cameras, posed, labels)
+                sub = idx.tolist()
+                state = self._state(theta[idx], previous[idx], [frames[b] for b in sub], [cameras[b] for b in sub],
+                                    posed, labels)
                 labels = state.data_labels  # labelled once per frame, at its start pose
                 for t in self.data_terms:
                     t.prepare(state)
                 count = sum(t.count for t in self.data_terms).to(theta)
-                self._last_count = count.cpu()
+                self._last_count[idx.cpu()] = count.cpu()
                 for t in self.prior_terms:
                     t.prepare(state, count)
-                res = levenberg_marquardt(self._residual_fn(state), theta, lower, upper,
-                                          max_iterations=self.config.inner_iterations, damping=damping)
-                posed = self.scene(res.theta, validate=False)
+                fn = self._residual_fn(state)
+                res = levenberg_marquardt(fn, state.theta, lower, upper,
+                                          max_iterations=self.config.inner_iterations, damping=damping[idx])
+                posed = fn.posed(res.theta)
                 moved = (posed.vertices - state.posed.vertices).norm(dim=-1).amax(-1)
-            theta = torch.where(active[:, None], res.theta, theta)
-            if not bool(active.all()):
-                posed = None  # problems that stopped keep their theta: pose again
-            damping = torch.where(active, res.damping, damping)
-            energy = torch.where(active, res.cost / count.clamp_min(1), energy)
-            iters = iters + active.long()
-            active = active & (moved >= self.config.min_vertex_motion)
-            if not bool(active.any()):  # one sync per outer iteration, next to a render
+            theta[idx], damping[idx] = res.theta, res.damping
+            energy[idx] = res.cost / count.clamp_min(1)
+            iters[idx] += 1
+            going = moved >= self.config.min_vertex_motion
+            if not bool(going.any()):  # one sync per outer iteration, next to a render
                 break
+            if not bool(going.all()):
+                idx, labels, posed = idx[going], labels[going], None  # pose the remaining ones again
         return theta, iters, energy
 
     def track_frame(self, depths: Sequence[Optional[np.ndarray]], cameras: Sequence[Camera],

@@ -39,30 +39,32 @@ class DataToModel(EnergyTerm):
         rend = state.render
         count = torch.zeros(B, dtype=torch.int64)
         self.per_model = []
+        # silhouette pixels (row, col) of every problem and the model each belongs to
+        sil = [torch.nonzero(rend.silhouette_edges[b]).cpu().numpy() for b in range(B)]
+        sil_model = [rend.model_id[b][rend.silhouette_edges[b]].cpu().numpy() for b in range(B)]
         for k, name in enumerate(scene.names):
             vs = scene.vertex_slices[name]
             rows = []
             for b in range(B):
                 frame, cam = state.frames[b], state.cameras[b]
-                edge = (rend.silhouette_edges[b] & (rend.model_id[b] == k)).cpu().numpy()
+                zero_rc = sil[b][sil_model[b] == k]  # row-major, as nonzero returns them
                 sel = torch.zeros(0, dtype=torch.int64)
                 if len(frame.edges):
                     sel = torch.nonzero(state.data_labels[b][frame.edges[:, 0], frame.edges[:, 1]] == k)[:, 0]
-                if not edge.any() or len(sel) == 0:
+                if len(zero_rc) == 0 or len(sel) == 0:
                     rows.append(None)
                     continue
                 if len(sel) > self.max_pixels:
                     sel = sel[torch.linspace(0, len(sel) - 1, self.max_pixels, device=sel.device).long()]
                 rc = frame.edges[sel]
-                # Nearest model silhouette pixel of every pixel (labels index the zero pixels
-                # in row-major order).
-                # The transform runs on the box around both pixel sets, which holds every
-                # nearest pixel.
+                # Nearest model silhouette pixel of every data edge pixel, by a distance
+                # transform on the box around both pixel sets, which holds every nearest
+                # pixel (its labels index the zero pixels in row-major order).
                 rcn = rc.cpu().numpy()
-                zero_rc = np.argwhere(edge)
                 lo = np.minimum(zero_rc.min(0), rcn.min(0))
                 hi = np.maximum(zero_rc.max(0), rcn.max(0)) + 1
-                src = np.where(edge[lo[0] : hi[0], lo[1] : hi[1]], 0, 255).astype(np.uint8)
+                src = np.full(hi - lo, 255, np.uint8)
+                src[zero_rc[:, 0] - lo[0], zero_rc[:, 1] - lo[1]] = 0
                 _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
                 p = torch.as_tensor(zero_rc[labels[rcn[:, 0] - lo[0], rcn[:, 1] - lo[1]] - 1], device=dev)
                 fid = rend.face_id[b][p[:, 0], p[:, 1]]
