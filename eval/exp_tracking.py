@@ -4,6 +4,7 @@
     python eval/exp_tracking.py m2d --hia-root ../shared/data/hands_in_action --sequences 09,16 --frames 10 --work out/exp --json out/exp_m2d.json
     python eval/exp_tracking.py ablation --energies LO,LO+C --contact --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_c.json
     python eval/exp_tracking.py detector-quality --sequences 01,16 --rates 0,0.3,0.6,1 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_s_noise.json
+    python eval/exp_tracking.py d2m-weight --weights 1,0.25 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_d2m_weight.json
 
 ``lo``: every sequence with MOTION files is rendered with the kinect noise model
 (frames 0..F-1), tracked with LO from its first-frame pose (``gt/`` is not read by
@@ -21,6 +22,8 @@ al. (2012, Sec. 5): the projected ground-truth fingertips that the renderer show
 outlier uniformly within 200 px, and every detection gets 5 px Gaussian jitter.
 These oracle detections are built from ``gt/`` by this script, outside the tracker,
 which still reads only the depth.
+``d2m-weight``: LO with several weights of the data-to-model term (``--weights``;
+the model-to-data weight stays 1), as ``lo`` otherwise.
 """
 
 from __future__ import annotations
@@ -94,13 +97,14 @@ def _sequences(args):
     return seqs
 
 
-def track_and_score(args, folders, energy: str) -> dict:
-    """Track the rendered sequences with one energy and score them."""
+def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "") -> dict:
+    """Track the rendered sequences with one energy (or the terms of ``make_terms``,
+    ``tag`` naming the run) and score them."""
     cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.iterations)
-    out = args.work / f"tracked_{energy.replace('+', '_')}"
+    out = args.work / f"tracked_{tag or energy.replace('+', '_')}"
     t0 = time.perf_counter()
-    summaries = track_sequences(list(folders.values()), out, cfg, force=True)
+    summaries = track_sequences(list(folders.values()), out, cfg, force=True, make_terms=make_terms)
     elapsed = time.perf_counter() - t0
     results = []
     for s, folder in folders.items():
@@ -109,7 +113,7 @@ def track_and_score(args, folders, energy: str) -> dict:
         results.append({"sequence": s, "frames": r["frames"], "mean_px": r["mean_px"], "median_px": r["median_px"],
                         "mean_mm": r["mean_mm"], "median_mm": r["median_mm"], "worst_frame_mm": worst,
                         "lost": worst > 20.0, "penetration": r.get("penetration")})
-        print(energy, results[-1])
+        print(tag or energy, results[-1])
     pooled = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                         for s, f in folders.items()])
     return {"energy": energy, "sequences": results,
@@ -122,6 +126,17 @@ def run_lo(args) -> dict:
     res = track_and_score(args, folders, "LO")
     return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
             "iterations": args.iterations, **{k: v for k, v in res.items() if k != "energy"}}
+
+
+def run_d2m_weight(args) -> dict:
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
+    runs = []
+    for w in [float(x) for x in args.weights.split(",")]:
+        def terms(w=w):
+            return [ModelToData(metric=args.metric), DataToModel(weight=w), Anatomy(), Regularization()]
+        runs.append({"d2m_weight": w, **track_and_score(args, folders, "LO", terms, tag=f"LO_d2m{w:g}")})
+    return {"experiment": "LO against the data-to-model weight on kinect renders", "frames_per_sequence": args.frames,
+            "metric": args.metric, "iterations": args.iterations, "runs": runs}
 
 
 def run_ablation(args) -> dict:
@@ -216,7 +231,7 @@ def run_m2d(args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("experiment", choices=["lo", "m2d", "ablation", "detector-quality"])
+    ap.add_argument("experiment", choices=["lo", "m2d", "ablation", "detector-quality", "d2m-weight"])
     ap.add_argument("--hia-root", type=Path, required=True)
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
@@ -228,12 +243,13 @@ def main(argv=None) -> int:
     ap.add_argument("--contact", action="store_true", help="only sequences with more than one model")
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
     ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")
+    ap.add_argument("--weights", default="1,0.25", help="d2m-weight: comma-separated data-to-model weights")
     ap.add_argument("--window", choices=["start", "contact"], default="start",
                     help="ablation, detector-quality: render from frame 0, or the window where the models touch most")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation,
-              "detector-quality": run_detector_quality}[args.experiment](args)
+              "detector-quality": run_detector_quality, "d2m-weight": run_d2m_weight}[args.experiment](args)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k not in ("tracker", "runs")}, indent=1)[:4000])

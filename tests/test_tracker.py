@@ -86,6 +86,29 @@ def test_anatomy_residuals_square_to_eq_4_17(hand_frame):
     torch.testing.assert_close((r[0] ** 2).sum(), 0.0015 * 200 * e.sum())
 
 
+def test_candidates_without_correspondence_are_charged_a_truncated_square(hand_frame):
+    """m2d and d2m count their candidates; those left without a correspondence cost
+    weight x min(distance, cut-off)^2 each in the frame energy, so a pose that matches
+    little of the data is not cheaper than one that matches all of it."""
+    scene, theta, cam, depth = hand_frame
+    tracker = Tracker(scene, TrackerConfig())
+    charged = []
+    for shift in (0.0, 12.0):
+        th = theta.clone()
+        th[0, 0] += shift
+        state = _state(tracker, scene, th, cam, depth)
+        for t in tracker.data_terms:
+            t.prepare(state)
+            assert (t.count <= t.candidates).all() and (t.candidates > 0).all()
+            cap = t.weight * t.max_distance ** 2 * (t.candidates - t.count).double()
+            assert (t.unmatched_energy() >= 0).all() and (t.unmatched_energy() <= cap + 1e-9).all()
+        d2m = tracker.data_terms[1]
+        torch.testing.assert_close(d2m.unmatched_energy(), d2m.weight * 30.0 ** 2 * (d2m.candidates - d2m.count).double())
+        m2d = tracker.data_terms[0]
+        charged.append(float(m2d.unmatched_energy()[0] / m2d.candidates[0]))
+    assert charged[0] < 2.0 and charged[1] > 10 * charged[0], charged
+
+
 def test_frame_from_perturbed_pose_converges_to_the_truth(hand_frame):
     scene, theta, cam, depth = hand_frame
     tracker = Tracker(scene, TrackerConfig(max_iterations=25, first_frame_iterations=25, min_vertex_motion=0.05))
@@ -116,6 +139,28 @@ def test_batched_problems_are_independent(hand_frame):
         torch.testing.assert_close(batch.theta[b : b + 1], one.theta, atol=1e-6, rtol=0)
         assert int(batch.iterations[b]) == int(one.iterations[0])
         torch.testing.assert_close(batch.energy[b : b + 1], one.energy)
+
+
+def test_recovery_re_solves_a_frame_whose_energy_rose(hand_frame):
+    """After three frames tracked at the truth, a frame started 20 mm off ends with a
+    high energy: it is re-solved from perturbed previous poses, a re-solve is kept only
+    if its energy is lower, and the same generator seed gives the same result."""
+    scene, theta, cam, depth = hand_frame
+    off = theta.clone()
+    off[0, :3] += torch.tensor([20.0, -12.0, 10.0], dtype=F64)
+
+    def run(tries, seed):
+        tracker = Tracker(scene, TrackerConfig(max_iterations=3, first_frame_iterations=3, recover_tries=tries))
+        for _ in range(3):  # an energy history of frames tracked at the truth
+            tracker.track_frame([depth], [cam], theta)
+        return tracker.track_frame([depth], [cam], off, generator=torch.Generator().manual_seed(seed))
+
+    plain, rec, again, other = run(0, 0), run(4, 0), run(4, 0), run(4, 1)
+    assert not plain.recovered.any()
+    assert bool(rec.recovered[0]) and float(rec.energy[0]) < float(plain.energy[0])
+    assert not torch.equal(rec.theta, plain.theta)
+    torch.testing.assert_close(rec.theta, again.theta, atol=0, rtol=0)
+    assert not torch.equal(other.theta, rec.theta) or not bool(other.recovered[0])
 
 
 def test_empty_and_missing_frames_keep_the_previous_pose(hand_frame):

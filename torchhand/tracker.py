@@ -34,10 +34,13 @@ class TrackerConfig:
     correspondence update (1 = the thesis' alternation); max_iterations: per frame (the
     thesis' i_thr); first_frame_iterations: for frame 0 (50 in the thesis);
     min_vertex_motion: mm, convergence when every vertex moves less in an iteration;
-    recover_factor: a frame whose energy per correspondence exceeds this multiple of
-    the median of the previous frames is re-solved from the previous pose with
-    ``recover_tries`` perturbations (the best is kept); label_radius: px, data pixels
-    farther than this from any rendered model pixel are left unlabelled."""
+    recover_factor: a frame whose energy (per candidate correspondence, those
+    without a correspondence charged min(distance, cut-off)^2) exceeds
+    this multiple of the median of the previous frames is re-solved from ``recover_tries`` random
+    perturbations of the previous pose (the best is kept if it is better); seed: of
+    those perturbations in :func:`track_sequences`, so a run is repeatable;
+    label_radius: px, data pixels farther than this from any rendered model pixel are
+    left unlabelled."""
 
     energy: str = "LO"
     metric: str = "point-to-plane"
@@ -48,13 +51,15 @@ class TrackerConfig:
     recover_factor: float = 4.0
     recover_tries: int = 4
     perturbation: float = 0.15
+    seed: int = 0
     label_radius: float = 40.0
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
 
 
 class FrameResult(NamedTuple):
     """theta: (B, D) poses; valid: (B,) False where a frame could not be used (kept
-    the previous pose); iterations: (B,); energy: (B,) final energy per correspondence;
+    the previous pose); iterations: (B,); energy: (B,) final energy per candidate
+    correspondence (see :meth:`Tracker.solve`);
     recovered: (B,) True where the recovery re-solve replaced the estimate;
     notes: B strings, why a frame was flagged ("" when fine)."""
 
@@ -166,7 +171,9 @@ class Tracker:
         the labels reach ``label_radius`` px around them); visibility, silhouettes
         and correspondences are renewed in every iteration.
 
-        Returns (theta (B, D), iterations (B,), energy per correspondence (B,)).
+        Returns (theta (B, D), iterations (B,), energy (B,)): the energy is per
+        candidate correspondence, a candidate without a correspondence charged its
+        truncated square (``EnergyTerm.unmatched``).
         """
         theta = start.clone()
         B = theta.shape[0]
@@ -188,6 +195,8 @@ class Tracker:
                 for t in self.data_terms:
                     t.prepare(state)
                 count = sum(t.count for t in self.data_terms).to(theta)
+                candidates = sum(t.count if t.candidates is None else t.candidates for t in self.data_terms).to(theta)
+                unmatched = sum(t.unmatched_energy() for t in self.data_terms).to(theta)
                 self._last_count[idx.cpu()] = count.cpu()
                 for t in self.prior_terms:
                     t.prepare(state, count)
@@ -197,7 +206,7 @@ class Tracker:
                 posed = fn.posed(res.theta)
                 moved = (posed.vertices - state.posed.vertices).norm(dim=-1).amax(-1)
             theta[idx], damping[idx] = res.theta, res.damping
-            energy[idx] = res.cost / count.clamp_min(1)
+            energy[idx] = (res.cost + unmatched) / candidates.clamp_min(1)
             iters[idx] += 1
             going = moved >= self.config.min_vertex_motion
             if not bool(going.any()):  # one sync per outer iteration, next to a render
@@ -215,6 +224,7 @@ class Tracker:
             cameras: B cameras.
             previous: (B, D) poses of the previous frame (or the initial poses).
             first: use the first-frame iteration budget.
+            generator: draws the recovery perturbations (torch's global generator if None).
         Returns:
             :class:`FrameResult`; problems without usable depth keep ``previous``
             and are flagged invalid.
@@ -266,19 +276,19 @@ class Tracker:
             return theta, energy, rec
         R = self.config.recover_tries
         starts, fr, cams, prev = [], [], [], []
-        # try 0 restarts from the previous pose itself; the others perturb the joints by
-        # N(0, perturbation) rad and the global pose by 4 mm / 0.03 rad
+        # every try perturbs the previous pose (the unperturbed start was just solved):
+        # the joints by N(0, perturbation) rad, the global pose by N(0, 4 mm / 0.03 rad)
         scale = torch.full((previous.shape[1],), self.config.perturbation, dtype=previous.dtype)
         for s in self.scene.slices.values():
             scale[s.start : s.start + 3], scale[s.start + 3 : s.start + 6] = 4.0, 0.03
         for b in bad:
             for r in range(R):
                 noise = torch.randn(previous.shape[1], generator=generator, dtype=previous.dtype) * scale
-                starts.append(previous[b] + noise.to(previous.device) * (r > 0))
+                starts.append(previous[b] + noise.to(previous.device))
                 fr.append(frames[b])
                 cams.append(cameras[b])
                 prev.append(previous[b])
-        th, _, en = self.solve(torch.stack(starts), torch.stack(prev), fr, cams, iterations)
+        th, _, en = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations)
         for i, b in enumerate(bad):
             best = int(torch.argmin(en[i * R : (i + 1) * R]))
             if en[i * R + best] < energy[b]:
@@ -341,6 +351,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         n_frames = max(infos[k].frames for k in members)
         cams = [infos[k].cameras[0].to(device) for k in members]
         thetas, valids, logs = [], [], []
+        generator = torch.Generator().manual_seed(config.seed)
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
         for f in range(n_frames):
             depths = []
@@ -355,7 +366,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     tqdm.write(f"warning: {err}; keeping the previous pose")
                     depths.append(None)
             t0 = time.perf_counter()
-            res = tracker.track_frame(depths, cams, theta, first=(f == 0))
+            res = tracker.track_frame(depths, cams, theta, first=(f == 0), generator=generator)
             dt = time.perf_counter() - t0
             theta = res.theta
             thetas.append(theta.detach().cpu().numpy())

@@ -71,6 +71,19 @@ class EnergyTerm:
     def __init__(self, weight: float = 1.0):
         self.weight = float(weight)
         self.count = None  # (B,) correspondences found by the last prepare()
+        # (B,) candidates the last prepare() considered, count of them kept; None when
+        # every candidate is a correspondence
+        self.candidates = None
+        # (B,) energy charged for the candidates left without a correspondence (each
+        # weight x min(distance, cut-off)^2, a truncated square), so that poses are
+        # compared fairly however many correspondences each finds; None = nothing
+        self.unmatched = None
+
+    def unmatched_energy(self) -> torch.Tensor:
+        """(B,) energy of the candidates that found no correspondence (zeros if none)."""
+        if self.unmatched is None:
+            return torch.zeros(self.count.shape, dtype=torch.float64)
+        return self.unmatched
 
     def prepare(self, state: TrackState) -> None:  # pragma: no cover - interface
         raise NotImplementedError

@@ -48,6 +48,9 @@ class ModelToData(EnergyTerm):
         dev, dt = state.theta.device, state.theta.dtype
         self.per_model = []
         count = torch.zeros(B, dtype=torch.int64)
+        candidates = torch.zeros(B, dtype=torch.int64)
+        unmatched = torch.zeros(B, dtype=torch.float64)
+        tau2 = self.max_distance ** 2
         visible = state.visible_vertices()
         # the data side (points of a model's label, in the world frame, and their KD-tree)
         # is kept while the frame and the label mask stay the same (most outer iterations)
@@ -72,7 +75,9 @@ class ModelToData(EnergyTerm):
             rows = []
             for b in range(B):
                 data = self._data_points(state, b, k)
+                candidates[b] += len(vis[k][b])
                 if len(vis[k][b]) == 0 or data is None:
+                    unmatched[b] += self.weight * tau2 * len(vis[k][b])
                     rows.append(None)
                     continue
                 pts_w, nrm_w, tree = data
@@ -87,8 +92,9 @@ class ModelToData(EnergyTerm):
                 keep = keep & self._bone_inliers(d, model.vertex_bone[local], keep, model.num_bones)
                 rows.append((local[keep], X[keep], nV[keep]))
                 count[b] += int(keep.sum())
+                unmatched[b] += self.weight * float(d[~keep].clamp(max=self.max_distance).square().sum())
             self.per_model.append(_pad_rows(rows, B, dev, dt))
-        self.count = count
+        self.count, self.candidates, self.unmatched = count, candidates, unmatched
 
     def _data_points(self, state: TrackState, b: int, k: int):
         """(points, normals, KD-tree) of the data pixels labelled k in problem b, world
