@@ -255,3 +255,18 @@ def test_penetration_metric_on_meshes():
     pen = penetration([(v, f), (v + np.array([3.0, 0.0, 0.0]), f)])
     assert pen.max_depth_mm > 0.5
     assert pen.pairs > 0
+
+
+def test_max_depth_sign_does_not_flip_on_a_grazing_ray(hia_root):
+    """Frame 71 of thesis sequence 03 (float32 pose, as rendered): with one ray for the
+    inside test, a vertex of one hand 19 mm outside the other was counted 19 mm deep
+    (a grazing ray); the true deepest vertex is 1.5 mm."""
+    from torchhand.data.synth import thesis_motion
+    from torchhand.metrics import max_depth
+
+    fr = thesis_motion(hia_root, "03", slice(44, 84), dtype=torch.float32)
+    scene = Scene.from_names(fr.scene.names, dtype=torch.float64)
+    with torch.no_grad():
+        out = scene(fr.theta[27:28].double())
+    depth = max_depth([(o.vertices[0].numpy(), m.faces.numpy()) for o, m in zip(out.models, scene.models)])
+    assert 1.0 < depth < 2.0, depth

@@ -84,7 +84,10 @@ def max_depth(meshes: Sequence[tuple]) -> float:
             near = np.all((vb >= lo) & (vb <= hi), axis=1)  # only vertices inside a's box can be inside a
             if not near.any():
                 continue
-            sd = scene.compute_signed_distance(o3d.core.Tensor(np.asarray(vb[near], np.float32))).numpy()
+            # the sign is a ray-parity test; one ray flips it when it grazes an edge or a
+            # vertex (a vertex 19 mm outside was once reported 19 mm deep): 5 rays vote
+            sd = scene.compute_signed_distance(o3d.core.Tensor(np.asarray(vb[near], np.float32)),
+                                               nsamples=5).numpy()
             depth = max(depth, float(-sd.min()) if sd.min() < 0 else 0.0)
     return depth
 
