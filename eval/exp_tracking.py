@@ -13,9 +13,9 @@ the tracker) and scored; same-scene sequences are tracked as one batch.
 iteration budgets (thesis Table 4.2).
 ``ablation``: the same as ``lo`` for several energies (thesis Table 4.6), with the
 interpenetration of the tracked and the ground-truth poses; ``--contact`` keeps
-the sequences with more than one model (hand-hand and hand-object contact), and
-``--window contact`` renders, per sequence, the window in which the ground-truth
-models are closer than 5 mm in most frames.
+the sequences with more than one model (hand-hand and hand-object contact),
+``--collision-weight`` sets γ_c, and ``--window contact`` renders, per sequence,
+the window in which the ground-truth models are closer than 5 mm in most frames.
 ``detector-quality``: LO+S with simulated fingertip detections following Ballan et
 al. (2012, Sec. 5): the projected ground-truth fingertips that the renderer shows
 (at least 30 mm^2 visible) are kept with probability ``rate``, 10 % of them add an
@@ -41,7 +41,7 @@ import hashlib
 import numpy as np
 
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info
-from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient
+from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient, parse_energy
 from torchhand.energies.salient import simulated_detector
 from torchhand.render import render
 from torchhand.salient.data import VISIBLE_MM2, fingertip_faces, fingertip_targets
@@ -146,9 +146,22 @@ def run_ablation(args) -> dict:
         for s, f in folders.items():
             r = evaluate_sequence(f / "gt", f / "gt")
             gt_penetration[s] = r.get("penetration")
-    runs = [track_and_score(args, folders, e) for e in args.energies.split(",")]
+    runs = []
+    for e in args.energies.split(","):
+        if args.collision_weight is None or "C" not in e:
+            runs.append(track_and_score(args, folders, e))
+            continue
+
+        def terms(e=e):
+            ts = parse_energy(e, args.metric)
+            for t in ts:
+                if t.name == "collision":
+                    t.weight = args.collision_weight
+            return ts
+        runs.append(track_and_score(args, folders, e, terms, tag=f"{e.replace('+', '_')}_gc{args.collision_weight:g}"))
     return {"experiment": "energy ablation on kinect renders", "frames_per_sequence": args.frames,
-            "metric": args.metric, "iterations": args.iterations, "gt_penetration": gt_penetration, "runs": runs}
+            "metric": args.metric, "iterations": args.iterations, "collision_weight": args.collision_weight,
+            "gt_penetration": gt_penetration, "runs": runs}
 
 
 def _depth_key(depth) -> str:
@@ -244,6 +257,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
     ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")
     ap.add_argument("--weights", default="1,0.25", help="d2m-weight: comma-separated data-to-model weights")
+    ap.add_argument("--collision-weight", type=float, default=None,
+                    help="ablation: gamma_c of the C term (default: the term's own, 10)")
     ap.add_argument("--window", choices=["start", "contact"], default="start",
                     help="ablation, detector-quality: render from frame 0, or the window where the models touch most")
     args = ap.parse_args(argv)
