@@ -332,3 +332,18 @@ def test_keypoints_are_joint_positions(model64):
         if n == "wrist" or n.endswith("_tip"):
             continue
         torch.testing.assert_close(out.keypoints[:, k], T[:, model.keypoint_bones[k], :3, 3], rtol=0, atol=1e-9)
+
+
+def test_scene_output_select_equals_posing_the_selected_problems():
+    from torchhand.scene import Scene
+
+    scene = Scene.from_names(["hand_right", "ball"], dtype=torch.float64)
+    gen = torch.Generator().manual_seed(3)
+    theta = scene.clamp(scene.lower.clamp(-1, 1) + torch.rand(3, scene.num_dofs, generator=gen, dtype=torch.float64))
+    mask = torch.tensor([True, False, True])
+    with torch.no_grad():
+        picked, direct = scene(theta).select(mask), scene(theta[mask])
+    for a, b in zip([picked.vertices, picked.keypoints] + [x for m in picked.models for x in m],
+                    [direct.vertices, direct.keypoints] + [x for m in direct.models for x in m]):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=0)  # batch size changes the rounding only
+    assert len(picked.models) == 2 and picked.vertices.shape[0] == 2

@@ -124,6 +124,32 @@ def test_frame_from_perturbed_pose_converges_to_the_truth(hand_frame):
     assert err0 > 5.0 and err < 1.5, (float(err0), float(err))
 
 
+def test_a_rejected_step_is_not_convergence(hand_frame, monkeypatch):
+    """An outer iteration whose LM step was rejected moves no vertex; the frame must
+    go on (with more damping) instead of meeting the 0.2 mm stopping rule."""
+    import torchhand.tracker as tracker_module
+
+    scene, theta, cam, depth = hand_frame
+    real, calls = tracker_module.levenberg_marquardt, []
+
+    def first_step_rejected(fn, start, *args, **kwargs):
+        calls.append(1)
+        res = real(fn, start, *args, **kwargs)
+        if len(calls) == 1:  # as a rejected step returns: the start, no accepted step
+            return res._replace(theta=start.clone(), iterations=torch.zeros_like(res.iterations),
+                                converged=torch.zeros_like(res.converged))
+        return res
+
+    monkeypatch.setattr(tracker_module, "levenberg_marquardt", first_step_rejected)
+    start = theta.clone()
+    start[0, :3] += torch.tensor([3.0, -2.0, 3.0], dtype=F64)
+    res = Tracker(scene, TrackerConfig(max_iterations=6, first_frame_iterations=6)).track_frame(
+        [depth], [cam], start, first=True)
+    with torch.no_grad():
+        err = float((scene(res.theta).keypoints - scene(theta).keypoints).norm(dim=-1).mean())
+    assert int(res.iterations[0]) > 1 and err < 2.0, (int(res.iterations[0]), err)
+
+
 def test_batched_problems_are_independent(hand_frame):
     """Problems of a batch stop on their own (the others go on, solved as a smaller
     batch) and give what each gives alone."""

@@ -32,6 +32,11 @@ class SceneOutput(NamedTuple):
     keypoints: torch.Tensor
     models: List[ModelOutput]
 
+    def select(self, index: torch.Tensor) -> "SceneOutput":
+        """The batch elements ``index`` (a (B,) bool mask or indices) of every field."""
+        return SceneOutput(self.vertices[index], self.keypoints[index],
+                           [ModelOutput(*(x[index] for x in m)) for m in self.models])
+
 
 class Scene(nn.Module):
     """Models sharing one parameter tensor.

@@ -208,11 +208,12 @@ class Tracker:
             theta[idx], damping[idx] = res.theta, res.damping
             energy[idx] = (res.cost + unmatched) / candidates.clamp_min(1)
             iters[idx] += 1
-            going = moved >= self.config.min_vertex_motion
+            # a rejected step (the damping grew) moves nothing but is not convergence
+            going = (moved >= self.config.min_vertex_motion) | ((res.iterations == 0) & ~res.converged)
             if not bool(going.any()):  # one sync per outer iteration, next to a render
                 break
             if not bool(going.all()):
-                idx, labels, posed = idx[going], labels[going], None  # pose the remaining ones again
+                idx, labels, posed = idx[going], labels[going], posed.select(going)
         return theta, iters, energy
 
     def track_frame(self, depths: Sequence[Optional[np.ndarray]], cameras: Sequence[Camera],
