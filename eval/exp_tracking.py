@@ -184,7 +184,9 @@ def ballan_detections(folder: Path, rate: float, seed: int, fp_rate: float = 0.1
         with torch.no_grad():
             V = scene(torch.as_tensor(gt.theta[k : k + 1], dtype=torch.float32)).vertices
         rend = render(V, scene.faces, cam, scene.face_model_id, scene.face_bone_id)
-        t = fingertip_targets(V, rend.face_id, cam, tips)
+        depth = read_depth(camera_dir(folder, 0) / "depth" / frame_name(k), info.depth_unit_mm)
+        raw = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+        t = fingertip_targets(V, rend.face_id, cam, tips, sensed=torch.as_tensor(raw > 0)[None])
         uv = t.uv[0].numpy()[t.area_mm2[0].numpy() >= VISIBLE_MM2]
         kept = uv[rng.uniform(size=len(uv)) < rate]
         outl = uv[rng.uniform(size=len(uv)) < fp_rate]
@@ -192,8 +194,6 @@ def ballan_detections(folder: Path, rate: float, seed: int, fp_rate: float = 0.1
         outl = outl + np.c_[r * np.cos(ang), r * np.sin(ang)]
         det = np.concatenate([kept, outl]) + rng.normal(0, jitter, (len(kept) + len(outl), 2))
         det = np.clip(det, 0, [cam.width - 1, cam.height - 1])
-        depth = read_depth(camera_dir(folder, 0) / "depth" / frame_name(k), info.depth_unit_mm)
-        raw = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
         table[_depth_key(raw)] = np.c_[det, np.full(len(det), 5.0)]
     return table
 
@@ -229,7 +229,7 @@ def run_m2d(args) -> dict:
     for metric in ("point-to-point", "point-to-plane"):
         for iters in (5, 10, 15, 20, 30):
             cfg = TrackerConfig(energy="LO", metric=metric, max_iterations=iters, first_frame_iterations=iters,
-                                min_vertex_motion=0.0)
+                                min_joint_motion=0.0)
             out = args.work / f"tracked_m2d_{metric}_{iters}"
             summaries = track_sequences(list(folders.values()), out, cfg, force=True, progress=False,
                                         make_terms=lambda: [ModelToData(metric=metric), Anatomy(), Regularization()])

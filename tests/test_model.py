@@ -42,6 +42,26 @@ def test_scene_of_two_hands_and_rope_has_150_dofs(model64):
     assert sum(model64(n).num_dofs for n in ("hand_right", "hand_left", "rope")) == 150
 
 
+def test_scene_joint_motion_is_the_mean_joint_shift_of_a_hand_and_sees_a_rolling_ball(model64):
+    """The tracker's stopping measure: a hand's mean joint displacement (a 1 mm shift
+    moves it 1 mm), an object's mean vertex displacement (a ball rolling about its
+    centre moves no bone origin but its vertices), the largest over the models."""
+    from torchhand.scene import Scene
+
+    scene = Scene([model64("hand_right"), model64("ball")])
+    theta = scene.zero_pose(2)
+    theta[:, scene.slices["ball"].start + 2] = 120.0  # the ball away from the hand
+    a = scene(theta)
+    shifted = theta.clone()
+    shifted[0, 0] += 1.0  # the hand 1 mm along x
+    rolled = theta.clone()
+    rolled[1, scene.slices["ball"].start + 3] += 0.1  # the ball rotated 0.1 rad about its centre
+    moved = scene.joint_motion(a, scene(shifted))
+    torch.testing.assert_close(moved, torch.tensor([1.0, 0.0], dtype=F64))
+    moved = scene.joint_motion(a, scene(rolled))
+    assert float(moved[0]) == 0.0 and float(moved[1]) > 1.0, moved
+
+
 def test_dof_index_and_unknown_names(model64):
     model = model64("hand_right")
     assert model.dof_index("root:rz") == 5

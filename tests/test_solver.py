@@ -160,3 +160,26 @@ def test_linear_problem_solves_in_both_dtypes(dtype):
     res = levenberg_marquardt(residuals, torch.zeros(1, 2, dtype=dtype), max_iterations=30)
     assert res.theta.dtype == dtype
     torch.testing.assert_close(res.theta[0], X_LIN.to(dtype), rtol=1e-4, atol=1e-4)
+
+
+def test_retries_end_an_iteration_with_an_accepted_step_and_reuse_the_jacobian():
+    """With a tiny damping the Gauss-Newton step on Rosenbrock from (-1.2, 1) is
+    rejected; with retries the same iteration tries again with more damping (one
+    Jacobian, several residual evaluations) until a step is accepted, and the problem
+    already at its minimum stays put."""
+    kinds = torch.tensor([ROSENBROCK, ROSENBROCK])
+    theta0 = torch.tensor([[-1.2, 1.0], [1.0, 1.0]], dtype=F64)
+    calls = []
+
+    def counted(theta, with_jacobian):
+        calls.append(with_jacobian)
+        return make_residuals(kinds)(theta, with_jacobian)
+
+    plain = levenberg_marquardt(counted, theta0, max_iterations=1, damping=1e-9)
+    assert plain.iterations.tolist() == [0, 0]  # rejected, no retry
+    calls.clear()
+    res = levenberg_marquardt(counted, theta0, max_iterations=1, damping=1e-9, retries=20)
+    assert calls.count(True) == 1 and calls.count(False) > 1
+    assert res.iterations.tolist() == [1, 0]
+    assert res.cost[0] < 24.2 and torch.equal(res.theta[1], theta0[1])  # 24.2: the cost at theta0
+    assert res.damping[0] > 1e-9

@@ -135,6 +135,24 @@ class Scene(nn.Module):
             raise TypeError(f"{name} has dtype {theta.dtype} but the scene is {m0.lower.dtype}")
         return theta
 
+    def joint_motion(self, a: SceneOutput, b: SceneOutput) -> torch.Tensor:
+        """(B,) mm: how far the models moved from pose ``a`` to pose ``b``, the largest
+        over the models of each model's mean displacement: of its joints (bone origins)
+        for a hand, the thesis' stopping measure (Ch. 4.3.1.4), and of its vertices
+        for an object, whose few bone origins miss its rotation (a ball's lies at its
+        centre). Per model, so that a small object's motion is not averaged away by
+        the hands'."""
+        moved = []
+        for m, ma, mb in zip(self.models, a.models, b.models):
+            if m.kind == "hand":
+                origin = m.rest_transforms[:, :3, 3]  # (J, 3) bone origins at rest
+                pa = (ma.G[..., :3, :3] @ origin[..., None])[..., 0] + ma.G[..., :3, 3]
+                pb = (mb.G[..., :3, :3] @ origin[..., None])[..., 0] + mb.G[..., :3, 3]
+            else:
+                pa, pb = ma.vertices, mb.vertices
+            moved.append((pb - pa).norm(dim=-1).mean(-1))
+        return torch.stack(moved, -1).amax(-1)
+
     # ----------------------------------------------------------------- posing
     def forward(self, theta: torch.Tensor, validate: bool = True) -> SceneOutput:
         """Pose every model. theta: (B, D) -> :class:`SceneOutput`."""

@@ -56,6 +56,7 @@ def levenberg_marquardt(
     damping: float | torch.Tensor = 1e-3,
     step_tolerance: float = 0.0,
     check_every: int = 5,
+    retries: int = 0,
 ) -> LMResult:
     """Minimise sum(r(theta)^2) for a batch of independent problems.
 
@@ -68,7 +69,13 @@ def levenberg_marquardt(
         step_tolerance: a problem converges when the largest |delta| of an accepted
             step falls below it (in theta units).
         check_every: the loop exits early once every problem has converged; this is
-            checked every ``check_every`` iterations (the only host synchronisation).
+            checked every ``check_every`` iterations.
+        retries: a rejected step is tried again with ten times the damping, up to
+            this many times within one iteration, reusing the residuals and the
+            Jacobian (theta has not moved); only the residuals at the new candidate
+            are evaluated. An iteration thus ends with an accepted step unless the
+            retries run out. With retries the loop synchronises with the host once per
+            retry, to stop retrying when every problem has accepted.
     Returns:
         :class:`LMResult`.
     """
@@ -84,16 +91,21 @@ def levenberg_marquardt(
     for it in range(max_iterations):
         if lower is not None or upper is not None:
             J = _freeze_active_bounds(J, r, theta, lower, upper)
-        delta = solve_damped(J, r, lam)
-        cand = _clamp(theta + delta, lower, upper)
-        r_new, _ = residuals(cand, False)
-        cost_new = (r_new * r_new).sum(-1)
-        accept = (cost_new < cost) & ~done
-        theta = torch.where(accept[:, None], cand, theta)
-        lam = torch.where(accept, lam * 0.1, torch.where(done, lam, lam * 10)).clamp(1e-9, 1e9)
-        iters = iters + accept.long()
-        done = done | (accept & (delta.abs().amax(-1) <= step_tolerance)) | (lam >= 1e9)
-        cost = torch.where(accept, cost_new, cost)
+        todo = ~done  # problems still looking for an acceptable step in this iteration
+        for attempt in range(retries + 1):
+            delta = solve_damped(J, r, lam)
+            cand = _clamp(theta + delta, lower, upper)
+            r_new, _ = residuals(cand, False)
+            cost_new = (r_new * r_new).sum(-1)
+            accept = (cost_new < cost) & todo
+            theta = torch.where(accept[:, None], cand, theta)
+            lam = torch.where(accept, lam * 0.1, torch.where(todo, lam * 10, lam)).clamp(1e-9, 1e9)
+            iters = iters + accept.long()
+            done = done | (accept & (delta.abs().amax(-1) <= step_tolerance)) | (lam >= 1e9)
+            cost = torch.where(accept, cost_new, cost)
+            todo = todo & ~accept & ~done
+            if attempt < retries and not bool(todo.any()):
+                break
         if (it + 1) % check_every == 0 and bool(done.all()):
             break
         if it + 1 < max_iterations:

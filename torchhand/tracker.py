@@ -1,7 +1,7 @@
 """The RGB-D tracker (thesis Ch. 4.2, Algorithm 1), batched over independent sequences.
 
-For every frame, starting from the previous frame's pose, repeat until the vertices
-move less than 0.2 mm or the iteration budget is spent: render the scene at the
+For every frame, starting from the previous frame's pose, repeat until the joints
+move less than 0.2 mm on average or the iteration budget is spent: render the scene at the
 current pose, find the correspondences of every energy term, and take a
 Levenberg-Marquardt step on the stacked residuals with the joint limits as box
 bounds. B sequences of the same scene are tracked as one batch: their frames are
@@ -33,7 +33,11 @@ class TrackerConfig:
     """energy: terms (``LO``); metric: m2d distance; inner_iterations: LM steps per
     correspondence update (1 = the thesis' alternation); max_iterations: per frame (the
     thesis' i_thr); first_frame_iterations: for frame 0 (50 in the thesis);
-    min_vertex_motion: mm, convergence when every vertex moves less in an iteration;
+    min_joint_motion: mm, convergence when the joints of every model move less than
+    this on average in an iteration (the thesis' criterion, 0.2 mm);
+    step_retries: a rejected LM step is retried with ten times the damping up to this
+    many times before the correspondences are renewed (the retries reuse them and
+    the Jacobian); a problem whose retries all fail has converged;
     recover_factor: a frame whose energy (per candidate correspondence, those
     without a correspondence charged min(distance, cut-off)^2) exceeds
     this multiple of the median of the previous frames is re-solved from ``recover_tries`` random
@@ -47,7 +51,8 @@ class TrackerConfig:
     inner_iterations: int = 1
     max_iterations: int = 50
     first_frame_iterations: int = 50
-    min_vertex_motion: float = 0.2
+    min_joint_motion: float = 0.2
+    step_retries: int = 4
     recover_factor: float = 4.0
     recover_tries: int = 4
     perturbation: float = 0.15
@@ -163,13 +168,16 @@ class Tracker:
         return fn
 
     def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[DepthFrame],
-              cameras: Sequence[Camera], iterations: int):
+              cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None):
         """Algorithm 1 for a batch: alternate correspondences and LM steps.
 
         The data pixels are labelled with the model ids rendered at the start pose
         and keep these labels for the frame (the models move a few mm within a frame,
         the labels reach ``label_radius`` px around them); visibility, silhouettes
         and correspondences are renewed in every iteration.
+
+        A problem stops when its joints moved less than ``min_motion`` mm (default
+        ``config.min_joint_motion``) in an iteration, or when no LM step was accepted.
 
         Returns (theta (B, D), iterations (B,), energy (B,)): the energy is per
         candidate correspondence, a candidate without a correspondence charged its
@@ -178,6 +186,7 @@ class Tracker:
         theta = start.clone()
         B = theta.shape[0]
         lower, upper = self.scene.lower, self.scene.upper
+        min_motion = self.config.min_joint_motion if min_motion is None else min_motion
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
         damping = theta.new_full((B,), 1e-3)
         energy = theta.new_zeros(B)
@@ -202,14 +211,16 @@ class Tracker:
                     t.prepare(state, count)
                 fn = self._residual_fn(state)
                 res = levenberg_marquardt(fn, state.theta, lower, upper,
-                                          max_iterations=self.config.inner_iterations, damping=damping[idx])
+                                          max_iterations=self.config.inner_iterations, damping=damping[idx],
+                                          retries=self.config.step_retries)
                 posed = fn.posed(res.theta)
-                moved = (posed.vertices - state.posed.vertices).norm(dim=-1).amax(-1)
+                moved = self.scene.joint_motion(state.posed, posed)
             theta[idx], damping[idx] = res.theta, res.damping
             energy[idx] = (res.cost + unmatched) / candidates.clamp_min(1)
             iters[idx] += 1
-            # a rejected step (the damping grew) moves nothing but is not convergence
-            going = (moved >= self.config.min_vertex_motion) | ((res.iterations == 0) & ~res.converged)
+            # a problem whose step was rejected after every retry moved nothing: the
+            # correspondences would not change, so it has converged
+            going = (moved >= min_motion) & (res.iterations > 0)
             if not bool(going.any()):  # one sync per outer iteration, next to a render
                 break
             if not bool(going.all()):
@@ -250,7 +261,9 @@ class Tracker:
             idx = torch.tensor(ok)
             cams = [cameras[b] for b in ok]
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
-            th, it, en = self.solve(previous[idx], previous[idx], frames, cams, n_it)
+            # the first frame refines a given initial pose: its whole budget is spent
+            # unless the solver stops accepting steps (the thesis' 50 iterations)
+            th, it, en = self.solve(previous[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
             counts = self._last_count.clone()
             if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
                 th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
