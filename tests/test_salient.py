@@ -3,6 +3,7 @@ input checks, training resume."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -365,3 +366,38 @@ def test_cli_refuses_overwrite_and_config_mismatch(tmp_path):
     cfg.write_text(json.dumps({"stepz": 5}))
     with pytest.raises(SystemExit, match=r"cfg\.json.*unknown config field.*stepz"):
         main(["--out", str(run), "--config", str(cfg)])
+
+
+def test_fingertips_the_sensor_does_not_measure_are_not_ground_truth():
+    """The visible area counts only pixels with a depth measurement: a hand nearer
+    than the Kinect's 400 mm range has no ground-truth fingertip, and masking the
+    sensed pixels masks the area."""
+    from torchhand.data.synth import demo_motion
+    from torchhand.render import render
+    from torchhand.salient.data import fingertip_faces, fingertip_targets, render_salient_frames
+
+    frames = demo_motion(frames=slice(30, 31))
+    scene, cam = frames.scene, frames.cameras[0]
+    with torch.no_grad():
+        V = scene(frames.theta.to(scene.lower.dtype)).vertices
+    res = render(V, scene.faces, cam.to(dtype=V.dtype), scene.face_model_id, scene.face_bone_id)
+    tips = fingertip_faces(scene)
+    full = fingertip_targets(V, res.face_id, cam.to(dtype=V.dtype), tips).area_mm2
+    assert int((full >= VISIBLE_MM2).sum()) >= 5
+    left = torch.zeros_like(res.face_id, dtype=torch.bool)
+    left[..., : cam.width // 2] = True
+    half = fingertip_targets(V, res.face_id, cam.to(dtype=V.dtype), tips, sensed=left).area_mm2
+    assert (half <= full).all() and float(half.sum()) < float(full.sum())
+    none = fingertip_targets(V, res.face_id, cam.to(dtype=V.dtype), tips, sensed=~torch.ones_like(left)).area_mm2
+    assert float(none.abs().sum()) == 0.0
+    with pytest.raises(ValueError, match="sensed"):
+        fingertip_targets(V, res.face_id, cam.to(dtype=V.dtype), tips, sensed=left[..., 1:])
+    # the same frame moved so that its farthest point is 390 mm from the camera: nothing in range
+    near = frames.theta.clone()
+    z_far = float(cam.to(dtype=V.dtype).to_camera(V)[..., 2].max())
+    axis = cam.T_cw[2, :3].to(near.dtype)  # the optical axis in the world frame
+    for sl in scene.slices.values():  # every model's global translation, towards the camera
+        near[:, sl.start : sl.start + 3] -= (z_far - 390.0) * axis
+    moved = dataclasses.replace(frames, theta=near)
+    out = render_salient_frames(moved, seed=0, background=False, progress=False)
+    assert (out.depth[0] > 0).mean() < 0.01 and float(out.area_mm2[0].max()) == 0.0, out.area_mm2

@@ -46,6 +46,11 @@ DEFAULT_HIA_ROOT = REPO.parent / "shared" / "data" / "hands_in_action"
 FOCAL_PX = 525.0  # the thesis camera; positive radius in px = radius_mm * f / z
 
 
+#: Version of the rendered frames: caches of another version are rendered again
+#: (2: the visible fingertip area counts only pixels with a sensor measurement).
+DATA_VERSION = 2
+
+
 @dataclass
 class TrainConfig:
     """Everything that determines a training run (``--config`` JSON overrides fields)."""
@@ -86,9 +91,10 @@ class TrainConfig:
     init_weights: str = ""
 
     def data_key(self) -> str:
-        d = {k: getattr(self, k) for k in ("train_sequences", "val_sequences", "sequence_frames",
+        d = {"version": DATA_VERSION}
+        d.update({k: getattr(self, k) for k in ("train_sequences", "val_sequences", "sequence_frames",
                                            "val_sequence_frames", "random_scenes", "random_frames",
-                                           "val_random_frames", "random_distance_mm", "data_seed", "val_seed")}
+                                           "val_random_frames", "random_distance_mm", "data_seed", "val_seed")})
         return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
 
 

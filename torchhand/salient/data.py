@@ -7,9 +7,12 @@ noise model (:mod:`torchhand.data.synth`, :mod:`torchhand.render`,
 Ground-truth fingertips (thesis Fig. 4.2 d-f): the centre of a fingertip is the mean of
 the posed vertices of its ``<finger>_tip`` vertex group, projected into the image. Its
 visibility is measured by the renderer: the area (mm^2, at the fingertip's depth) of
-the pixels whose ray hits a triangle of the group, ``n_pixels * (z / f)^2``. A fingertip
-with at least ``visible_mm2`` is a ground-truth point; one with less but at least one
-pixel is "barely visible" (ignored by the evaluation and by the training loss).
+the pixels whose ray hits a triangle of the group and where the sensor measured a
+depth, ``n_pixels * (z / f)^2``. A fingertip with at least ``visible_mm2`` is a
+ground-truth point; one with less but at least one pixel is "barely visible" (ignored
+by the evaluation and by the training loss). Pixels the sensor left invalid (nearer
+than the Kinect's 400 mm, in a projector shadow, at grazing angles) do not count: a
+fingertip that the depth frame does not show cannot be detected from it.
 """
 
 from __future__ import annotations
@@ -99,7 +102,8 @@ def fingertip_faces(scene: Scene) -> tuple:
     return index, mask, face_tip, names
 
 
-def fingertip_targets(vertices: torch.Tensor, face_id: torch.Tensor, camera: Camera, tips: tuple) -> FingertipTargets:
+def fingertip_targets(vertices: torch.Tensor, face_id: torch.Tensor, camera: Camera, tips: tuple,
+                      sensed: Optional[torch.Tensor] = None) -> FingertipTargets:
     """Projected fingertip centres and their visible area.
 
     Args:
@@ -107,6 +111,8 @@ def fingertip_targets(vertices: torch.Tensor, face_id: torch.Tensor, camera: Cam
         face_id: (B, H, W) ``RenderResult.face_id`` of the same frames (-1 = empty).
         camera: the camera the frames were rendered with.
         tips: :func:`fingertip_faces` of the scene.
+        sensed: (B, H, W) bool, the pixels with a valid depth measurement (e.g. the
+            noisy depth > 0); only these count towards the visible area. None: all.
     """
     index, mask, face_tip, _ = tips
     B, P = vertices.shape[0], index.shape[0]
@@ -119,6 +125,10 @@ def fingertip_targets(vertices: torch.Tensor, face_id: torch.Tensor, camera: Cam
     z = cam.to_camera(centre)[..., 2]
     fid = face_id.to(dev)
     tip_px = torch.where(fid >= 0, face_tip[fid.clamp_min(0)], torch.full_like(fid, -1))
+    if sensed is not None:
+        if sensed.shape != fid.shape:
+            raise ValueError(f"sensed has shape {tuple(sensed.shape)}, the renders {tuple(fid.shape)}")
+        tip_px = torch.where(sensed.to(dev), tip_px, torch.full_like(tip_px, -1))
     counts = vertices.new_zeros(B, P + 1)
     counts.scatter_add_(1, torch.where(tip_px >= 0, tip_px, P).flatten(1), torch.ones_like(tip_px, dtype=vertices.dtype).flatten(1))
     f = cam.K[0, 0]
@@ -209,7 +219,6 @@ def render_salient_frames(
             verts = scene(th).vertices
         camd = cam.to(dtype=verts.dtype)
         res = render(verts, scene.faces, camd, scene.face_model_id, scene.face_bone_id)
-        t = fingertip_targets(verts, res.face_id, camd, tips)
         depth = res.depth
         normals = res.normals
         if background:
@@ -221,6 +230,7 @@ def render_salient_frames(
             normals = None  # estimated from the composite depth by the noise model
         if params is not None:
             depth = apply_kinect_noise(depth, normals, camd.K.float(), params, generator=g)
+        t = fingertip_targets(verts, res.face_id, camd, tips, sensed=depth > 0)
         b = len(th)
         out_depth[s: s + b] = depth.round().clamp(0, 65535).cpu().numpy().astype(np.uint16)
         out_uv[s: s + b, :P] = t.uv.float().cpu().numpy()
