@@ -56,7 +56,7 @@ def main(argv=None) -> None:
     ap.add_argument("--iterations", type=int, default=10)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    ap.add_argument("--caps", default="2,3,5", help="comma-separated iteration caps for the speed-accuracy sweep ('' skips it)")
+    ap.add_argument("--caps", default="1,2,3,5", help="comma-separated iteration caps for the speed-accuracy sweep ('' skips it)")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations)
