@@ -401,3 +401,18 @@ def test_fingertips_the_sensor_does_not_measure_are_not_ground_truth():
     moved = dataclasses.replace(frames, theta=near)
     out = render_salient_frames(moved, seed=0, background=False, progress=False)
     assert (out.depth[0] > 0).mean() < 0.01 and float(out.area_mm2[0].max()) == 0.0, out.area_mm2
+
+
+def test_random_background_stays_behind_the_models_and_spheres_only_add_blobs():
+    from torchhand.salient.data import random_background
+
+    far = torch.tensor([500.0, 700.0, 900.0])
+    plain = random_background(far, 120, 160, torch.Generator().manual_seed(4))
+    blobs = random_background(far, 120, 160, torch.Generator().manual_seed(4), max_spheres=3, focal_px=200.0)
+    for bg in (plain, blobs):
+        assert bg.shape == (3, 120, 160)
+        assert ((bg == 0) | (bg >= far[:, None, None] + 20 - 1e-3)).all()
+    # the plane and boxes are the same draws; a sphere is only ever in front of them
+    changed = blobs != plain
+    assert changed.any()
+    assert ((blobs[changed] < plain[changed]) | (plain[changed] == 0)).all()

@@ -38,7 +38,8 @@ from tqdm import tqdm
 
 from torchhand.salient.data import (VISIBLE_MM2, SalientFrames, concat_frames, load_frames, render_salient_frames,
                                     save_frames)
-from torchhand.salient.detector import STRIDE, SalientConfig, SalientNet, detect_peaks, export_onnx
+from torchhand.salient.detector import (DEFAULT_MAX_DETECTIONS, DEFAULT_THRESHOLD, STRIDE, SalientConfig, SalientNet,
+                                        detect_peaks, export_onnx)
 from torchhand.salient.metrics import average_precision
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,6 +71,7 @@ class TrainConfig:
     random_distance_mm: List[float] = field(default_factory=lambda: [350.0, 850.0])
     data_seed: int = 1
     val_seed: int = 1001
+    background_spheres: int = 0  # distractor spheres per training background (at most)
     # --- network
     network: dict = field(default_factory=dict)  # SalientConfig fields
     # --- optimisation
@@ -94,7 +96,8 @@ class TrainConfig:
         d = {"version": DATA_VERSION}
         d.update({k: getattr(self, k) for k in ("train_sequences", "val_sequences", "sequence_frames",
                                            "val_sequence_frames", "random_scenes", "random_frames",
-                                           "val_random_frames", "random_distance_mm", "data_seed", "val_seed")})
+                                           "val_random_frames", "random_distance_mm", "data_seed", "val_seed",
+                                           "background_spheres")})
         return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -124,21 +127,21 @@ def load_config(path: Optional[Path]) -> TrainConfig:
 # ----------------------------------------------------------------------------- data
 
 
-def _sequence_frames(hia_root: Path, seq: str, n: int, seed: int) -> SalientFrames:
+def _sequence_frames(hia_root: Path, seq: str, n: int, seed: int, spheres: int = 0) -> SalientFrames:
     from torchhand.data.synth import thesis_motion
     from torchhand.io.thesis import sequence_models
 
     _, bounds = sequence_models(hia_root, seq)
     step = max(1, bounds.total_aligned // n)
     frames = thesis_motion(hia_root, seq, frames=slice(0, step * n, step), dtype=torch.float32)
-    return render_salient_frames(frames, seed=seed, progress=False)
+    return render_salient_frames(frames, seed=seed, progress=False, spheres=spheres)
 
 
-def _random_frames(scene: List[str], n: int, seed: int, distance) -> SalientFrames:
+def _random_frames(scene: List[str], n: int, seed: int, distance, spheres: int = 0) -> SalientFrames:
     from torchhand.data.synth import random_poses
 
     frames = random_poses(scene, n, seed=seed, distance=tuple(distance), dtype=torch.float32)
-    return render_salient_frames(frames, seed=seed, progress=False)
+    return render_salient_frames(frames, seed=seed, progress=False, spheres=spheres)
 
 
 def build_datasets(cfg: TrainConfig, hia_root: Path, cache: Path) -> tuple:
@@ -159,11 +162,12 @@ def build_datasets(cfg: TrainConfig, hia_root: Path, cache: Path) -> tuple:
     out = {}
     for split, js in (("train", jobs), ("val", val_jobs)):
         parts = []
+        spheres = cfg.background_spheres if split == "train" else 0  # validation as evaluated
         for kind, what, n, seed in tqdm(js, desc=f"render {split}", unit="set"):
             if kind == "seq":
-                parts.append(_sequence_frames(hia_root, what, n, seed))
+                parts.append(_sequence_frames(hia_root, what, n, seed, spheres))
             else:
-                parts.append(_random_frames(what, n, seed, cfg.random_distance_mm))
+                parts.append(_random_frames(what, n, seed, cfg.random_distance_mm, spheres))
         out[split] = concat_frames(parts)
         tmp = d / f"{split}.tmp.npz"
         save_frames(out[split], tmp)
@@ -271,15 +275,16 @@ def loss_fn(out, positive, weight, offset, cfg: TrainConfig) -> tuple:
 # ---------------------------------------------------------------------- validation
 
 
-def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = 0.5, batch: int = 8) -> float:
-    """VOC AP (10 px) of ``net`` on full frames of ``data``."""
+def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = DEFAULT_THRESHOLD, batch: int = 8) -> float:
+    """VOC AP (10 px) of ``net`` on full frames of ``data``, with the detector's peak
+    picking defaults (as ``eval/eval_salient.py`` measures it)."""
     was_training = net.training
     net.eval()
     dets_uv, dets_s, gts, igns = [], [], [], []
     with torch.no_grad():
         for s in range(0, len(data.depth), batch):
             x = torch.from_numpy(data.depth[s: s + batch].astype(np.float32))[:, None]
-            for b, d in enumerate(detect_peaks(net(x).hough, threshold=threshold, max_detections=30)):
+            for b, d in enumerate(detect_peaks(net(x).hough, threshold=threshold, max_detections=DEFAULT_MAX_DETECTIONS)):
                 f = s + b
                 dets_uv.append(d.uv.numpy())
                 dets_s.append(d.score.numpy())

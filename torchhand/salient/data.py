@@ -137,8 +137,9 @@ def fingertip_targets(vertices: torch.Tensor, face_id: torch.Tensor, camera: Cam
 
 
 def random_background(far_mm: torch.Tensor, height: int, width: int, generator: torch.Generator,
-                      p_plane: float = 0.7, max_boxes: int = 4) -> torch.Tensor:
-    """Random background depth behind the foreground: a tilted plane and boxes.
+                      p_plane: float = 0.7, max_boxes: int = 4, max_spheres: int = 0,
+                      focal_px: float = 525.0) -> torch.Tensor:
+    """Random background depth behind the foreground: a tilted plane, boxes and spheres.
 
     Everything lies at least 20 mm behind ``far_mm`` (the farthest foreground point
     of each frame), so it never occludes the rendered models.
@@ -147,6 +148,10 @@ def random_background(far_mm: torch.Tensor, height: int, width: int, generator: 
         far_mm: (B,) farthest foreground depth per frame.
         height, width: image size.
         generator: CPU generator (all draws are made on the CPU).
+        max_spheres: up to this many spheres of radius 10-40 mm per frame (rounded
+            blobs like fingertips: negatives for the detector); 0 draws nothing more,
+            so the other draws stay as without them.
+        focal_px: focal length of the camera, for the spheres' image size.
 
     Returns:
         (B, H, W) float32 depth (mm), 0 where there is no background.
@@ -177,6 +182,16 @@ def random_background(far_mm: torch.Tensor, height: int, width: int, generator: 
                   & (cols >= c0[:, None, None]) & (cols < (c0 + w)[:, None, None]))
         zb = (far + U(20.0, 400.0, B))[:, None, None] + U(-0.3, 0.3, B)[:, None, None] * (cols - c0[:, None, None])
         bg = torch.where(on & inside, torch.minimum(bg, zb.expand_as(bg)), bg)
+    if max_spheres > 0:
+        n_spheres = torch.randint(0, max_spheres + 1, (B,), generator=generator)
+        for k in range(max_spheres):
+            radius = U(10.0, 40.0, B)
+            zc = far + 20.0 + radius + U(0.0, 150.0, B)  # its front behind far + 20, mostly before the plane
+            uc, vc = U(0.0, width, B), U(0.0, height, B)
+            d2 = ((cols - uc[:, None, None]) ** 2 + (rows - vc[:, None, None]) ** 2) * (zc / focal_px)[:, None, None] ** 2
+            inside = (d2 < radius[:, None, None] ** 2) & (n_spheres > k)[:, None, None]
+            zs = zc[:, None, None] - (radius[:, None, None] ** 2 - d2).clamp_min(0).sqrt()
+            bg = torch.where(inside, torch.minimum(bg, zs), bg)
     return torch.where(torch.isfinite(bg), bg, torch.zeros_like(bg))
 
 
@@ -188,6 +203,7 @@ def render_salient_frames(
     batch_size: int = 8,
     progress: bool = True,
     max_tips: int = 10,
+    spheres: int = 0,
 ) -> SalientFrames:
     """Render depth frames with fingertip ground truth (see the module docstring).
 
@@ -198,6 +214,8 @@ def render_salient_frames(
         background: composite a :func:`random_background` behind the models.
         noise: sensor noise model name (:func:`torchhand.data.noise.noise_model`), or None.
         max_tips: P of the output arrays (10 = two hands).
+        spheres: at most this many distractor spheres in each background
+            (:func:`random_background`'s ``max_spheres``).
     """
     params = noise_model(noise) if noise is not None else None
     g = torch.Generator().manual_seed(seed)
@@ -224,7 +242,7 @@ def render_salient_frames(
         if background:
             far = torch.where(depth > 0, depth, torch.zeros_like(depth)).flatten(1).amax(1)
             far = torch.where(far > 0, far, torch.full_like(far, 600.0))
-            bg = random_background(far, H, W, g).to(depth.device)
+            bg = random_background(far, H, W, g, max_spheres=spheres, focal_px=float(cam.K[0, 0])).to(depth.device)
             hit = depth > 0
             depth = torch.where(hit, depth, bg)
             normals = None  # estimated from the composite depth by the noise model
