@@ -127,26 +127,30 @@ def test_frame_from_perturbed_pose_converges_to_the_truth(hand_frame):
 def test_a_rejected_step_is_retried_before_convergence(hand_frame, monkeypatch):
     """An outer iteration whose LM steps were all rejected moves nothing and ends the
     frame; the tracker therefore lets the solver retry a rejected step with more
-    damping first (``step_retries``), so that a frame started 4 mm off is not stopped
-    after its first iteration."""
+    damping (``step_retries``; the retry loop itself is tested in test_solver.py). Started
+    4 mm off with a tiny damping, every outer iteration but the last ends with an
+    accepted step and the frame converges."""
     import torchhand.tracker as tracker_module
 
     scene, theta, cam, depth = hand_frame
-    real, retries = tracker_module.levenberg_marquardt, []
+    real, accepted, kwargs_seen = tracker_module.levenberg_marquardt, [], []
 
     def spy(*args, **kwargs):
-        retries.append(kwargs["retries"])
-        return real(*args, **kwargs)
+        kwargs_seen.append(kwargs)
+        res = real(*args, **{**kwargs, "damping": torch.full_like(kwargs["damping"], 1e-9)})
+        accepted.append(int(res.iterations[0]))
+        return res
 
     monkeypatch.setattr(tracker_module, "levenberg_marquardt", spy)
     start = theta.clone()
     start[0, :3] += torch.tensor([3.0, -2.0, 3.0], dtype=F64)
-    res = Tracker(scene, TrackerConfig(max_iterations=6, first_frame_iterations=6)).track_frame(
-        [depth], [cam], start, first=True)
+    res = Tracker(scene, TrackerConfig(max_iterations=8, first_frame_iterations=8)).track_frame(
+        [depth], [cam], start)
     with torch.no_grad():
         err = float((scene(res.theta).keypoints - scene(theta).keypoints).norm(dim=-1).mean())
-    assert set(retries) == {TrackerConfig().step_retries} and TrackerConfig().step_retries > 0
-    assert int(res.iterations[0]) > 1 and err < 2.0, (int(res.iterations[0]), err)
+    assert all(k["retries"] == TrackerConfig().step_retries > 0 for k in kwargs_seen)
+    assert len(accepted) > 1 and all(a == 1 for a in accepted[:-1]), accepted
+    assert err < 2.0, err
 
 
 def test_batched_problems_are_independent(hand_frame):
