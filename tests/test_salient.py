@@ -74,6 +74,23 @@ def test_votes_match_reference():
     torch.testing.assert_close(got, _hough_reference(scores, offsets, 10, 12), rtol=1e-12, atol=1e-12)
 
 
+def test_votes_off_the_map_are_dropped():
+    # far outside on every side, on the last cell's centre, and just past either edge
+    scores = torch.ones(1, 1, 2, 3, dtype=torch.float64)
+    offsets = torch.zeros(1, 2, 2, 3, dtype=torch.float64)
+    offsets[0, :, 0, 0] = torch.tensor([-1e4, 0.0])
+    offsets[0, :, 0, 1] = torch.tensor([0.0, 1e4])
+    offsets[0, :, 0, 2] = torch.tensor([1e4, -1e4])
+    offsets[0, :, 1, 0] = torch.tensor([2 * 5 + 0.5 - 1.5, 2 * 3 + 0.5 - 5.5])  # lands on cell (3, 5)
+    offsets[0, :, 1, 1] = torch.tensor([-5.1, -3.0])  # 0.1 px left of cell (1, 0)'s centre
+    offsets[0, :, 1, 2] = torch.tensor([1.1, -3.0])  # 0.1 px right of cell (1, 5)'s centre
+    got = hough_votes(scores, offsets, 4, 6)
+    torch.testing.assert_close(got, _hough_reference(scores, offsets, 4, 6), rtol=1e-12, atol=1e-12)
+    assert got[0, 0, 3, 5] == 1.0
+    # the two edge votes lose the 5 % that falls off the map, the rest is dropped
+    torch.testing.assert_close(float(got.sum()), 2.9, rtol=0, atol=1e-6)  # offsets given in float32
+
+
 def test_zero_offsets_vote_at_cell_centre():
     scores = torch.zeros(1, 1, 6, 8, dtype=torch.float64)
     scores[0, 0, 2, 3] = 1.0

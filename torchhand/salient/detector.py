@@ -194,24 +194,27 @@ def hough_votes(scores: torch.Tensor, offsets: torch.Tensor, height: int, width:
     B, _, h, w = scores.shape
     jj = torch.arange(w, device=scores.device).to(scores.dtype)
     ii = torch.arange(h, device=scores.device).to(scores.dtype)
-    # Vote position in Hough cells: (pixel - 0.5) / 2.
-    hx = (jj[None, None, :] * STRIDE + 1.5 + offsets[:, 0] - 0.5) / HOUGH_STRIDE  # (B, h, w)
-    hy = (ii[None, :, None] * STRIDE + 1.5 + offsets[:, 1] - 0.5) / HOUGH_STRIDE
+    # Vote position in Hough cells, (pixel - 0.5) / 2, clamped to [-1, size]: a vote off
+    # the map then lands (with its full weight) on a one-cell border that is cropped
+    # away, which drops it exactly as the map's edge requires without a mask per corner.
+    hx = ((jj[None, None, :] * STRIDE + 1.0 + offsets[:, 0]) / HOUGH_STRIDE).clamp(-1, width)  # (B, h, w)
+    hy = ((ii[None, :, None] * STRIDE + 1.0 + offsets[:, 1]) / HOUGH_STRIDE).clamp(-1, height)
     x0 = torch.floor(hx)
     y0 = torch.floor(hy)
     fx = hx - x0
     fy = hy - y0
+    # bordered map: rows and columns -1 .. size + 1 (the "+ 1" takes the zero-weight
+    # corner of a vote clamped to the far edge)
+    Wb = width + 3
+    corner = ((y0 + 1) * Wb + (x0 + 1)).long().reshape(B, -1)
+    idx = torch.cat([corner, corner + 1, corner + Wb, corner + (Wb + 1)], 1)
     weight = scores[:, 0]
-    hough = scores.new_zeros(B, height * width)
-    for dy, wy in ((0, 1 - fy), (1, fy)):
-        for dx, wx in ((0, 1 - fx), (1, fx)):
-            cx = x0 + dx
-            cy = y0 + dy
-            inside = (cx >= 0) & (cx <= width - 1) & (cy >= 0) & (cy <= height - 1)
-            idx = (cy.clamp(0, height - 1) * width + cx.clamp(0, width - 1)).long()
-            val = torch.where(inside, weight * wx * wy, torch.zeros_like(weight))
-            hough = hough.scatter_add(1, idx.reshape(B, -1), val.reshape(B, -1))
-    return hough.reshape(B, 1, height, width)
+    wy = weight * (1 - fy)
+    wy1 = weight * fy
+    val = torch.cat([(wy * (1 - fx)).reshape(B, -1), (wy * fx).reshape(B, -1),
+                     (wy1 * (1 - fx)).reshape(B, -1), (wy1 * fx).reshape(B, -1)], 1)
+    hough = scores.new_zeros(B, (height + 3) * Wb).scatter_add(1, idx, val)
+    return hough.reshape(B, 1, height + 3, Wb)[:, :, 1:height + 1, 1:width + 1]
 
 
 def _gaussian_kernel(sigma: float) -> torch.Tensor:
