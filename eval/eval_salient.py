@@ -9,7 +9,8 @@ the training's validation split (not used for training) and random poses of two 
 and an object with a seed no training set uses. A detection is a true positive within
 10 px of a not yet matched visible fingertip (PASCAL VOC protocol, all-points
 interpolated AP; see ``docs/salient.md``). Speed is the ONNX Runtime session alone
-(``intra_op_num_threads`` = --threads) and the full ``detect`` call, on a rendered frame.
+(``intra_op_num_threads`` = --threads, and one thread next to it) and the full ``detect``
+call, on a rendered frame.
 Writes {"ap": a, "ort_fps_320x240": f, "ort_fps_640x480": g, "max_abs_diff": d, ...}.
 """
 
@@ -97,6 +98,9 @@ def main(argv=None) -> None:
         speed[f"ort_fps_{name}"] = 1.0 / t
         speed[f"ort_detect_fps_{name}"] = 1.0 / td
         speed[f"torch_detect_fps_{name}"] = 1.0 / tt
+        if args.threads != 1:  # the session alone on one core, side by side
+            one = SalientDetector.load_onnx(args.onnx, threads=1)
+            speed[f"ort_fps_{name}_1thread"] = 1.0 / median_seconds(lambda: one.run(x), args.repeats, warmup=10)
 
     # Parity on a size the graph was not exported with (export: 240x320).
     x = np.ascontiguousarray(frame[100:300, 150:446][None, None])  # 200x296

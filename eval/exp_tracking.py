@@ -4,6 +4,7 @@
     python eval/exp_tracking.py m2d --hia-root ../shared/data/hands_in_action --sequences 09,16 --frames 10 --work out/exp --json out/exp_m2d.json
     python eval/exp_tracking.py ablation --energies LO,LO+C --contact --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_c.json
     python eval/exp_tracking.py detector-quality --sequences 01,16 --rates 0,0.3,0.6,1 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_s_noise.json
+    python eval/exp_tracking.py rope --sequences 01 --hia-root ../shared/data/hands_in_action --frames 20 --work out/exp --json out/exp_rope.json
     python eval/exp_tracking.py d2m-weight --weights 1,0.25 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_d2m_weight.json
 
 ``lo``: every sequence with MOTION files is rendered with the kinect noise model
@@ -22,6 +23,11 @@ al. (2012, Sec. 5): the projected ground-truth fingertips that the renderer show
 outlier uniformly within 200 px, and every detection gets 5 px Gaussian jitter.
 These oracle detections are built from ``gt/`` by this script, outside the tracker,
 which still reads only the depth.
+``rope``: a thesis two-hand motion (``--sequences``, e.g. 01) with the articulated
+rope added over the hands and bending over time (:func:`rope_sequence`), rendered with
+each of ``--noises`` and tracked with LO; the hands are scored by their keypoints, the
+rope by the mean error of its 36 bone origins (its roll about its own axis, which a
+tube does not show, does not count).
 ``d2m-weight``: LO with several weights of the data-to-model term (``--weights``;
 the model-to-data weight stays 1), as ``lo`` otherwise.
 """
@@ -116,7 +122,7 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "") 
         print(tag or energy, results[-1])
     pooled = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                         for s, f in folders.items()])
-    return {"energy": energy, "sequences": results,
+    return {"energy": energy, "tag": tag or energy, "sequences": results,
             "overall": {k: pooled[k] for k in ("frames", "mean_px", "median_px", "mean_mm", "median_mm")},
             "track_seconds": elapsed, "tracker": summaries}
 
@@ -126,6 +132,68 @@ def run_lo(args) -> dict:
     res = track_and_score(args, folders, "LO")
     return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
             "iterations": args.iterations, **{k: v for k, v in res.items() if k != "energy"}}
+
+
+def rope_sequence(hia_root: Path, sequence: str, frames: int, work: Path, noise: str, bend: float):
+    """A thesis two-hand motion with the articulated rope added: its centroid 40 mm in
+    front of the hands' centroid (towards the camera), so both ends lie over the
+    hands, turned 0.3 rad in the image plane; each of its 35 joints bends by
+    ``bend`` x (its limit, at most 0.3 rad) x a sine travelling along the rope over time."""
+    import math
+
+    from torchhand.data.synth import SyntheticFrames
+
+    folder = work / f"rope_{sequence}_{noise}_{frames}_b{bend:g}"
+    if (folder / "gt" / "meta.json").is_file():
+        return folder
+    hands = thesis_motion(hia_root, sequence, slice(0, frames), dtype=torch.float32)
+    scene = Scene.from_names(list(hands.scene.names) + ["rope"], dtype=torch.float32)
+    theta = torch.zeros(len(hands.theta), scene.num_dofs)
+    for name in hands.scene.names:
+        theta[:, scene.slices[name]] = hands.theta[:, hands.scene.slices[name]]
+    rope, r = scene.models[-1], scene.slices["rope"]
+    with torch.no_grad():
+        centre = hands.scene(hands.theta).vertices.mean(1)
+    theta[:, r.start:r.start + 3] = centre + torch.tensor([0.0, 0.0, -40.0]) - rope.vertices_rest.mean(0)
+    theta[:, r.start + 5] = 0.3
+    lo, hi = scene.lower[r.start + 6:r.stop], scene.upper[r.start + 6:r.stop]
+    amp = bend * torch.minimum(hi, -lo).clamp(0, 0.3).nan_to_num(0)
+    t = torch.arange(len(theta), dtype=torch.float32)[:, None]
+    theta[:, r.start + 6:r.stop] = amp * torch.sin(0.15 * t + torch.linspace(0, 2 * math.pi, r.stop - r.start - 6))
+    fr = SyntheticFrames(scene, scene.clamp(theta), hands.cameras, f"rope_{sequence}",
+                         {"format": "thesis motion with a rope", "sequence": sequence, "bend": bend})
+    write_synthetic_sequence(fr, folder, noise=noise, seed=int(sequence), force=True, rgb=False)
+    return folder
+
+
+def run_rope(args) -> dict:
+    """Two hands and the rope: the hands scored by keypoints, the rope by its bone origins."""
+    rows = []
+    for noise in args.noises.split(","):
+        for s in _sequences(args):
+            folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
+            cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
+                                first_frame_iterations=args.iterations)
+            out = args.work / f"tracked_rope_{noise}"
+            t0 = time.perf_counter()
+            track_sequences([folder], out, cfg, force=True)
+            secs = time.perf_counter() - t0
+            tracked = out / read_sequence_info(folder).name
+            hands = evaluate_sequence(tracked, folder / "gt", with_penetration=False)
+            gt, pred = read_poses(folder / "gt"), read_poses(tracked)
+            scene = Scene.from_names(gt.models, dtype=torch.float64)
+            rope = scene.models[-1]
+            origin = rope.rest_transforms[:, :3, 3]
+            with torch.no_grad():
+                G = [scene(torch.as_tensor(p.theta, dtype=torch.float64)).models[-1].G for p in (gt, pred)]
+            joints = [(g[..., :3, :3] @ origin[..., None])[..., 0] + g[..., :3, 3] for g in G]
+            per_frame = (joints[0] - joints[1]).norm(dim=-1).mean(1).numpy()
+            rows.append({"sequence": s, "noise": noise, "hands_mean_px": hands["mean_px"], "hands_mean_mm": hands["mean_mm"],
+                         "rope_joint_mm_mean": float(per_frame.mean()), "rope_joint_mm_per_frame": per_frame.tolist(),
+                         "seconds_per_frame": secs / len(per_frame)})
+            print({k: v for k, v in rows[-1].items() if k != "rope_joint_mm_per_frame"})
+    return {"experiment": "two hands and the rope", "frames_per_sequence": args.frames, "bend": args.bend,
+            "iterations": args.iterations, "rows": rows}
 
 
 def run_d2m_weight(args) -> dict:
@@ -148,20 +216,25 @@ def run_ablation(args) -> dict:
             gt_penetration[s] = r.get("penetration")
     runs = []
     for e in args.energies.split(","):
-        if args.collision_weight is None or "C" not in e:
+        gc = args.collision_weight if "C" in e[2:] else None
+        cs = args.salient_min_score if "S" in e[2:] else None
+        if gc is None and cs is None:
             runs.append(track_and_score(args, folders, e))
             continue
 
-        def terms(e=e):
+        def terms(e=e, gc=gc, cs=cs):
             ts = parse_energy(e, args.metric)
             for t in ts:
-                if t.name == "collision":
-                    t.weight = args.collision_weight
+                if t.name == "collision" and gc is not None:
+                    t.weight = gc
+                if t.name == "salient" and cs is not None:
+                    t.min_score = cs
             return ts
-        runs.append(track_and_score(args, folders, e, terms, tag=f"{e.replace('+', '_')}_gc{args.collision_weight:g}"))
+        tag = e.replace("+", "_") + (f"_gc{gc:g}" if gc is not None else "") + (f"_cthr{cs:g}" if cs is not None else "")
+        runs.append(track_and_score(args, folders, e, terms, tag=tag))
     return {"experiment": "energy ablation on kinect renders", "frames_per_sequence": args.frames,
             "metric": args.metric, "iterations": args.iterations, "collision_weight": args.collision_weight,
-            "gt_penetration": gt_penetration, "runs": runs}
+            "salient_min_score": args.salient_min_score, "gt_penetration": gt_penetration, "runs": runs}
 
 
 def _depth_key(depth) -> str:
@@ -244,7 +317,7 @@ def run_m2d(args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("experiment", choices=["lo", "m2d", "ablation", "detector-quality", "d2m-weight"])
+    ap.add_argument("experiment", choices=["lo", "m2d", "ablation", "detector-quality", "d2m-weight", "rope"])
     ap.add_argument("--hia-root", type=Path, required=True)
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
@@ -259,12 +332,17 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default="1,0.25", help="d2m-weight: comma-separated data-to-model weights")
     ap.add_argument("--collision-weight", type=float, default=None,
                     help="ablation: gamma_c of the C term (default: the term's own, 10)")
+    ap.add_argument("--noises", default="kinect,none", help="rope: noise models to render with")
+    ap.add_argument("--bend", type=float, default=0.25, help="rope: bending amplitude (fraction of the limits)")
+    ap.add_argument("--salient-min-score", type=float, default=None,
+                    help="ablation: c_thr of the S term (default: the term's own)")
     ap.add_argument("--window", choices=["start", "contact"], default="start",
                     help="ablation, detector-quality: render from frame 0, or the window where the models touch most")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     result = {"lo": run_lo, "m2d": run_m2d, "ablation": run_ablation,
-              "detector-quality": run_detector_quality, "d2m-weight": run_d2m_weight}[args.experiment](args)
+              "detector-quality": run_detector_quality, "d2m-weight": run_d2m_weight,
+              "rope": run_rope}[args.experiment](args)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k not in ("tracker", "runs")}, indent=1)[:4000])
