@@ -90,6 +90,7 @@ def main(argv=None) -> None:
     # Speed on a rendered frame (640x480) and its 2x-subsampled version (320x240).
     frame = data.depth[0].astype(np.float32)
     speed = {}
+    one = SalientDetector.load_onnx(args.onnx, threads=1) if args.threads != 1 else None
     for name, img in (("320x240", frame[::2, ::2]), ("640x480", frame)):
         x = np.ascontiguousarray(img[None, None])
         t = median_seconds(lambda: ort_det.run(x), args.repeats, warmup=10)
@@ -98,8 +99,7 @@ def main(argv=None) -> None:
         speed[f"ort_fps_{name}"] = 1.0 / t
         speed[f"ort_detect_fps_{name}"] = 1.0 / td
         speed[f"torch_detect_fps_{name}"] = 1.0 / tt
-        if args.threads != 1:  # the session alone on one core, side by side
-            one = SalientDetector.load_onnx(args.onnx, threads=1)
+        if one is not None:  # the session alone on one core, side by side
             speed[f"ort_fps_{name}_1thread"] = 1.0 / median_seconds(lambda: one.run(x), args.repeats, warmup=10)
 
     # Parity on a size the graph was not exported with (export: 240x320).

@@ -169,12 +169,12 @@ def rope_sequence(hia_root: Path, sequence: str, frames: int, work: Path, noise:
 def run_rope(args) -> dict:
     """Two hands and the rope: the hands scored by keypoints, the rope by its bone origins."""
     rows = []
+    cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
+                        first_frame_iterations=args.iterations)
     for noise in args.noises.split(","):
         for s in _sequences(args):
             folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
-            cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
-                                first_frame_iterations=args.iterations)
-            out = args.work / f"tracked_rope_{noise}"
+            out = args.work / f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}"
             t0 = time.perf_counter()
             track_sequences([folder], out, cfg, force=True)
             secs = time.perf_counter() - t0
@@ -182,11 +182,9 @@ def run_rope(args) -> dict:
             hands = evaluate_sequence(tracked, folder / "gt", with_penetration=False)
             gt, pred = read_poses(folder / "gt"), read_poses(tracked)
             scene = Scene.from_names(gt.models, dtype=torch.float64)
-            rope = scene.models[-1]
-            origin = rope.rest_transforms[:, :3, 3]
             with torch.no_grad():
-                G = [scene(torch.as_tensor(p.theta, dtype=torch.float64)).models[-1].G for p in (gt, pred)]
-            joints = [(g[..., :3, :3] @ origin[..., None])[..., 0] + g[..., :3, 3] for g in G]
+                joints = [scene.models[-1].joints_from(scene(torch.as_tensor(p.theta, dtype=torch.float64)).models[-1].G)
+                          for p in (gt, pred)]
             per_frame = (joints[0] - joints[1]).norm(dim=-1).mean(1).numpy()
             rows.append({"sequence": s, "noise": noise, "hands_mean_px": hands["mean_px"], "hands_mean_mm": hands["mean_mm"],
                          "rope_joint_mm_mean": float(per_frame.mean()), "rope_joint_mm_per_frame": per_frame.tolist(),

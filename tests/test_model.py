@@ -62,6 +62,15 @@ def test_scene_joint_motion_is_the_mean_joint_shift_of_a_hand_and_sees_a_rolling
     assert float(moved[0]) == 0.0 and float(moved[1]) > 1.0, moved
 
 
+def test_joints_from_are_the_origins_of_the_posed_bone_frames(model64):
+    model = model64("rope")
+    theta = model.zero_pose(2)
+    theta[:, 6:] = 0.1 * torch.randn(2, model.num_dofs - 6, generator=torch.Generator().manual_seed(3), dtype=F64)
+    theta[1, :3] = torch.tensor([5.0, -2.0, 30.0], dtype=F64)
+    theta = model.clamp(theta)
+    torch.testing.assert_close(model.joints_from(model(theta).G), model.bone_transforms(theta)[..., :3, 3])
+
+
 def test_dof_index_and_unknown_names(model64):
     model = model64("hand_right")
     assert model.dof_index("root:rz") == 5

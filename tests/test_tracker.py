@@ -263,11 +263,6 @@ def test_label_data_equals_the_whole_image_transform():
     assert bool((empty == -1).all())
 
 
-def _bone_origins(model, out):
-    origin = model.rest_transforms[:, :3, 3]
-    return (out.G[..., :3, :3] @ origin[..., None])[..., 0] + out.G[..., :3, 3]
-
-
 def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose():
     # the articulated rope (36 bones, 76 DoF) bent gently below a hand, clean depth; the
     # first frame's budget (the thesis' 50 iterations) brings its joints back
@@ -293,6 +288,7 @@ def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose():
     res = tracker.track_frame([depth], [cam], start, first=True)
     assert bool(res.valid[0]) and torch.isfinite(res.theta).all()
     with torch.no_grad():
-        err0 = (_bone_origins(rope, scene(start).models[1]) - _bone_origins(rope, truth.models[1])).norm(dim=-1).mean()
-        err = (_bone_origins(rope, scene(res.theta).models[1]) - _bone_origins(rope, truth.models[1])).norm(dim=-1).mean()
+        joints = rope.joints_from(truth.models[1].G)
+        err0 = (rope.joints_from(scene(start).models[1].G) - joints).norm(dim=-1).mean()
+        err = (rope.joints_from(scene(res.theta).models[1].G) - joints).norm(dim=-1).mean()
     assert err0 > 15.0 and err < 1.0, (float(err0), float(err))  # measured: 19.7 -> 0.24 mm

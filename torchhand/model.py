@@ -185,6 +185,11 @@ class ArticulatedModel(nn.Module):
         Gk = G[:, self.keypoint_bones]
         return (Gk[..., :3, :3] @ self.keypoint_rest[..., None])[..., 0] + Gk[..., :3, 3]
 
+    def joints_from(self, G: torch.Tensor) -> torch.Tensor:
+        """(..., J, 4, 4) -> (..., J, 3) posed bone origins (the joint positions)."""
+        origin = self.rest_transforms[:, :3, 3]
+        return (G[..., :3, :3] @ origin[..., None])[..., 0] + G[..., :3, 3]
+
     def bone_transforms(self, theta: torch.Tensor) -> torch.Tensor:
         """World bone frames T_j(theta) = G_j T_j(0): (B, J, 4, 4), as in MOTION files."""
         return self.kinematics(self.check_theta(theta)).G @ self.rest_transforms

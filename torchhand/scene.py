@@ -145,9 +145,7 @@ class Scene(nn.Module):
         moved = []
         for m, ma, mb in zip(self.models, a.models, b.models):
             if m.kind == "hand":
-                origin = m.rest_transforms[:, :3, 3]  # (J, 3) bone origins at rest
-                pa = (ma.G[..., :3, :3] @ origin[..., None])[..., 0] + ma.G[..., :3, 3]
-                pb = (mb.G[..., :3, :3] @ origin[..., None])[..., 0] + mb.G[..., :3, 3]
+                pa, pb = m.joints_from(ma.G), m.joints_from(mb.G)
             else:
                 pa, pb = ma.vertices, mb.vertices
             moved.append((pb - pa).norm(dim=-1).mean(-1))
