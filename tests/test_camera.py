@@ -14,8 +14,10 @@ from torchhand.camera import (
     Camera,
     CameraRig,
     PluckerRays,
+    _max_filter_3x3,
     depth_to_normals,
     depth_to_points,
+    depth_to_points_and_normals,
     kinect_camera,
     pixel_rays,
     point_to_ray_residual,
@@ -115,6 +117,32 @@ def test_depth_to_points_matches_reference(gen):
     # Batched K gives the same result.
     torch.testing.assert_close(depth_to_points(depth, K.expand(2, 3, 3)), points)
 
+
+def test_points_and_normals_match_kornia(gen):
+    """The shared back-projection gives depth_to_points and kornia's Sobel normals
+    (flipped towards the camera, zero next to invalid pixels)."""
+    import kornia.geometry.depth as kd
+
+    depth = torch.rand(2, 20, 30, generator=gen, dtype=torch.float64) * 50 + 500
+    depth[0, 4:8, 10:15] = 0.0
+    depth[1, 12, 3] = float("nan")
+    K = torch.tensor([[300.0, 0.0, 14.5], [0.0, 300.0, 9.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    points, normals = depth_to_points_and_normals(depth, K)
+    torch.testing.assert_close(points, depth_to_points(depth, K), rtol=0, atol=0)
+    torch.testing.assert_close(normals, depth_to_normals(depth, K), rtol=0, atol=0)
+    clean = torch.where(depth > 0, depth, 0.0)
+    ref = -kd.depth_to_normals(clean[:, None], K.expand(2, 3, 3)).permute(0, 2, 3, 1)
+    bad = torch.nn.functional.max_pool2d((~(depth > 0))[:, None].double(), 3, 1, 1)[:, 0] > 0
+    torch.testing.assert_close(normals[~bad], ref[~bad], rtol=0, atol=1e-12)
+    assert (normals[bad] == 0).all() and bool(bad[0, 3:9, 9:16].all()) and bool(bad[1, 11:14, 2:5].all())
+
+
+def test_max_filter_equals_max_pool(gen):
+    x = torch.randn(3, 17, 23, generator=gen)
+    x[0, 0, 0], x[1, 5, 5] = float("inf"), float("-inf")
+    expected = torch.nn.functional.max_pool2d(x[:, None], 3, 1, 1)[:, 0]
+    assert torch.equal(_max_filter_3x3(x), expected)
+    assert torch.equal(_max_filter_3x3(x[:, :1, :1]), x[:, :1, :1])
 
 def test_depth_to_normals_tilted_plane():
     # Plane z = 500 + 0.5 x (camera frame): normal (0.5, 0, -1)/|.| towards the camera.

@@ -6,7 +6,16 @@ from typing import Optional
 
 import torch
 
-__all__ = ["vertex_faces", "vertex_normals", "is_closed_outward"]
+__all__ = ["face_corners", "vertex_faces", "vertex_normals", "is_closed_outward"]
+
+
+def face_corners(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(B, F, 3, 3): the corners of every face, from (B, V, 3) vertices and (F, 3) faces.
+
+    One ``index_select`` on the flattened faces; on CPU it is about 4x faster than
+    ``vertices[:, faces]`` (advanced indexing), with the same result.
+    """
+    return vertices.index_select(1, faces.reshape(-1)).view(vertices.shape[0], faces.shape[0], 3, 3)
 
 
 def vertex_faces(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
@@ -38,7 +47,7 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
     Returns:
         (B, V, 3), or (B, N, 3) with ``ids``.
     """
-    tri = vertices[:, faces]  # (B, F, 3, 3)
+    tri = face_corners(vertices, faces)
     fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])  # twice the area
     if ids is None:
         n = torch.zeros_like(vertices)
@@ -48,10 +57,11 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
         if ring is None:
             raise ValueError("vertex_normals with ids needs ring=vertex_faces(faces, V)")
         fn = torch.cat([fn, fn.new_zeros(fn.shape[0], 1, 3)], 1)  # the ring's pad face: zero
-        r = ring[ids]  # ([B,] N, R)
-        if r.dim() == 2:
-            n = fn[:, r].sum(-2)
+        if ids.dim() == 1:  # index_select: see face_corners
+            r = ring.index_select(0, ids)  # (N, R)
+            n = fn.index_select(1, r.reshape(-1)).view(fn.shape[0], *r.shape, 3).sum(-2)
         else:
+            r = ring[ids]  # (B, N, R)
             n = fn[torch.arange(fn.shape[0], device=fn.device)[:, None, None], r].sum(-2)
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 

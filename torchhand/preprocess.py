@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from .camera import Camera, depth_to_normals, depth_to_points
+from .camera import Camera, depth_to_points_and_normals
 
 __all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError"]
 
@@ -129,8 +129,8 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     points = torch.zeros(H, W, 3, dtype=dtype, device=device)
     normals = torch.zeros(H, W, 3, dtype=dtype, device=device)
     full_depth[r0:r1, c0:c1] = dt
-    points[r0:r1, c0:c1] = depth_to_points(dt[None], K)[0]
-    normals[r0:r1, c0:c1] = depth_to_normals(dt[None], K)[0]
+    p, n = depth_to_points_and_normals(dt[None], K)
+    points[r0:r1, c0:c1], normals[r0:r1, c0:c1] = p[0], n[0]
     return DepthFrame(full_depth, torch.as_tensor(valid_full, device=device), points, normals,
                       torch.as_tensor(rc + [r0, c0], dtype=torch.int64, device=device).reshape(-1, 2),
                       torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device),

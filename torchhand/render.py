@@ -18,7 +18,8 @@ import open3d as o3d
 import torch
 import torch.nn.functional as F
 
-from torchhand.camera import Camera, _check_tensor, _fmt_shape, _transform, project_points
+from torchhand.camera import Camera, _check_tensor, _fmt_shape, _max_filter_3x3, _transform, project_points
+from torchhand.mesh import face_corners
 
 __all__ = ["RenderResult", "render", "silhouette_edges", "visible_vertices", "DEFAULT_EDGE_THRESHOLD_MM"]
 
@@ -59,7 +60,7 @@ def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESH
     A pixel is an edge if it is foreground (depth > 0) and one of its 8 neighbours is
     background or farther away by more than ``threshold``; i.e. only the near
     (occluding) side of a discontinuity is marked. Implemented as a torch morphological
-    comparison: a flat 3x3 grey-scale dilation (``max_pool2d``) of the depth map with
+    comparison: a flat 3x3 grey-scale dilation of the depth map with
     background set to +inf. Pixels outside the image do not count as background.
 
     Args:
@@ -72,8 +73,8 @@ def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESH
     _check_tensor("depth", depth, (None, None, None), "(B, H, W)", exact_ndim=True)
     foreground = depth > 0
     far = torch.where(foreground, depth, torch.full_like(depth, float("inf")))
-    # max_pool2d pads with -inf, so the image border is not mistaken for background.
-    neighbour_max = F.max_pool2d(far[:, None], kernel_size=3, stride=1, padding=1)[:, 0]
+    # the filter pads with -inf, so the image border is not mistaken for background.
+    neighbour_max = _max_filter_3x3(far)
     return foreground & (neighbour_max - depth > threshold)
 
 
@@ -107,22 +108,21 @@ def _rays_for(camera: Camera) -> np.ndarray:
     return _camera_rays(key)
 
 
-def _regions_of_interest(vertices: torch.Tensor, camera: Camera) -> list:
+def _regions_of_interest(pc: torch.Tensor, camera: Camera) -> list:
     """Per batch element, the pixel box (r0, r1, c0, c1) that can contain hits.
 
-    The bounding box of the projected vertices, widened by 2 px; the whole image when
-    some vertex lies at or behind the camera plane (its projection is unbounded).
+    ``pc``: (B, V, 3) camera-frame vertices. The bounding box of their projections,
+    widened by 2 px; the whole image when some vertex lies at or behind the camera
+    plane (its projection is unbounded).
     """
-    cam = camera.to(device=vertices.device, dtype=vertices.dtype)
-    pc = cam.to_camera(vertices)
     z = pc[..., 2]
     safe = torch.where((z > 1e-3)[..., None], pc, pc.new_tensor([0.0, 0.0, 1.0]))
-    uv = project_points(safe, cam.K)
+    uv = project_points(safe, camera.K.to(pc))
     lo = (uv.amin(1).floor() - 2).cpu().numpy()
     hi = (uv.amax(1).ceil() + 3).cpu().numpy()
     behind = (z.amin(1) <= 1e-3).cpu().numpy()
     out = []
-    for b in range(vertices.shape[0]):
+    for b in range(pc.shape[0]):
         if behind[b]:
             out.append((0, camera.height, 0, camera.width))
             continue
@@ -197,7 +197,8 @@ def render(
 
     H, W = camera.height, camera.width
     device = vertices.device
-    per_problem = _regions_of_interest(vertices, camera) if num_faces > 0 else [(0, 0, 0, 0)] * B
+    v_cam = _transform(camera.T_cw.to(vertices), vertices)  # (B, V, 3); the camera is the origin
+    per_problem = _regions_of_interest(v_cam, camera) if num_faces > 0 else [(0, 0, 0, 0)] * B
     rois = [r for r in per_problem if r[1] > r[0] and r[3] > r[2]]  # empty: nothing projects into the image
     # Every per-pixel output is computed on the union of the regions of interest (all
     # pixels outside it are empty) and pasted into the full image at the end.
@@ -212,7 +213,7 @@ def render(
         verts_np = np.ascontiguousarray(vertices.to("cpu", torch.float32).numpy())
         faces_np = faces.cpu().numpy().astype(np.uint32)
         faces_o3d = o3d.core.Tensor(faces_np)
-        front = _front_faces(vertices, faces, camera) if cull_back_faces else None
+        front = _front_faces(v_cam, faces) if cull_back_faces else None
         # open3d builds one BVH per scene, so each batch element needs its own scene.
         for b, (b0, b1, d0, d1) in enumerate(per_problem):
             if b1 <= b0 or d1 <= d0:
@@ -241,9 +242,9 @@ def render(
     face_id = torch.where(hit_mask, torch.from_numpy(prim.astype(np.int64)).to(device), empty)
     if rois:
         safe_id = face_id.clamp(min=0)
-        model_id = torch.where(hit_mask, model_ids[safe_id], empty)
-        bone_id = torch.where(hit_mask, bone_ids[safe_id], empty)
-        pixel_normals = _pixel_normals(vertices, faces, camera, face_id, hit_mask) if normals else None
+        model_id = torch.where(hit_mask, model_ids.take(safe_id), empty)  # take: a flat gather, faster than [ ]
+        bone_id = torch.where(hit_mask, bone_ids.take(safe_id), empty)
+        pixel_normals = _pixel_normals(v_cam, faces, face_id, hit_mask) if normals else None
     else:
         model_id = torch.full_like(face_id, -1)
         bone_id = torch.full_like(face_id, -1)
@@ -259,10 +260,10 @@ def render(
                         _paste(barycentric, box, H, W, 0))
 
 
-def _front_faces(vertices: torch.Tensor, faces: torch.Tensor, camera: Camera) -> np.ndarray:
-    """(B, F) bool: faces whose front (counter-clockwise) side, or edge, faces the camera."""
-    T = camera.T_cw.to(device=vertices.device, dtype=vertices.dtype)
-    tri = _transform(T, vertices)[:, faces]  # camera frame: the camera is the origin
+def _front_faces(v_cam: torch.Tensor, faces: torch.Tensor) -> np.ndarray:
+    """(B, F) bool: faces whose front (counter-clockwise) side, or edge, faces the camera
+    (``v_cam``: camera-frame vertices)."""
+    tri = face_corners(v_cam, faces)
     n = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1)
     return ((n * tri[:, :, 0]).sum(-1) <= 0).cpu().numpy()
 
@@ -274,13 +275,10 @@ def _paste(crop: torch.Tensor, box: tuple, H: int, W: int, fill) -> torch.Tensor
     return out
 
 
-def _pixel_normals(
-    vertices: torch.Tensor, faces: torch.Tensor, camera: Camera, face_id: torch.Tensor, hit_mask: torch.Tensor
-) -> torch.Tensor:
-    """(B, H, W, 3) float32 camera-frame face normals facing the camera, 0 where empty."""
-    T = camera.T_cw.to(device=vertices.device, dtype=vertices.dtype)
-    v_cam = _transform(T, vertices)  # (B, V, 3)
-    tri = v_cam[:, faces]  # (B, F, 3, 3)
+def _pixel_normals(v_cam: torch.Tensor, faces: torch.Tensor, face_id: torch.Tensor, hit_mask: torch.Tensor) -> torch.Tensor:
+    """(B, H, W, 3) float32 camera-frame face normals facing the camera, 0 where empty
+    (``v_cam``: camera-frame vertices)."""
+    tri = face_corners(v_cam, faces)  # (B, F, 3, 3)
     n = F.normalize(torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1), dim=-1)
     # The camera sits at the origin: a plane faces it iff n . v0 < 0, the same for every point on it.
     facing = (n * tri[:, :, 0]).sum(-1, keepdim=True)
@@ -317,9 +315,10 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     if face_id.numel() > 0 and int(face_id.max()) >= num_faces:
         raise ValueError(f"render_result.face_id references face {int(face_id.max())} but faces has {num_faces} rows")
     faces = faces.long().to(face_id.device)
-    hit = (face_id >= 0).flatten(1)
-    b_idx = torch.arange(B, device=face_id.device)[:, None].expand_as(hit)[hit]
-    f_idx = face_id.flatten(1)[hit]  # a face once per pixel it covers
+    # the faces hit by a pixel, then their corners
+    hit_faces = face_id.new_zeros(B, num_faces, dtype=torch.bool)
     visible = face_id.new_zeros(B, num_vertices, dtype=torch.bool)
-    visible[b_idx[:, None], faces[f_idx]] = True
+    for b in range(B):
+        hit_faces[b].index_fill_(0, face_id[b].masked_select(face_id[b] >= 0), True)
+        visible[b, faces[hit_faces[b]].reshape(-1)] = True
     return visible

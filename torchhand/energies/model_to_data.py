@@ -82,7 +82,11 @@ class ModelToData(EnergyTerm):
                     continue
                 pts_w, nrm_w, tree = data
                 V = state.posed.vertices[b, vis[k][b]]
-                dist, j = tree.query(V.detach().cpu().numpy(), k=1)
+                # the search stops at the cut-off: pairs beyond it are rejected anyway
+                # (scipy then returns d = inf and j = the number of points)
+                dist, j = tree.query(V.detach().cpu().numpy(), k=1, distance_upper_bound=self.max_distance)
+                far = ~np.isfinite(dist)
+                dist[far], j[far] = 2 * self.max_distance, 0
                 j = torch.as_tensor(j, device=dev)
                 X, nX = pts_w[j], nrm_w[j]
                 nV = nrm[k][b]
@@ -99,17 +103,25 @@ class ModelToData(EnergyTerm):
     def _data_points(self, state: TrackState, b: int, k: int):
         """(points, normals, KD-tree) of the data pixels labelled k in problem b, world
         frame; None when there are none. Reused while frame and labels are unchanged."""
-        frame, camera, sel = state.frames[b], state.cameras[b], state.data_labels[b] == k
+        frame, camera, labels = state.frames[b], state.cameras[b], state.data_labels
         hit = self._data.get((id(frame), k))
-        if hit is not None and hit[0] is frame and hit[1] is camera and torch.equal(hit[2], sel):
-            return hit[3]
+        if hit is not None and hit[0] is frame and hit[1] is camera:
+            if hit[4] is labels and hit[5] == b:  # the same label map: no comparison needed
+                return hit[3]
+            sel = labels[b] == k
+            if torch.equal(hit[2], sel):
+                self._data[(id(frame), k)] = (*hit[:4], labels, b)
+                return hit[3]
+        else:
+            sel = labels[b] == k
         data = None
         if bool(sel.any()):
             T_wc = camera.T_wc.to(state.theta)
             pts_w = frame.points[sel] @ T_wc[:3, :3].T + T_wc[:3, 3]
             nrm_w = frame.normals[sel] @ T_wc[:3, :3].T
-            data = (pts_w, nrm_w, cKDTree(pts_w.detach().cpu().numpy()))
-        self._data[(id(frame), k)] = (frame, camera, sel, data)
+            # an unbalanced tree builds in about two thirds of the time and queries as fast
+            data = (pts_w, nrm_w, cKDTree(pts_w.detach().cpu().numpy(), balanced_tree=False))
+        self._data[(id(frame), k)] = (frame, camera, sel, data, labels, b)
         return data
 
     def _bone_inliers(self, d, bone, keep, J):
