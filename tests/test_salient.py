@@ -146,6 +146,24 @@ def test_detect_peaks_nms_threshold_topk():
         detect_peaks(h[0])
 
 
+
+def test_logits_rescore_the_peaks():
+    """With the score logits, a detection's score is its Hough value times the squared
+    probability of the score cell under it, and the detections are re-sorted."""
+    h = torch.zeros(1, 1, 20, 20, dtype=torch.float64)
+    h[0, 0, 5, 5] = 5.0  # pixel (10.5, 10.5): score cell (2, 2), centred on (9.5, 9.5)
+    h[0, 0, 15, 15] = 3.0  # pixel (30.5, 30.5): score cell (7, 7), centred on (29.5, 29.5)
+    logits = torch.full((1, 1, 10, 10), -8.0, dtype=torch.float64)
+    logits[0, 0, 2, 2] = 0.0  # p = 0.5
+    logits[0, 0, 7, 7] = 8.0  # p ~ 1
+    plain = detect_peaks(h, threshold=2.0, nms_radius=2)[0]
+    det = detect_peaks(h, threshold=2.0, nms_radius=2, logits=logits)[0]
+    torch.testing.assert_close(det.uv, plain.uv.flip(0))
+    p = torch.sigmoid(torch.tensor(8.0, dtype=torch.float64))
+    torch.testing.assert_close(det.score, torch.stack([3.0 * p ** 2, torch.tensor(5.0 * 0.25, dtype=torch.float64)]))
+    with pytest.raises(ValueError, match=r"logits must be a tensor of shape \(1, 1, 10, 10\)"):
+        detect_peaks(h, logits=logits[:, :, :5])
+
 # ---------------------------------------------------------------------------- AP
 
 

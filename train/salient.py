@@ -284,7 +284,9 @@ def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = DEFAULT
     with torch.no_grad():
         for s in range(0, len(data.depth), batch):
             x = torch.from_numpy(data.depth[s: s + batch].astype(np.float32))[:, None]
-            for b, d in enumerate(detect_peaks(net(x).hough, threshold=threshold, max_detections=DEFAULT_MAX_DETECTIONS)):
+            out = net(x)
+            for b, d in enumerate(detect_peaks(out.hough, threshold=threshold, max_detections=DEFAULT_MAX_DETECTIONS,
+                                               logits=out.logits)):
                 f = s + b
                 dets_uv.append(d.uv.numpy())
                 dets_s.append(d.score.numpy())
