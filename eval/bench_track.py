@@ -57,10 +57,16 @@ def main(argv=None) -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     ap.add_argument("--caps", default="1,2,3,5", help="comma-separated iteration caps for the speed-accuracy sweep ('' skips it)")
+    ap.add_argument("--prediction", type=float, default=0.0, help="TrackerConfig.prediction (1: constant-velocity start)")
+    ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
+                    help="extrapolate the last step as it is (TrackerConfig.prediction_limiter=False)")
     args = ap.parse_args(argv)
     set_threads(args.threads)
-    cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations)
-    result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, **machine()}
+    cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations,
+                        prediction=args.prediction, prediction_limiter=args.prediction_limiter)
+    result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, "prediction": cfg.prediction,
+              "prediction_limiter": cfg.prediction_limiter,
+              **machine()}
     caps = [int(c) for c in args.caps.split(",") if c.strip()]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -103,12 +103,20 @@ def _sequences(args):
     return seqs
 
 
+def _prediction_suffix(args) -> str:
+    """Output folders of runs with a motion prediction are kept apart from those without."""
+    if not args.prediction:
+        return ""
+    return f"_pred{args.prediction:g}" + ("" if args.prediction_limiter else "_plain")
+
+
 def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "") -> dict:
     """Track the rendered sequences with one energy (or the terms of ``make_terms``,
     ``tag`` naming the run) and score them."""
     cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
-                        first_frame_iterations=args.iterations)
-    out = args.work / f"tracked_{tag or energy.replace('+', '_')}"
+                        first_frame_iterations=args.iterations, prediction=args.prediction,
+                        prediction_limiter=args.prediction_limiter)
+    out = args.work / f"tracked_{tag or energy.replace('+', '_')}{_prediction_suffix(args)}"
     t0 = time.perf_counter()
     summaries = track_sequences(list(folders.values()), out, cfg, force=True, make_terms=make_terms)
     elapsed = time.perf_counter() - t0
@@ -122,7 +130,8 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "") 
         print(tag or energy, results[-1])
     pooled = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                         for s, f in folders.items()])
-    return {"energy": energy, "tag": tag or energy, "sequences": results,
+    return {"energy": energy, "tag": tag or energy, "prediction": args.prediction,
+            "prediction_limiter": args.prediction_limiter, "sequences": results,
             "overall": {k: pooled[k] for k in ("frames", "mean_px", "median_px", "mean_mm", "median_mm")},
             "track_seconds": elapsed, "tracker": summaries}
 
@@ -170,11 +179,12 @@ def run_rope(args) -> dict:
     """Two hands and the rope: the hands scored by keypoints, the rope by its bone origins."""
     rows = []
     cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
-                        first_frame_iterations=args.iterations)
+                        first_frame_iterations=args.iterations, prediction=args.prediction,
+                        prediction_limiter=args.prediction_limiter)
     for noise in args.noises.split(","):
         for s in _sequences(args):
             folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
-            out = args.work / f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}"
+            out = args.work / f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}{_prediction_suffix(args)}"
             t0 = time.perf_counter()
             track_sequences([folder], out, cfg, force=True)
             secs = time.perf_counter() - t0
@@ -191,7 +201,8 @@ def run_rope(args) -> dict:
                          "seconds_per_frame": secs / len(per_frame)})
             print({k: v for k, v in rows[-1].items() if k != "rope_joint_mm_per_frame"})
     return {"experiment": "two hands and the rope", "frames_per_sequence": args.frames, "bend": args.bend,
-            "iterations": args.iterations, "rows": rows}
+            "iterations": args.iterations, "prediction": args.prediction,
+            "prediction_limiter": args.prediction_limiter, "rows": rows}
 
 
 def run_d2m_weight(args) -> dict:
@@ -332,6 +343,10 @@ def main(argv=None) -> int:
                     help="ablation: gamma_c of the C term (default: the term's own, 10)")
     ap.add_argument("--noises", default="kinect,none", help="rope: noise models to render with")
     ap.add_argument("--bend", type=float, default=0.25, help="rope: bending amplitude (fraction of the limits)")
+    ap.add_argument("--prediction", type=float, default=0.0,
+                    help="TrackerConfig.prediction: start each frame from the extrapolated pose (1 = constant velocity)")
+    ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
+                    help="extrapolate the last step as it is (TrackerConfig.prediction_limiter=False)")
     ap.add_argument("--salient-min-score", type=float, default=None,
                     help="ablation: c_thr of the S term (default: the term's own)")
     ap.add_argument("--window", choices=["start", "contact"], default="start",

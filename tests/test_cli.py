@@ -188,6 +188,13 @@ def test_track_unknown_energy(synth_out, tmp_path, capsys):
     assert not out.exists()
 
 
+
+def test_track_negative_prediction(synth_out, tmp_path, capsys):
+    out = tmp_path / "track"
+    assert main(["track", str(synth_out), "--out", str(out), "--prediction", "-1"]) == 2
+    assert "prediction" in capsys.readouterr().err
+    assert not out.exists()
+
 def test_parser_defaults():
     args = build_parser().parse_args(["synth", "--random", "--out", "x", "--frames", "3:7"])
     assert args.frames == slice(3, 7) and args.noise == "kinect" and args.seed == 0 and args.models == "hand_right"

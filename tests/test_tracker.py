@@ -15,7 +15,7 @@ from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization
 from torchhand.evaluation import evaluate_sequence
 from torchhand.render import render
 from torchhand.scene import Scene
-from torchhand.tracker import Tracker, TrackerConfig, track_sequences
+from torchhand.tracker import Tracker, TrackerConfig, predicted_start, track_sequences
 
 SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "sample"
 F64 = torch.float64
@@ -237,6 +237,53 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     with pytest.raises(FileExistsError):
         track_sequences([seq], out, cfg, progress=False)
 
+
+
+def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypatch):
+    """With prediction p, frame f >= 2 starts from theta_{f-1} + p (theta_{f-1} - theta_{f-2}),
+    clamped, while the previous pose stays the regularisation reference; p = 0 passes
+    no start (the thesis' initialisation)."""
+    seq = tmp_path / "seq"
+    shutil.copytree(SAMPLE, seq)
+    calls = []
+    original = Tracker.track_frame
+
+    def spy(self, depths, cameras, previous, first=False, generator=None, start=None):
+        res = original(self, depths, cameras, previous, first, generator, start)
+        calls.append((previous.clone(), None if start is None else start.clone(), res.theta.clone()))
+        return res
+
+    monkeypatch.setattr(Tracker, "track_frame", spy)
+    for p in (0.0, 0.5):
+        calls.clear()
+        cfg = TrackerConfig(max_iterations=2, first_frame_iterations=2, prediction=p, prediction_limiter=False)
+        track_sequences([seq], tmp_path / f"out{p}", cfg, progress=False)
+        assert len(calls) == 4 and calls[0][1] is None and calls[1][1] is None
+        for f in (2, 3):
+            previous, start, _ = calls[f]
+            torch.testing.assert_close(previous, calls[f - 1][2])
+            if p == 0:
+                assert start is None
+            else:
+                torch.testing.assert_close(start, previous + p * (calls[f - 1][2] - calls[f - 2][2]))
+    scene = Scene.from_names(["hand_right"])
+    with pytest.raises(ValueError, match="start"):
+        original(Tracker(scene, TrackerConfig()), [None], [kinect_camera()], scene.zero_pose(1), start=torch.zeros(1, 5))
+
+
+def test_predicted_start_limits_the_step_per_dof():
+    """minmod: the smaller of the last two steps where they agree in sign, else 0; a
+    problem without the tracked frames it needs gets no step."""
+    t = [torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+         torch.tensor([[1.0, 1.0, 2.0], [1.0, 1.0, 1.0]]),
+         torch.tensor([[3.0, 0.5, 2.5], [2.0, 2.0, 2.0]])]
+    tracked = [torch.tensor([True, False]), torch.tensor([True, True]), torch.tensor([True, True])]
+    history = list(zip(t, tracked))
+    torch.testing.assert_close(predicted_start(history, 1.0), torch.stack([torch.tensor([4.0, 0.5, 3.0]), t[2][1]]))
+    plain = predicted_start(history, 0.5, limiter=False)
+    torch.testing.assert_close(plain, t[2] + 0.5 * (t[2] - t[1]))
+    assert predicted_start(history[:2], 1.0) is None and predicted_start(history, 0.0) is None
+    assert predicted_start([(x, torch.tensor([False, False])) for x in t], 1.0) is None
 
 def test_label_data_equals_the_whole_image_transform():
     """Labels come from a distance transform on the rendered box widened by the radius;

@@ -87,7 +87,8 @@ def _track(args) -> int:
     from .tracker import TrackerConfig, track_sequences
 
     cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
-                        first_frame_iterations=args.first_iterations)
+                        first_frame_iterations=args.first_iterations, prediction=args.prediction,
+                        prediction_limiter=args.prediction_limiter)
     from .energies import parse_energy
 
     parse_energy(args.energy)  # reject unknown energies before reading any data
@@ -144,6 +145,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
     p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
+    p.add_argument("--prediction", type=float, default=0.0,
+                   help="start each frame from previous + P x (previous - the one before): 0 = the previous pose "
+                        "(the thesis), 1 = constant velocity")
+    p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
+                   help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
+                        "last two steps, 0 where they disagree in sign)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--viz", action="store_true", help="write overlay PNGs and an MP4 per sequence")
     p.add_argument("--force", action="store_true", help="replace existing output folders")

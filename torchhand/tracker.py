@@ -10,6 +10,7 @@ independent problems that share every tensor operation.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, List, NamedTuple, Optional, Sequence
 
@@ -44,7 +45,13 @@ class TrackerConfig:
     perturbations of the previous pose (the best is kept if it is better); seed: of
     those perturbations in :func:`track_sequences`, so a run is repeatable;
     label_radius: px, data pixels farther than this from any rendered model pixel are
-    left unlabelled."""
+    left unlabelled; prediction: a frame's solve starts from the previous pose plus
+    ``prediction`` times the last step (:func:`predicted_start`, clamped to the joint
+    limits): 0 starts from the previous pose as the thesis does, 1 is a
+    constant-velocity prediction; prediction_limiter: per DoF, the smaller of the last
+    two steps when they have the same sign and 0 otherwise (minmod), so that
+    frame-to-frame jitter is not extrapolated. The temporal regularisation (Eq. 4.18)
+    and the recovery keep the previous pose as their reference."""
 
     energy: str = "LO"
     metric: str = "point-to-plane"
@@ -58,7 +65,13 @@ class TrackerConfig:
     perturbation: float = 0.15
     seed: int = 0
     label_radius: float = 40.0
+    prediction: float = 0.0
+    prediction_limiter: bool = True
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.prediction, (int, float)) and math.isfinite(self.prediction) and self.prediction >= 0):
+            raise ValueError(f"prediction must be a finite number >= 0, got {self.prediction!r}")
 
 
 class FrameResult(NamedTuple):
@@ -228,7 +241,8 @@ class Tracker:
         return theta, iters, energy
 
     def track_frame(self, depths: Sequence[Optional[np.ndarray]], cameras: Sequence[Camera],
-                    previous: torch.Tensor, first: bool = False, generator: Optional[torch.Generator] = None) -> FrameResult:
+                    previous: torch.Tensor, first: bool = False, generator: Optional[torch.Generator] = None,
+                    start: Optional[torch.Tensor] = None) -> FrameResult:
         """Track one frame of each of B sequences.
 
         Args:
@@ -237,11 +251,15 @@ class Tracker:
             previous: (B, D) poses of the previous frame (or the initial poses).
             first: use the first-frame iteration budget.
             generator: draws the recovery perturbations (torch's global generator if None).
+            start: (B, D) poses to start the solve from (default: ``previous``), e.g. a
+                motion prediction; ``previous`` stays the reference of the temporal
+                regularisation and the recovery.
         Returns:
             :class:`FrameResult`; problems without usable depth keep ``previous``
             and are flagged invalid.
         """
         cfg, B = self.config, previous.shape[0]
+        init = previous if start is None else self.scene.clamp(self.scene.check_theta(start, "start"))
         frames, ok, notes = [], [], [""] * B
         for b, d in enumerate(depths):
             try:
@@ -263,7 +281,7 @@ class Tracker:
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             # the first frame refines a given initial pose: its whole budget is spent
             # unless the solver stops accepting steps (the thesis' 50 iterations)
-            th, it, en = self.solve(previous[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
+            th, it, en = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
             counts = self._last_count.clone()
             if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
                 th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
@@ -308,6 +326,35 @@ class Tracker:
             if en[i * R + best] < energy[b]:
                 theta[b], energy[b], rec[b] = th[i * R + best], en[i * R + best], True
         return theta, energy, rec
+
+
+def predicted_start(history: Sequence[tuple], factor: float, limiter: bool = True) -> Optional[torch.Tensor]:
+    """The pose to start the next frame from: ``theta_{t-1} + factor * step``.
+
+    Args:
+        history: ``(theta (B, D), tracked (B,) bool)`` of the last frames, oldest first;
+            the last one is the previous frame.
+        factor: the prediction (0: none, 1: constant velocity).
+        limiter: the step is, per DoF, the smaller of the last two steps when they have
+            the same sign and 0 otherwise (minmod); needs three tracked frames.
+            Without it, the step is the last one (two tracked frames).
+    Returns:
+        (B, D), or None when no problem has the tracked frames it needs (the step is 0
+        for the problems that lack them).
+    """
+    need = 3 if limiter else 2
+    if factor == 0 or len(history) < need:
+        return None
+    poses = [h[0] for h in history[-need:]]
+    ok = torch.stack([h[1] for h in history[-need:]]).all(0)
+    if not bool(ok.any()):
+        return None
+    step = poses[-1] - poses[-2]
+    if limiter:
+        older = poses[-2] - poses[-3]
+        same = torch.sign(step) == torch.sign(older)
+        step = torch.where(same, torch.sign(step) * torch.minimum(step.abs(), older.abs()), torch.zeros_like(step))
+    return poses[-1] + factor * torch.where(ok[:, None], step, torch.zeros_like(step))
 
 
 # ------------------------------------------------------------ sequence folders
@@ -365,6 +412,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         n_frames = max(infos[k].frames for k in members)
         cams = [infos[k].cameras[0].to(device) for k in members]
         thetas, valids, logs = [], [], []
+        history = []  # (theta, tracked) of the last three frames, oldest first
         generator = torch.Generator().manual_seed(config.seed)
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
         for f in range(n_frames):
@@ -380,9 +428,12 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     tqdm.write(f"warning: {err}; keeping the previous pose")
                     depths.append(None)
             t0 = time.perf_counter()
-            res = tracker.track_frame(depths, cams, theta, first=(f == 0), generator=generator)
+            start = (predicted_start(history, config.prediction, config.prediction_limiter)
+                     if config.prediction else None)
+            res = tracker.track_frame(depths, cams, theta, first=(f == 0), generator=generator, start=start)
             dt = time.perf_counter() - t0
             theta = res.theta
+            history = (history + [(theta, res.valid.to(theta.device))])[-3:]
             thetas.append(theta.detach().cpu().numpy())
             valids.append(res.valid.numpy())
             for i, note in enumerate(res.notes):
