@@ -141,8 +141,9 @@ class Detections(NamedTuple):
 
     Attributes:
         uv: (N, 2) float pixel coordinates in the input image (u = column, v = row).
-        score: (N,) Hough-map value at the peak (about the number of cells voting for
-            it times their mean score; higher is more confident).
+        score: (N,) confidence, higher is surer: the Hough-map value at the peak (about
+            the number of cells voting for it times their mean score) times the squared
+            score probability of the cell under it (see :func:`detect_peaks`).
         depth: (N,) input depth (mm) at the rounded pixel; 0 where invalid.
     """
 
