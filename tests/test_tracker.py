@@ -267,8 +267,12 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
             else:
                 torch.testing.assert_close(start, previous + p * (calls[f - 1][2] - calls[f - 2][2]))
     scene = Scene.from_names(["hand_right"])
-    with pytest.raises(ValueError, match="start"):
-        original(Tracker(scene, TrackerConfig()), [None], [kinect_camera()], scene.zero_pose(1), start=torch.zeros(1, 5))
+    for bad in (torch.zeros(1, 5), scene.zero_pose(2)):
+        with pytest.raises(ValueError, match="start"):
+            original(Tracker(scene, TrackerConfig()), [None], [kinect_camera()], scene.zero_pose(1), start=bad)
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="prediction"):
+            TrackerConfig(prediction=bad)
 
 
 def test_predicted_start_limits_the_step_per_dof():
@@ -284,6 +288,12 @@ def test_predicted_start_limits_the_step_per_dof():
     torch.testing.assert_close(plain, t[2] + 0.5 * (t[2] - t[1]))
     assert predicted_start(history[:2], 1.0) is None and predicted_start(history, 0.0) is None
     assert predicted_start([(x, torch.tensor([False, False])) for x in t], 1.0) is None
+
+
+def test_model_to_data_needs_a_positive_cut_off():
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="max_distance"):
+            ModelToData(max_distance=bad)
 
 def test_label_data_equals_the_whole_image_transform():
     """Labels come from a distance transform on the rendered box widened by the radius;

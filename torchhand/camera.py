@@ -261,7 +261,8 @@ def depth_to_normals(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 def depth_to_points_and_normals(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`depth_to_points` and :func:`depth_to_normals` of one depth map, sharing the
-    back-projection: (B, H, W, 3) points and (B, H, W, 3) normals."""
+    back-projection: (B, H, W, 3) points and (B, H, W, 3) normals, in the depth's
+    dtype (use float32 or float64: the gradients are computed in it)."""
     points = depth_to_points(depth, K)
     if depth.shape[-2] < 2 or depth.shape[-1] < 2:
         raise ValueError(f"depth must be at least 2x2 to compute normals, got {_fmt_shape(depth.shape)}")

@@ -146,8 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
     p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
     p.add_argument("--prediction", type=float, default=0.0,
-                   help="start each frame from previous + P x (previous - the one before): 0 = the previous pose "
-                        "(the thesis), 1 = constant velocity")
+                   help="start each frame from the previous pose + P x its last step (minmod-limited, see "
+                        "--no-prediction-limiter): 0 = the previous pose (the thesis), 1 = constant velocity")
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")

@@ -13,9 +13,10 @@ def face_corners(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(B, F, 3, 3): the corners of every face, from (B, V, 3) vertices and (F, 3) faces.
 
     One ``index_select`` on the flattened faces; on CPU it is about 4x faster than
-    ``vertices[:, faces]`` (advanced indexing), with the same result.
+    ``vertices[:, faces]`` (advanced indexing), with the same result. ``faces`` must hold
+    integer (int64) indices in [0, V); they are moved to the vertices' device.
     """
-    return vertices.index_select(1, faces.reshape(-1)).view(vertices.shape[0], faces.shape[0], 3, 3)
+    return vertices.index_select(1, faces.reshape(-1).to(vertices.device)).view(vertices.shape[0], faces.shape[0], 3, 3)
 
 
 def vertex_faces(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
@@ -42,7 +43,8 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
 
     Args:
         vertices: (B, V, 3); faces: (F, 3) int64.
-        ids: optional (N,) or (B, N) vertices to compute the normals of (all by default).
+        ids: optional (N,) or (B, N) int64 indices of the vertices to compute the normals
+            of (all by default).
         ring: :func:`vertex_faces` of ``faces``; needed with ``ids``.
     Returns:
         (B, V, 3), or (B, N, 3) with ``ids``.

@@ -315,6 +315,7 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     if face_id.numel() > 0 and int(face_id.max()) >= num_faces:
         raise ValueError(f"render_result.face_id references face {int(face_id.max())} but faces has {num_faces} rows")
     faces = faces.long().to(face_id.device)
+    face_id = face_id.long()
     # the faces hit by a pixel, then their corners
     hit_faces = face_id.new_zeros(B, num_faces, dtype=torch.bool)
     visible = face_id.new_zeros(B, num_vertices, dtype=torch.bool)

@@ -70,8 +70,11 @@ class TrackerConfig:
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.prediction, (int, float)) and math.isfinite(self.prediction) and self.prediction >= 0):
+        if (isinstance(self.prediction, bool) or not isinstance(self.prediction, (int, float))
+                or not math.isfinite(self.prediction) or self.prediction < 0):
             raise ValueError(f"prediction must be a finite number >= 0, got {self.prediction!r}")
+        if not isinstance(self.prediction_limiter, bool):
+            raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")
 
 
 class FrameResult(NamedTuple):
@@ -259,7 +262,11 @@ class Tracker:
             and are flagged invalid.
         """
         cfg, B = self.config, previous.shape[0]
-        init = previous if start is None else self.scene.clamp(self.scene.check_theta(start, "start"))
+        if start is not None:
+            start = self.scene.check_theta(start, "start")
+            if start.shape[0] != B:
+                raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
+        init = previous if start is None else self.scene.clamp(start)
         frames, ok, notes = [], [], [""] * B
         for b, d in enumerate(depths):
             try:
@@ -342,6 +349,8 @@ def predicted_start(history: Sequence[tuple], factor: float, limiter: bool = Tru
         (B, D), or None when no problem has the tracked frames it needs (the step is 0
         for the problems that lack them).
     """
+    if not factor >= 0:
+        raise ValueError(f"factor must be >= 0, got {factor!r}")
     need = 3 if limiter else 2
     if factor == 0 or len(history) < need:
         return None

@@ -37,6 +37,8 @@ class ModelToData(EnergyTerm):
     def __init__(self, weight=1.0, metric="point-to-point", max_distance=10.0, max_angle=45.0,
                  max_vertices=1500, outlier_sigma=2.0):
         super().__init__(weight)
+        if not max_distance > 0:
+            raise ValueError(f"max_distance must be > 0 (mm), got {max_distance!r}")
         if metric not in ("point-to-point", "point-to-plane"):
             raise ValueError(f"metric must be 'point-to-point' or 'point-to-plane', got {metric!r}")
         self.metric, self.max_distance, self.cos_max = metric, max_distance, float(np.cos(np.radians(max_angle)))
@@ -82,16 +84,19 @@ class ModelToData(EnergyTerm):
                     continue
                 pts_w, nrm_w, tree = data
                 V = state.posed.vertices[b, vis[k][b]]
-                # the search stops at the cut-off: pairs beyond it are rejected anyway
-                # (scipy then returns d = inf and j = the number of points)
-                dist, j = tree.query(V.detach().cpu().numpy(), k=1, distance_upper_bound=self.max_distance)
+                # the search stops just past the cut-off (scipy's bound is exclusive):
+                # pairs beyond it are rejected anyway; scipy returns d = inf and
+                # j = the number of points for them
+                bound = float(np.nextafter(self.max_distance, np.inf))
+                dist, j = tree.query(V.detach().cpu().numpy(), k=1, distance_upper_bound=bound)
                 far = ~np.isfinite(dist)
                 dist[far], j[far] = 2 * self.max_distance, 0
+                near = torch.as_tensor(~far, device=dev)
                 j = torch.as_tensor(j, device=dev)
                 X, nX = pts_w[j], nrm_w[j]
                 nV = nrm[k][b]
                 d = torch.as_tensor(dist, device=dev, dtype=dt)
-                keep = (d <= self.max_distance) & ((nV * nX).sum(-1) >= self.cos_max)
+                keep = near & (d <= self.max_distance) & ((nV * nX).sum(-1) >= self.cos_max)
                 local = vis[k][b] - vs.start
                 keep = keep & self._bone_inliers(d, model.vertex_bone[local], keep, model.num_bones)
                 rows.append((local[keep], X[keep], nV[keep]))

@@ -143,7 +143,8 @@ class Detections(NamedTuple):
         uv: (N, 2) float pixel coordinates in the input image (u = column, v = row).
         score: (N,) confidence, higher is surer: the Hough-map value at the peak (about
             the number of cells voting for it times their mean score) times the squared
-            score probability of the cell under it (see :func:`detect_peaks`).
+            score probability of the cell under it, as the detectors report it; the Hough
+            value alone from :func:`detect_peaks` without ``logits``.
         depth: (N,) input depth (mm) at the rounded pixel; 0 where invalid.
     """
 
@@ -370,6 +371,9 @@ def detect_peaks(
         shape = tuple(logits.shape) if isinstance(logits, torch.Tensor) else type(logits).__name__
         raise ValueError(f"logits must be a tensor of shape {(B, 1, Hh // ratio, Wh // ratio)} for a Hough map of "
                          f"shape {tuple(hough.shape)}, got {shape}")
+    if logits is not None and (logits.device != hough.device or not logits.is_floating_point()):
+        raise ValueError(f"logits must be a floating-point tensor on the Hough map's device ({hough.device}), "
+                         f"got {logits.dtype} on {logits.device}")
     k = 2 * nms_radius + 1
     # separable max-pool (rows, then columns): the (2 r + 1)^2 neighbourhood maximum
     local_max = F.max_pool2d(F.max_pool2d(hough, (1, k), 1, (0, nms_radius)), (k, 1), 1, (nms_radius, 0))
