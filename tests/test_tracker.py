@@ -245,27 +245,36 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
     no start (the thesis' initialisation)."""
     seq = tmp_path / "seq"
     shutil.copytree(SAMPLE, seq)
-    calls = []
-    original = Tracker.track_frame
+    calls, solved_from = [], []
+    original, original_solve = Tracker.track_frame, Tracker.solve
 
     def spy(self, depths, cameras, previous, first=False, generator=None, start=None):
+        solved_from.clear()
         res = original(self, depths, cameras, previous, first, generator, start)
-        calls.append((previous.clone(), None if start is None else start.clone(), res.theta.clone()))
+        calls.append((previous.clone(), None if start is None else start.clone(), res.theta.clone(),
+                      solved_from[0].clone(), self.scene))
         return res
 
+    def solve_spy(self, start, previous, *args, **kwargs):
+        solved_from.append(start)
+        return original_solve(self, start, previous, *args, **kwargs)
+
     monkeypatch.setattr(Tracker, "track_frame", spy)
+    monkeypatch.setattr(Tracker, "solve", solve_spy)
     for p in (0.0, 0.5):
         calls.clear()
         cfg = TrackerConfig(max_iterations=2, first_frame_iterations=2, prediction=p, prediction_limiter=False)
         track_sequences([seq], tmp_path / f"out{p}", cfg, progress=False)
         assert len(calls) == 4 and calls[0][1] is None and calls[1][1] is None
         for f in (2, 3):
-            previous, start, _ = calls[f]
+            previous, start, _, first_solve, scene = calls[f]
             torch.testing.assert_close(previous, calls[f - 1][2])
             if p == 0:
                 assert start is None
+                torch.testing.assert_close(first_solve, previous)
             else:
                 torch.testing.assert_close(start, previous + p * (calls[f - 1][2] - calls[f - 2][2]))
+                torch.testing.assert_close(first_solve, scene.clamp(start))  # the solve starts there
     scene = Scene.from_names(["hand_right"])
     for bad in (torch.zeros(1, 5), scene.zero_pose(2)):
         with pytest.raises(ValueError, match="start"):

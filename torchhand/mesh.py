@@ -6,7 +6,7 @@ from typing import Optional
 
 import torch
 
-__all__ = ["face_corners", "vertex_faces", "vertex_normals", "is_closed_outward"]
+__all__ = ["face_corners", "face_normals", "vertex_faces", "vertex_normals", "is_closed_outward"]
 
 
 def face_corners(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -17,6 +17,12 @@ def face_corners(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     integer (int64) indices in [0, V); they are moved to the vertices' device.
     """
     return vertices.index_select(1, faces.reshape(-1).to(vertices.device)).view(vertices.shape[0], faces.shape[0], 3, 3)
+
+
+def face_normals(corners: torch.Tensor) -> torch.Tensor:
+    """(..., F, 3): unnormalised face normals (twice the area, counter-clockwise side)
+    from (..., F, 3, 3) face corners (:func:`face_corners`)."""
+    return torch.linalg.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :], dim=-1)
 
 
 def vertex_faces(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
@@ -49,8 +55,7 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
     Returns:
         (B, V, 3), or (B, N, 3) with ``ids``.
     """
-    tri = face_corners(vertices, faces)
-    fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])  # twice the area
+    fn = face_normals(face_corners(vertices, faces))  # twice the area
     if ids is None:
         n = torch.zeros_like(vertices)
         for i in range(3):

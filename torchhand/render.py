@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from torchhand.camera import Camera, _check_tensor, _fmt_shape, _max_filter_3x3, _transform, project_points
-from torchhand.mesh import face_corners
+from torchhand.mesh import face_corners, face_normals
 
 __all__ = ["RenderResult", "render", "silhouette_edges", "visible_vertices", "DEFAULT_EDGE_THRESHOLD_MM"]
 
@@ -208,12 +208,14 @@ def render(
     t_hit = np.full((B, h, w), np.inf, dtype=np.float32)
     prim = np.full((B, h, w), _INVALID_ID, dtype=np.uint32)
     uvs = np.zeros((B, h, w, 2), dtype=np.float32)
+    # face normals and their orientation, for the culling and the pixel normals alike
+    n_cam, facing = _face_orientation(v_cam, faces) if rois and (cull_back_faces or normals) else (None, None)
     if rois:
         rays = _rays_for(camera)
         verts_np = np.ascontiguousarray(vertices.to("cpu", torch.float32).numpy())
         faces_np = faces.cpu().numpy().astype(np.uint32)
         faces_o3d = o3d.core.Tensor(faces_np)
-        front = _front_faces(v_cam, faces) if cull_back_faces else None
+        front = (facing <= 0).cpu().numpy() if cull_back_faces else None
         # open3d builds one BVH per scene, so each batch element needs its own scene.
         for b, (b0, b1, d0, d1) in enumerate(per_problem):
             if b1 <= b0 or d1 <= d0:
@@ -244,7 +246,7 @@ def render(
         safe_id = face_id.clamp(min=0)
         model_id = torch.where(hit_mask, model_ids.take(safe_id), empty)  # take: a flat gather, faster than [ ]
         bone_id = torch.where(hit_mask, bone_ids.take(safe_id), empty)
-        pixel_normals = _pixel_normals(v_cam, faces, face_id, hit_mask) if normals else None
+        pixel_normals = _pixel_normals(n_cam, facing, face_id, hit_mask) if normals else None
     else:
         model_id = torch.full_like(face_id, -1)
         bone_id = torch.full_like(face_id, -1)
@@ -260,12 +262,13 @@ def render(
                         _paste(barycentric, box, H, W, 0))
 
 
-def _front_faces(v_cam: torch.Tensor, faces: torch.Tensor) -> np.ndarray:
-    """(B, F) bool: faces whose front (counter-clockwise) side, or edge, faces the camera
-    (``v_cam``: camera-frame vertices)."""
+def _face_orientation(v_cam: torch.Tensor, faces: torch.Tensor) -> tuple:
+    """Unnormalised camera-frame face normals (B, F, 3) and ``n . v0`` (B, F), from
+    camera-frame vertices. The camera sits at the origin, so a face's front
+    (counter-clockwise) side, or its edge, faces the camera iff ``n . v0 <= 0``."""
     tri = face_corners(v_cam, faces)
-    n = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1)
-    return ((n * tri[:, :, 0]).sum(-1) <= 0).cpu().numpy()
+    n = face_normals(tri)
+    return n, (n * tri[:, :, 0]).sum(-1)
 
 
 def _paste(crop: torch.Tensor, box: tuple, H: int, W: int, fill) -> torch.Tensor:
@@ -275,14 +278,10 @@ def _paste(crop: torch.Tensor, box: tuple, H: int, W: int, fill) -> torch.Tensor
     return out
 
 
-def _pixel_normals(v_cam: torch.Tensor, faces: torch.Tensor, face_id: torch.Tensor, hit_mask: torch.Tensor) -> torch.Tensor:
-    """(B, H, W, 3) float32 camera-frame face normals facing the camera, 0 where empty
-    (``v_cam``: camera-frame vertices)."""
-    tri = face_corners(v_cam, faces)  # (B, F, 3, 3)
-    n = F.normalize(torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1), dim=-1)
-    # The camera sits at the origin: a plane faces it iff n . v0 < 0, the same for every point on it.
-    facing = (n * tri[:, :, 0]).sum(-1, keepdim=True)
-    n = torch.where(facing > 0, -n, n).float()
+def _pixel_normals(n_cam: torch.Tensor, facing: torch.Tensor, face_id: torch.Tensor, hit_mask: torch.Tensor) -> torch.Tensor:
+    """(B, H, W, 3) float32 camera-frame face normals facing the camera, 0 where empty,
+    from :func:`_face_orientation`'s normals and orientation."""
+    n = F.normalize(torch.where(facing[..., None] > 0, -n_cam, n_cam), dim=-1).float()
     B, num_faces = n.shape[:2]
     # Gather only at hit pixels: usually a small part of the image.
     pixel = hit_mask.flatten().nonzero()[:, 0]

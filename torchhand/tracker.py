@@ -437,8 +437,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     tqdm.write(f"warning: {err}; keeping the previous pose")
                     depths.append(None)
             t0 = time.perf_counter()
-            start = (predicted_start(history, config.prediction, config.prediction_limiter)
-                     if config.prediction else None)
+            start = predicted_start(history, config.prediction, config.prediction_limiter)
             res = tracker.track_frame(depths, cams, theta, first=(f == 0), generator=generator, start=start)
             dt = time.perf_counter() - t0
             theta = res.theta

@@ -12,6 +12,8 @@ as is usual for point-to-plane ICP).
 
 from __future__ import annotations
 
+from typing import NamedTuple, Optional
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -57,7 +59,7 @@ class ModelToData(EnergyTerm):
         # the data side (points of a model's label, in the world frame, and their KD-tree)
         # is kept while the frame and the label mask stay the same (most outer iterations)
         self._data = {key: v for key, v in getattr(self, "_data", {}).items()
-                      if any(v[0] is f for f in state.frames)}
+                      if any(v.frame is f for f in state.frames)}
         # visible vertices (a stride subsample) of every model and problem, and their
         # normals, one call per problem
         vis, nrm = [[None] * B for _ in scene.models], [[None] * B for _ in scene.models]
@@ -86,17 +88,16 @@ class ModelToData(EnergyTerm):
                 V = state.posed.vertices[b, vis[k][b]]
                 # the search stops just past the cut-off (scipy's bound is exclusive):
                 # pairs beyond it are rejected anyway; scipy returns d = inf and
-                # j = the number of points for them
+                # j = the number of points for them, here d = 2 x cut-off (rejected below)
                 bound = float(np.nextafter(self.max_distance, np.inf))
                 dist, j = tree.query(V.detach().cpu().numpy(), k=1, distance_upper_bound=bound)
                 far = ~np.isfinite(dist)
                 dist[far], j[far] = 2 * self.max_distance, 0
-                near = torch.as_tensor(~far, device=dev)
                 j = torch.as_tensor(j, device=dev)
                 X, nX = pts_w[j], nrm_w[j]
                 nV = nrm[k][b]
                 d = torch.as_tensor(dist, device=dev, dtype=dt)
-                keep = near & (d <= self.max_distance) & ((nV * nX).sum(-1) >= self.cos_max)
+                keep = (d <= self.max_distance) & ((nV * nX).sum(-1) >= self.cos_max)
                 local = vis[k][b] - vs.start
                 keep = keep & self._bone_inliers(d, model.vertex_bone[local], keep, model.num_bones)
                 rows.append((local[keep], X[keep], nV[keep]))
@@ -110,15 +111,13 @@ class ModelToData(EnergyTerm):
         frame; None when there are none. Reused while frame and labels are unchanged."""
         frame, camera, labels = state.frames[b], state.cameras[b], state.data_labels
         hit = self._data.get((id(frame), k))
-        if hit is not None and hit[0] is frame and hit[1] is camera:
-            if hit[4] is labels and hit[5] == b:  # the same label map: no comparison needed
-                return hit[3]
-            sel = labels[b] == k
-            if torch.equal(hit[2], sel):
-                self._data[(id(frame), k)] = (*hit[:4], labels, b)
-                return hit[3]
-        else:
-            sel = labels[b] == k
+        same = hit is not None and hit.frame is frame and hit.camera is camera
+        if same and hit.labels is labels and hit.b == b:  # the same label map: no comparison needed
+            return hit.data
+        sel = labels[b] == k
+        if same and torch.equal(hit.sel, sel):
+            self._data[(id(frame), k)] = hit._replace(labels=labels, b=b)
+            return hit.data
         data = None
         if bool(sel.any()):
             T_wc = camera.T_wc.to(state.theta)
@@ -126,7 +125,7 @@ class ModelToData(EnergyTerm):
             nrm_w = frame.normals[sel] @ T_wc[:3, :3].T
             # an unbalanced tree builds in about two thirds of the time and queries as fast
             data = (pts_w, nrm_w, cKDTree(pts_w.detach().cpu().numpy(), balanced_tree=False))
-        self._data[(id(frame), k)] = (frame, camera, sel, data, labels, b)
+        self._data[(id(frame), k)] = _DataEntry(frame, camera, sel, data, labels, b)
         return data
 
     def _bone_inliers(self, d, bone, keep, J):
@@ -159,6 +158,19 @@ class ModelToData(EnergyTerm):
         if not rs:
             return no_residuals(theta, with_jacobian)
         return Residuals(torch.cat(rs, 1), torch.cat(Js, 1) if with_jacobian else None)
+
+
+class _DataEntry(NamedTuple):
+    """A cached data side: valid for ``frame`` and ``camera`` while the pixels labelled
+    k are ``sel`` (known without comparing when the label map is the tensor ``labels``
+    of problem ``b``); ``data`` is (points, normals, KD-tree) or None."""
+
+    frame: object
+    camera: object
+    sel: torch.Tensor
+    data: Optional[tuple]
+    labels: torch.Tensor
+    b: int
 
 
 def _pad_rows(rows, B, dev, dt):

@@ -29,7 +29,7 @@ import math
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import List, NamedTuple, Optional, Union
+from typing import Callable, List, NamedTuple, Optional, Union
 
 import numpy as np
 import torch
@@ -476,6 +476,21 @@ def _empty(device="cpu") -> Detections:
     return Detections(z.reshape(0, 2), z, z)
 
 
+def _detect_frame(detector, depth: ArrayLike, forward: Callable[[np.ndarray], SalientOutput], device="cpu") -> Detections:
+    """The ``detect`` of both detectors: input checks, padding, ``forward`` (a padded
+    (1, 1, H', W') float32 array -> :class:`SalientOutput`), peak picking with the
+    detector's settings and confidence, and the depth at each detection."""
+    depth = _check_frame(depth)
+    depth_np = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else depth
+    depth_np = depth_np.astype(np.float32, copy=False)
+    if not (depth_np > 0).any():
+        return _empty(device)
+    out = forward(_padded(depth_np))
+    dets = detect_peaks(out.hough, detector.threshold, detector.max_detections, detector.nms_radius, depth_np.shape,
+                        logits=out.logits)[0]
+    return _finish(dets, depth_np)
+
+
 class SalientDetector:
     """Fingertip detection on single depth frames with a :class:`SalientNet`.
 
@@ -518,17 +533,11 @@ class SalientDetector:
         Raises:
             TypeError / ValueError: not a 2D numeric array, NaN or negative values.
         """
-        depth = _check_frame(depth)
-        depth_np = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else depth
-        depth_np = depth_np.astype(np.float32, copy=False)
-        if not (depth_np > 0).any():
-            return _empty(self.device)
-        x = torch.from_numpy(_padded(depth_np)).to(self.device)
+        return _detect_frame(self, depth, self._forward, self.device)
+
+    def _forward(self, x: np.ndarray) -> SalientOutput:
         with torch.no_grad():
-            out = self.net(x)
-        dets = detect_peaks(out.hough, self.threshold, self.max_detections, self.nms_radius, depth_np.shape,
-                            logits=out.logits)[0]
-        return _finish(dets, depth_np)
+            return self.net(torch.from_numpy(x).to(self.device))
 
 
 class OnnxSalientDetector:
@@ -570,15 +579,7 @@ class OnnxSalientDetector:
 
     def detect(self, depth: ArrayLike) -> Detections:
         """Same contract as :meth:`SalientDetector.detect`; tensors on the CPU."""
-        depth = _check_frame(depth)
-        depth_np = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else depth
-        depth_np = depth_np.astype(np.float32, copy=False)
-        if not (depth_np > 0).any():
-            return _empty()
-        out = self.run(_padded(depth_np))
-        dets = detect_peaks(out.hough, self.threshold, self.max_detections, self.nms_radius, depth_np.shape,
-                            logits=out.logits)[0]
-        return _finish(dets, depth_np)
+        return _detect_frame(self, depth, self.run)
 
 
 def export_onnx(net: SalientNet, path, height: int = 240, width: int = 320, opset: int = 17) -> Path:
