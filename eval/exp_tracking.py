@@ -4,7 +4,7 @@
     python eval/exp_tracking.py m2d --hia-root ../shared/data/hands_in_action --sequences 09,16 --frames 10 --work out/exp --json out/exp_m2d.json
     python eval/exp_tracking.py ablation --energies LO,LO+C --contact --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_c.json
     python eval/exp_tracking.py detector-quality --sequences 01,16 --rates 0,0.3,0.6,1 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_s_noise.json
-    python eval/exp_tracking.py rope --sequences 01 --hia-root ../shared/data/hands_in_action --frames 20 --work out/exp --json out/exp_rope.json
+    python eval/exp_tracking.py rope --hia-root ../shared/data/hands_in_action --frames 20 --work out/exp --json out/exp_rope.json
     python eval/exp_tracking.py d2m-weight --weights 1,0.25 --hia-root ../shared/data/hands_in_action --frames 40 --work out/exp --json out/exp_d2m_weight.json
 
 ``lo``: every sequence with MOTION files is rendered with the kinect noise model
@@ -23,9 +23,12 @@ al. (2012, Sec. 5): the projected ground-truth fingertips that the renderer show
 outlier uniformly within 200 px, and every detection gets 5 px Gaussian jitter.
 These oracle detections are built from ``gt/`` by this script, outside the tracker,
 which still reads only the depth.
-``rope``: a thesis two-hand motion (``--sequences``, e.g. 01) with the articulated
-rope added over the hands and bending over time (:func:`rope_sequence`), rendered with
-each of ``--noises`` and tracked with LO; the hands are scored by their keypoints, the
+``rope``: the articulated rope with two hands, rendered with each of ``--noises`` and
+tracked with LO. ``--rope-motion pipe`` (default): "Bending a pipe" (sequence 17) with
+the rope in the pipe's place, held and bent by the hands
+(:func:`rope_from_pipe_sequence`); ``--rope-motion sine``: a thesis two-hand motion
+(``--sequences``, e.g. 01) with the rope added over the hands and bending by a
+travelling sine (:func:`rope_sequence`); the hands are scored by their keypoints, the
 rope by the mean error of its 36 bone origins (its roll about its own axis, which a
 tube does not show, does not count).
 ``d2m-weight``: LO with several weights of the data-to-model term (``--weights``;
@@ -41,11 +44,11 @@ from pathlib import Path
 
 import torch
 
-from torchhand.data.synth import thesis_motion, write_synthetic_sequence
 import hashlib
 
 import numpy as np
 
+from torchhand.data.synth import SyntheticFrames, thesis_motion, write_synthetic_sequence
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info
 from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient, parse_energy
 from torchhand.energies.salient import simulated_detector
@@ -150,8 +153,6 @@ def rope_sequence(hia_root: Path, sequence: str, frames: int, work: Path, noise:
     ``bend`` x (its limit, at most 0.3 rad) x a sine travelling along the rope over time."""
     import math
 
-    from torchhand.data.synth import SyntheticFrames
-
     folder = work / f"rope_{sequence}_{noise}_{frames}_b{bend:g}"
     if (folder / "gt" / "meta.json").is_file():
         return folder
@@ -175,6 +176,91 @@ def rope_sequence(hia_root: Path, sequence: str, frames: int, work: Path, noise:
     return folder
 
 
+def _polyline_points(corners: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Points at arc lengths ``s`` (K,) along polylines ``corners`` (N, C, 3), extended
+    along their first and last segments beyond the ends: (N, K, 3)."""
+    seg = corners[:, 1:] - corners[:, :-1]
+    length = seg.norm(dim=-1)  # (N, C-1)
+    cum = torch.cat([torch.zeros_like(length[:, :1]), length.cumsum(1)], 1)  # (N, C)
+    i = torch.searchsorted(cum[:, 1:-1].contiguous(), s.expand(len(cum), -1).contiguous())  # segment ids
+    a = (s - cum.gather(1, i)) / length.gather(1, i)
+    p0 = corners.gather(1, i[..., None].expand(-1, -1, 3))
+    d = seg.gather(1, i[..., None].expand(-1, -1, 3))
+    return p0 + a[..., None] * d
+
+
+def rope_from_pipe_sequence(hia_root: Path, frames: int, work: Path, noise: str, sequence: str = "17"):
+    """"Bending a pipe" (sequence 17) with the rope in the pipe's place: the hands hold
+    and bend the rope as they bent the pipe.
+
+    The rope (449 mm) is centred on the pipe's centre line (two bones of 175 mm, one
+    bend joint), 50 mm longer at each end; the target centre line is the pipe's,
+    extended along its end segments and rounded at the bend by a Gaussian of 2.5
+    bones along the chain. The rope's 76 DoF are fitted to it per frame (bone origins
+    and far end, least squares with a small prior on the joint angles), which gives a
+    smooth, realistic motion of a held rope: its ends follow the hands, its middle
+    bends by up to the pipe's angle."""
+    folder = work / f"rope_pipe{sequence}_{noise}_{frames}"
+    if (folder / "gt" / "meta.json").is_file():
+        return folder
+    src = thesis_motion(hia_root, sequence, slice(0, frames), dtype=torch.float64)
+    names = [n for n in src.scene.names if n != "pipe"]
+    scene = Scene.from_names(names + ["rope"], dtype=torch.float64)
+    theta = torch.zeros(len(src.theta), scene.num_dofs, dtype=torch.float64)
+    for name in names:
+        theta[:, scene.slices[name]] = src.theta[:, src.scene.slices[name]]
+    pipe, rope = src.scene.model("pipe"), scene.model("rope")
+
+    def chain_points(model, G):  # bone origins and the far end of the last bone
+        origins = model.joints_from(G)
+        last = model.rest_transforms[-1]  # bones run along their x axis
+        end_rest = last[:3, 3] + last[:3, 0] * model.bone_lengths[-1]
+        end = (G[:, -1, :3, :3] @ end_rest) + G[:, -1, :3, 3]
+        return torch.cat([origins, end[:, None]], 1)
+
+    with torch.no_grad():
+        P = chain_points(pipe, src.scene(src.theta).models[src.scene.names.index("pipe")].G)  # (N, 3, 3)
+    overhang = (rope.bone_lengths.sum() - (P[:, 1:] - P[:, :-1]).norm(dim=-1).sum(1).mean()) / 2
+    step = float(rope.bone_lengths[0])
+    k = torch.arange(-8, rope.num_bones + 9, dtype=torch.float64)
+    s = k * step - overhang
+    target = _polyline_points(P, s)
+    w = torch.exp(-0.5 * (torch.arange(-8, 9, dtype=torch.float64) / 2.5) ** 2)
+    w = w / w.sum()
+    target = torch.nn.functional.conv1d(target.permute(0, 2, 1).reshape(-1, 1, target.shape[1]),
+                                        w[None, None]).reshape(len(P), 3, -1).permute(0, 2, 1)  # (N, J+1, 3)
+
+    # Start: the rope straight along the target's first-to-last direction, then fit.
+    rest = chain_points(rope, torch.eye(4, dtype=torch.float64).expand(1, rope.num_bones, 4, 4))[0]
+    u = (rest[-1] - rest[0]) / (rest[-1] - rest[0]).norm()
+    v = (target[:, -1] - target[:, 0]) / (target[:, -1] - target[:, 0]).norm(dim=-1, keepdim=True)
+    axis = torch.cross(u.expand_as(v), v, dim=-1)
+    angle = torch.atan2(axis.norm(dim=-1), (u * v).sum(-1))
+    x = rope.zero_pose(len(P)).double()
+    x[:, 3:6] = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12) * angle[:, None]
+    x[:, 0:3] = target[:, 0] - rest[0]
+    x.requires_grad_(True)
+    opt = torch.optim.LBFGS([x], lr=1, max_iter=500, line_search_fn="strong_wolfe", tolerance_grad=1e-9)
+
+    def closure():
+        opt.zero_grad()
+        err = chain_points(rope, rope(rope.clamp(x), validate=False).G) - target
+        loss = (err ** 2).sum() + 10.0 * (x[:, 6:] ** 2).sum()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    with torch.no_grad():
+        fitted = rope.clamp(x.detach())
+        fit_mm = (chain_points(rope, rope(fitted).G) - target).norm(dim=-1)
+    theta[:, scene.slices["rope"]] = fitted
+    fr = SyntheticFrames(Scene.from_names(names + ["rope"]), theta.float(), src.cameras, f"rope_pipe{sequence}",
+                         {"format": "thesis motion with the rope in the pipe's place", "sequence": sequence,
+                          "rope_fit_mm_mean": float(fit_mm.mean()), "rope_fit_mm_max": float(fit_mm.max())})
+    write_synthetic_sequence(fr, folder, noise=noise, seed=int(sequence), force=True, rgb=False)
+    return folder
+
+
 def run_rope(args) -> dict:
     """Two hands and the rope: the hands scored by keypoints, the rope by its bone origins."""
     rows = []
@@ -182,9 +268,13 @@ def run_rope(args) -> dict:
                         first_frame_iterations=args.iterations, prediction=args.prediction,
                         prediction_limiter=args.prediction_limiter)
     for noise in args.noises.split(","):
-        for s in _sequences(args):
-            folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
-            out = args.work / f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}{_prediction_suffix(args)}"
+        for s in (["17"] if args.rope_motion == "pipe" else _sequences(args)):
+            if args.rope_motion == "pipe":
+                folder = rope_from_pipe_sequence(args.hia_root, args.frames, args.work, noise, s)
+                out = args.work / f"tracked_rope_pipe_{noise}_it{args.iterations}{_prediction_suffix(args)}"
+            else:
+                folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
+                out = args.work / f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}{_prediction_suffix(args)}"
             t0 = time.perf_counter()
             track_sequences([folder], out, cfg, force=True)
             secs = time.perf_counter() - t0
@@ -200,7 +290,8 @@ def run_rope(args) -> dict:
                          "rope_joint_mm_mean": float(per_frame.mean()), "rope_joint_mm_per_frame": per_frame.tolist(),
                          "seconds_per_frame": secs / len(per_frame)})
             print({k: v for k, v in rows[-1].items() if k != "rope_joint_mm_per_frame"})
-    return {"experiment": "two hands and the rope", "frames_per_sequence": args.frames, "bend": args.bend,
+    return {"experiment": "two hands and the rope", "motion": args.rope_motion, "frames_per_sequence": args.frames,
+            "bend": args.bend if args.rope_motion == "sine" else None,
             "iterations": args.iterations, "prediction": args.prediction,
             "prediction_limiter": args.prediction_limiter, "rows": rows}
 
@@ -342,7 +433,10 @@ def main(argv=None) -> int:
     ap.add_argument("--collision-weight", type=float, default=None,
                     help="ablation: gamma_c of the C term (default: the term's own, 10)")
     ap.add_argument("--noises", default="kinect,none", help="rope: noise models to render with")
-    ap.add_argument("--bend", type=float, default=0.25, help="rope: bending amplitude (fraction of the limits)")
+    ap.add_argument("--rope-motion", choices=["pipe", "sine"], default="pipe",
+                    help="rope: in the pipe's place in sequence 17 (held and bent by the hands), or over the "
+                         "hands of --sequences bending by a travelling sine")
+    ap.add_argument("--bend", type=float, default=0.25, help="rope, sine: bending amplitude (fraction of the limits)")
     ap.add_argument("--prediction", type=float, default=0.0,
                     help="TrackerConfig.prediction: start each frame from the extrapolated pose (1 = constant velocity)")
     ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",

@@ -24,7 +24,7 @@ from ..preprocess import DepthFrame
 from ..render import RenderResult, visible_vertices
 from ..scene import Scene, SceneOutput
 
-__all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals"]
+__all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals", "bone_inliers"]
 
 
 class Residuals(NamedTuple):
@@ -103,3 +103,20 @@ def no_residuals(theta: torch.Tensor, with_jacobian: bool) -> Residuals:
     """The residuals of a term without correspondences: (B, 0) and (B, 0, D)."""
     B, D = theta.shape
     return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+
+
+def bone_inliers(d: torch.Tensor, bone: torch.Tensor, keep: torch.Tensor, num_bones: int,
+                 sigma: float) -> torch.Tensor:
+    """Per-bone outlier rejection (Ballan et al. 2012, Sec. 3).
+
+    Args:
+        d: (n,) correspondence distances; bone: (n,) the bone of each model point;
+        keep: (n,) bool, the pairs the statistics are taken over; sigma: the cut.
+    Returns:
+        (n,) bool: d <= mean + sigma * std of the kept distances of the same bone.
+    """
+    w = keep.to(d.dtype)
+    n = torch.zeros(num_bones, dtype=d.dtype, device=d.device).index_add_(0, bone, w).clamp_min(1)
+    mean = torch.zeros_like(n).index_add_(0, bone, d * w) / n
+    std = (torch.zeros_like(n).index_add_(0, bone, (d - mean[bone]) ** 2 * w) / n).sqrt()
+    return d <= mean[bone] + sigma * std[bone] + 1e-6

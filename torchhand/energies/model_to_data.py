@@ -19,7 +19,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..mesh import vertex_normals
-from .base import EnergyTerm, Residuals, TrackState, no_residuals, scatter_columns
+from .base import EnergyTerm, Residuals, TrackState, bone_inliers, no_residuals, scatter_columns
 
 __all__ = ["ModelToData"]
 
@@ -99,7 +99,7 @@ class ModelToData(EnergyTerm):
                 d = torch.as_tensor(dist, device=dev, dtype=dt)
                 keep = (d <= self.max_distance) & ((nV * nX).sum(-1) >= self.cos_max)
                 local = vis[k][b] - vs.start
-                keep = keep & self._bone_inliers(d, model.vertex_bone[local], keep, model.num_bones)
+                keep = keep & bone_inliers(d, model.vertex_bone[local], keep, model.num_bones, self.outlier_sigma)
                 rows.append((local[keep], X[keep], nV[keep]))
                 count[b] += int(keep.sum())
                 unmatched[b] += self.weight * float(d[~keep].clamp(max=self.max_distance).square().sum())
@@ -127,14 +127,6 @@ class ModelToData(EnergyTerm):
             data = (pts_w, nrm_w, cKDTree(pts_w.detach().cpu().numpy(), balanced_tree=False))
         self._data[(id(frame), k)] = _DataEntry(frame, camera, sel, data, labels, b)
         return data
-
-    def _bone_inliers(self, d, bone, keep, J):
-        """Per-bone rejection of distances beyond mean + sigma * std (Ballan Sec. 3)."""
-        w = keep.to(d.dtype)
-        n = torch.zeros(J, dtype=d.dtype, device=d.device).index_add_(0, bone, w).clamp_min(1)
-        mean = torch.zeros_like(n).index_add_(0, bone, d * w) / n
-        var = torch.zeros_like(n).index_add_(0, bone, (d - mean[bone]) ** 2 * w) / n
-        return d <= mean[bone] + self.outlier_sigma * var.sqrt()[bone] + 1e-6
 
     def residuals(self, theta, posed, with_jacobian):
         B, D = theta.shape
