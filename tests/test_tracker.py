@@ -112,13 +112,16 @@ def test_candidates_without_correspondence_are_charged_a_truncated_square(hand_f
     assert charged[0] < 2.0 and charged[1] > 10 * charged[0], charged
 
 
-def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_frame):
-    """robust_scale=c multiplies each kept pair's residual (and Jacobian) by
-    (1 + (r/c)^2)^(-1/2), r its ray distance at the pose the pairs were found at."""
+@pytest.mark.parametrize("relative", [None, 2.0])
+def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_frame, relative):
+    """robust_scale=3 multiplies each kept pair's residual (and Jacobian) by
+    (1 + (r/c)^2)^(-1/2), r its ray distance at the pose the pairs were found at, with
+    c = 3 mm, or with robust_relative the larger of 3 mm and that factor times the
+    model's median r."""
     scene, theta, cam, depth = hand_frame
     start = theta.clone()
     start[0, :3] += torch.tensor([4.0, -3.0, 2.0], dtype=F64)
-    terms = [DataToModel(robust_scale=None), DataToModel(robust_scale=3.0)]
+    terms = [DataToModel(robust_scale=None), DataToModel(robust_scale=3.0, robust_relative=relative)]
     tracker = Tracker(scene, TrackerConfig(), terms=terms)
     state = _state(tracker, scene, start, cam, depth)
     posed = scene(start, validate=False)
@@ -128,10 +131,14 @@ def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_fr
         r.append(t.residuals(start, posed, False).r.reshape(-1, 3))
     assert len(r[0]) == len(r[1]) > 20 and torch.equal(terms[0].count, terms[1].count)
     dist = r[0].norm(dim=-1) / terms[0].weight ** 0.5
-    assert float(dist.max()) > 3.0, "the perturbation must give pairs beyond c"
-    torch.testing.assert_close(r[1], r[0] * (1 + (dist / 3.0) ** 2).rsqrt()[:, None])
+    c = 3.0 if relative is None else max(3.0, relative * float(dist.median()))
+    # the rigid shift moves the whole hand: its median misfit sets c (5.9 mm here)
+    assert float(dist.max()) > 3.0 and (relative is None or c > 3.0), (float(dist.max()), c)
+    torch.testing.assert_close(r[1], r[0] * (1 + (dist / c) ** 2).rsqrt()[:, None])
     with pytest.raises(ValueError, match="robust_scale"):
         DataToModel(robust_scale=0.0)
+    with pytest.raises(ValueError, match="robust_relative"):
+        DataToModel(robust_relative=-1.0)
 
 
 def test_bone_inliers_cut_per_bone_at_mean_plus_sigma_std():
@@ -384,22 +391,19 @@ def hand_and_rope():
     return scene, theta, cam, depth
 
 
-@pytest.mark.parametrize("terms, scale, min_start_error, expected", [
-    ("default", 0.5, 5.0, "6.5 -> 0.63 mm"),
-    # d2m as the thesis writes it (every pair within 30 mm at full weight) pulls a thin
-    # object back from farther; the default's Cauchy weights give far pairs less pull
-    # (docs/results.md, "Data-to-model outliers")
-    ("plain d2m", 1.0, 15.0, "19.7 -> 0.24 mm"),
+@pytest.mark.parametrize("terms, max_error, expected", [
+    ("default", 1.5, "19.7 -> 0.92 mm"),
+    # d2m as the thesis writes it: every pair within 30 mm at full weight
+    ("plain d2m", 1.0, "19.7 -> 0.24 mm"),
 ])
-def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose(hand_and_rope, terms, scale, min_start_error,
-                                                                    expected):
+def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose(hand_and_rope, terms, max_error, expected):
     # the first frame's budget (the thesis' 50 iterations) brings the rope's joints back
     scene, theta, cam, depth = hand_and_rope
     rope, r = scene.models[1], scene.slices["rope"]
     start = theta.clone()
-    start[0, r.start:r.start + 3] += scale * torch.tensor([3.0, -4.0, 4.0], dtype=F64)
+    start[0, r.start:r.start + 3] += torch.tensor([3.0, -4.0, 4.0], dtype=F64)
     noise = torch.randn(r.stop - r.start - 6, generator=torch.Generator().manual_seed(2), dtype=F64)
-    start[0, r.start + 6:r.stop] += 0.02 * scale ** 2 * noise
+    start[0, r.start + 6:r.stop] += 0.02 * noise
     start = scene.clamp(start)
     custom = None if terms == "default" else [ModelToData(metric="point-to-plane"),
                                               DataToModel(robust_scale=None, outlier_sigma=None),
@@ -412,4 +416,4 @@ def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose(hand_and_rope
         joints = rope.joints_from(scene(theta).models[1].G)
         err0 = (rope.joints_from(scene(start).models[1].G) - joints).norm(dim=-1).mean()
         err = (rope.joints_from(scene(res.theta).models[1].G) - joints).norm(dim=-1).mean()
-    assert err0 > min_start_error and err < 1.0, (float(err0), float(err), expected)
+    assert err0 > 15.0 and err < max_error, (float(err0), float(err), expected)

@@ -8,8 +8,9 @@ pixel's projection ray, written as a Pluecker line (d, m): the residual is
 distance, with the data depth averaged over 3x3 pixels, exceeds 30 mm are dropped,
 and, as for model-to-data, per bone the pairs whose ray distance lies beyond mean + 2
 sigma of that bone's pairs (Ballan et al. 2012, Sec. 3). The kept pairs are weighted
-by a Cauchy kernel of their ray distance (iteratively reweighted least squares), a
-choice the thesis leaves open; see :class:`DataToModel`.
+by a Cauchy kernel of their ray distance whose scale follows the model's median
+misfit (iteratively reweighted least squares), a choice the thesis leaves open; see
+:class:`DataToModel`.
 """
 
 from __future__ import annotations
@@ -40,28 +41,37 @@ class DataToModel(EnergyTerm):
         max_pixels: data edge pixels used per model and problem (a stride subsample).
         outlier_sigma: per-bone rejection of pairs whose ray distance exceeds the
             mean + ``outlier_sigma`` std of their bone's pairs (None: off).
-        robust_scale: c (mm) of the Cauchy weight ``1 / (1 + (r / c)^2)`` given to
-            each pair at its ray distance r when the correspondences are found (the
-            weights are fixed for the outer iteration, as the pairs are); None gives
-            every pair weight 1, the thesis' plain sum of squares. A data edge whose
-            nearest model silhouette is not its own contour (the other hand, a
-            hidden finger, noise) otherwise pulls with its full distance up to the
-            30 mm cut-off: at the ground-truth pose of a two-hand frame, the ray
-            distances have a median of 1.1 mm and a tail to 21 mm, and over 231
-            frames of sequence 01 those pairs turned a hidden thumb 50 degrees away.
-            The default 3 mm (about 3 pixels at the thesis' working distance) keeps
-            d2m's pull at every distance but makes far pairs count as a few mm
-            (docs/results.md, "Data-to-model outliers").
+        robust_scale: the least c (mm) of the Cauchy weight ``1 / (1 + (r / c)^2)``
+            given to each pair at its ray distance r when the correspondences are
+            found (the weights are fixed for the outer iteration, as the pairs are);
+            None gives every pair weight 1, the thesis' plain sum of squares.
+        robust_relative: c is the larger of ``robust_scale`` and this factor times
+            the median ray distance of the model's kept pairs (per model and
+            problem; None: ``robust_scale`` alone).
+
+    Why the weights: a data edge whose nearest model silhouette is not its own contour
+    (the other hand, a hidden finger, noise) otherwise pulls with its full distance up
+    to the 30 mm cut-off. At the ground-truth pose of a two-hand frame the ray
+    distances have a median of 1.1 mm and a tail to 21 mm, and over the 231 frames of
+    sequence 01 such pairs turned a hidden thumb 50 degrees away. A fixed c = 3 mm
+    (about 3 pixels at the thesis' working distance) fixed that but slowed the
+    recovery from fast motion, where all of a model's pairs are far: c follows the
+    model's median misfit, so a model that is off as a whole is pulled at full
+    strength and a model that fits is not pulled by its few far pairs
+    (docs/results.md, "Data-to-model outliers").
     """
 
     name = "d2m"
 
-    def __init__(self, weight=0.25, max_distance=30.0, max_pixels=600, outlier_sigma=2.0, robust_scale=3.0):
+    def __init__(self, weight=0.25, max_distance=30.0, max_pixels=600, outlier_sigma=2.0, robust_scale=3.0,
+                 robust_relative=2.0):
         super().__init__(weight)
         if robust_scale is not None and not robust_scale > 0:
             raise ValueError(f"robust_scale must be > 0 (mm) or None, got {robust_scale!r}")
+        if robust_relative is not None and not robust_relative > 0:
+            raise ValueError(f"robust_relative must be > 0 or None, got {robust_relative!r}")
         self.max_distance, self.max_pixels = max_distance, max_pixels
-        self.outlier_sigma, self.robust_scale = outlier_sigma, robust_scale
+        self.outlier_sigma, self.robust_scale, self.robust_relative = outlier_sigma, robust_scale, robust_relative
 
     def prepare(self, state: TrackState) -> None:
         scene, B = state.scene, state.theta.shape[0]
@@ -122,8 +132,12 @@ class DataToModel(EnergyTerm):
                     rejected[b] += float(ray_dist[within & ~keep].square().sum())
                 # The residual V x d - m is linear in the line (d, m): scaling both by
                 # sqrt(w) weights the pair's squared residual, and its Jacobian, by w.
-                sw = torch.ones_like(ray_dist) if self.robust_scale is None else \
-                    (1 + (ray_dist / self.robust_scale) ** 2).rsqrt()
+                sw = torch.ones_like(ray_dist)
+                if self.robust_scale is not None:
+                    c = self.robust_scale
+                    if self.robust_relative is not None and bool(keep.any()):
+                        c = max(c, self.robust_relative * float(ray_dist[keep].median()))
+                    sw = (1 + (ray_dist / c) ** 2).rsqrt()
                 rows.append((vid[keep] - vs.start, rays.direction[keep] * sw[keep, None],
                              rays.moment[keep] * sw[keep, None]))
                 count[b] += int(keep.sum())
