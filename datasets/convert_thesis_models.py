@@ -57,7 +57,7 @@ def write_demo_motion(hia_root: Path, seq: str, frames: int, path: Path, force: 
 
     from torchhand import load_model
     from torchhand.io import sequence_models
-    from torchhand.motion import motion_to_theta
+    from torchhand.model.motion import motion_to_theta
 
     if path.exists() and not force:
         raise FileExistsError(f"{path} exists; pass --force to replace it")

@@ -41,9 +41,9 @@ def write_json(path: Path, result: dict) -> None:
 
 def demo_scene():
     """The shipped demo motion: (model names, theta (N, D), Scene, thesis camera)."""
-    from torchhand.camera import kinect_camera
+    from torchhand.geometry.camera import kinect_camera
     from torchhand.io.assets import load_demo_motion
-    from torchhand.scene import Scene
+    from torchhand.model.scene import Scene
 
     names, theta = load_demo_motion()
     return names, theta, Scene.from_names(names), kinect_camera()

@@ -25,9 +25,9 @@ import numpy as np
 import torch
 
 from _common import machine, median_seconds, set_threads, write_json
-from torchhand.collision import CollisionMesh, collision_energy, detect_collisions, pair_sets
+from torchhand.geometry.intersections import CollisionMesh, collision_energy, detect_collisions, pair_sets
 from torchhand.io.assets import load_demo_motion
-from torchhand.scene import Scene
+from torchhand.model.scene import Scene
 
 
 def posed_hands(frame: int, push: float, dtype=torch.float32):

@@ -19,8 +19,8 @@ import torch
 
 from _common import demo_scene, machine, set_threads, write_json
 from torchhand.data.layout import Poses, write_poses
-from torchhand.evaluation import evaluate_many
-from torchhand.scene import Scene
+from torchhand.scoring.sequences import evaluate_many
+from torchhand.model.scene import Scene
 
 
 def make_pair(root: Path, k: int, scene: Scene, theta: torch.Tensor, cam, frames: int):

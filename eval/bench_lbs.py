@@ -60,8 +60,8 @@ import smplx.lbs
 
 SMPLX_VERSION = importlib.metadata.version("smplx")
 
-from torchhand.model import load_model
-from torchhand.skinning import dense_weights, lbs, skinning_matrix
+from torchhand.model.articulated import load_model
+from torchhand.model.skinning import dense_weights, lbs, skinning_matrix
 
 TOL_MM = 1e-3  # max abs difference of posed vertices (float32, mm)
 GRAD_RTOL = 1e-4  # max abs gradient difference relative to the gradient's max abs value

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from _common import demo_scene, machine, set_threads, write_json
-from torchhand.render import render
+from torchhand.geometry.render import render
 
 
 def main(argv=None) -> None:

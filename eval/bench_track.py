@@ -28,8 +28,9 @@ import torch
 
 from _common import machine, set_threads, write_json
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence
-from torchhand.evaluation import evaluate_sequence
-from torchhand.tracker import TrackerConfig, track_sequences
+from torchhand.scoring.sequences import evaluate_sequence
+from torchhand.app.runner import track_sequences
+from torchhand.tracking.tracker import TrackerConfig
 
 
 def render(hia_root, seq, start, frames, out):

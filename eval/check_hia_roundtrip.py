@@ -24,8 +24,8 @@ import torch
 from tqdm import tqdm
 
 from torchhand.io import assets_from_thesis, read_thesis_model, sequence_models
-from torchhand.model import ArticulatedModel
-from torchhand.motion import motion_tensor, motion_to_theta, pose_like_viewer
+from torchhand.model.articulated import ArticulatedModel
+from torchhand.model.motion import motion_tensor, motion_to_theta, pose_like_viewer
 
 
 def check_sequence(hia_root: Path, seq: str, chunk: int = 64):

@@ -27,11 +27,11 @@ from _common import machine, median_seconds, set_threads, write_json
 from torchhand.data.synth import random_poses, thesis_motion
 from torchhand.io.thesis import sequence_models
 from torchhand.salient import SalientDetector, average_precision
-from torchhand.salient.data import VISIBLE_MM2, concat_frames, render_salient_frames
+from torchhand.salient.training_data import VISIBLE_MM2, concat_frames, render_salient_frames
 from torchhand.salient.detector import DEFAULT_ONNX, DEFAULT_WEIGHTS
 
 REPO = Path(__file__).resolve().parents[1]
-VAL_SEQUENCES = ["03", "10", "20"]  # the validation split of train/salient.py
+VAL_SEQUENCES = ["03", "10", "20"]  # the validation split of train/salient_detector.py
 
 
 def held_out_frames(hia_root: Path, sequences, per_sequence: int, random_frames: int, seed: int):

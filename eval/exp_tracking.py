@@ -50,14 +50,16 @@ import numpy as np
 
 from torchhand.data.synth import SyntheticFrames, thesis_motion, write_synthetic_sequence
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info
-from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient, parse_energy
-from torchhand.energies.salient import simulated_detector
-from torchhand.render import render
-from torchhand.salient.data import VISIBLE_MM2, fingertip_faces, fingertip_targets
-from torchhand.scene import Scene
-from torchhand.evaluation import evaluate_sequence, summarize
+from torchhand.tracking.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient, parse_energy
+from torchhand.tracking.energies.salient_points import simulated_detector
+from torchhand.geometry.render import render
+from torchhand.model.fingertips import fingertip_faces
+from torchhand.salient.training_data import VISIBLE_MM2, fingertip_targets
+from torchhand.model.scene import Scene
+from torchhand.scoring.sequences import evaluate_sequence, summarize
 from torchhand.io.thesis import FormatError, sequence_models
-from torchhand.tracker import TrackerConfig, track_sequences
+from torchhand.app.runner import track_sequences
+from torchhand.tracking.tracker import TrackerConfig
 
 
 def contact_window(hia_root: Path, sequence: str, frames: int, near_mm: float = 5.0) -> int:

@@ -122,7 +122,7 @@ def rigid_model64(model64):
     re-orthonormalised (the thesis stores rotations with 6 digits)."""
     import dataclasses
 
-    from torchhand.model import ArticulatedModel
+    from torchhand.model.articulated import ArticulatedModel
 
     cache = {}
 

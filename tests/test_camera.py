@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchhand.camera import (
+from torchhand.geometry.image_ops import max_filter_3x3
+from torchhand.geometry.camera import (
     Camera,
     CameraRig,
     PluckerRays,
-    _max_filter_3x3,
     depth_to_normals,
     depth_to_points,
     depth_to_points_and_normals,
@@ -141,8 +141,8 @@ def test_max_filter_equals_max_pool(gen):
     x = torch.randn(3, 17, 23, generator=gen)
     x[0, 0, 0], x[1, 5, 5] = float("inf"), float("-inf")
     expected = torch.nn.functional.max_pool2d(x[:, None], 3, 1, 1)[:, 0]
-    assert torch.equal(_max_filter_3x3(x), expected)
-    assert torch.equal(_max_filter_3x3(x[:, :1, :1]), x[:, :1, :1])
+    assert torch.equal(max_filter_3x3(x), expected)
+    assert torch.equal(max_filter_3x3(x[:, :1, :1]), x[:, :1, :1])
 
 def test_depth_to_normals_tilted_plane():
     # Plane z = 500 + 0.5 x (camera frame): normal (0.5, 0, -1)/|.| towards the camera.
@@ -266,7 +266,7 @@ def test_camera_rig(gen):
 @pytest.mark.parametrize(
     "call, match",
     [
-        (lambda: transform_points(torch.eye(4), torch.zeros(4)), r"points must have shape \(\.\.\., N, 3\), got \(4\)"),
+        (lambda: transform_points(torch.eye(4), torch.zeros(4)), r"points must have shape \(\.\.\., N, 3\), got \(4,\)"),
         (lambda: transform_points(torch.eye(3), torch.zeros(2, 3)), r"T must have shape \(\.\.\., 4, 4\)"),
         (lambda: project_points(torch.zeros(5, 2), _K(torch.float32)), r"points_cam must have shape"),
         (lambda: project_points(torch.zeros(5, 3), torch.eye(4)), r"K must have shape \(\.\.\., 3, 3\), got \(4, 4\)"),

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchhand.collision import (
+from torchhand.geometry.intersections import (
     CollisionMesh,
     collision_energy,
     collision_loss,
@@ -20,8 +20,8 @@ from torchhand.collision import (
     triangles_intersect,
 )
 from torchhand.data.synth import demo_motion
-from torchhand.energies import Collision, TrackState, parse_energy
-from torchhand.scene import Scene
+from torchhand.tracking.energies import Collision, TrackState, parse_energy
+from torchhand.model.scene import Scene
 
 
 # ------------------------------------------------------------------ helpers

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchhand.camera import Camera
+from torchhand.geometry.camera import Camera
 from torchhand.data.layout import (
     FORMAT,
     Poses,

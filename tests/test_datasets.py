@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from torchhand.data.datasets import Frame, MultiSequenceDataset, SequenceDataset, collate_frames
+from torchhand.data.torch_datasets import Frame, MultiSequenceDataset, SequenceDataset, collate_frames
 from torchhand.data.layout import SequenceError, frame_name, read_depth, read_poses
 from torchhand.data.synth import random_poses, write_synthetic_sequence
 

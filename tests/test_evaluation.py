@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchhand.camera import kinect_camera
+from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import Poses, read_poses, write_poses
-from torchhand.evaluation import EvaluationError, evaluate_many, evaluate_sequence
-from torchhand.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
-from torchhand.scene import Scene
+from torchhand.scoring.sequences import EvaluationError, evaluate_many, evaluate_sequence
+from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
+from torchhand.model.scene import Scene
 
 FX = 525.0
 
@@ -262,7 +262,7 @@ def test_max_depth_sign_does_not_flip_on_a_grazing_ray(hia_root):
     inside test, a vertex of one hand 19 mm outside the other was counted 19 mm deep
     (a grazing ray); the true deepest vertex is 1.5 mm."""
     from torchhand.data.synth import thesis_motion
-    from torchhand.metrics import max_depth
+    from torchhand.scoring.metrics import max_depth
 
     fr = thesis_motion(hia_root, "03", slice(44, 84), dtype=torch.float32)
     scene = Scene.from_names(fr.scene.names, dtype=torch.float64)

@@ -9,7 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import random_theta, tolerance
-from torchhand.kinematics import (
+from torchhand.model.kinematics import (
     forward_kinematics,
     rotation_about_axis,
     skew,

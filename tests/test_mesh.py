@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 import trimesh
 
-from torchhand.mesh import is_closed_outward, vertex_faces, vertex_normals
-from torchhand.scene import Scene
+from torchhand.geometry.mesh import is_closed_outward, vertex_faces, vertex_normals
+from torchhand.model.scene import Scene
 
 
 def test_vertex_normals_match_trimesh_and_subsets_match_all():

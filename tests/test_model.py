@@ -12,7 +12,7 @@ import torch
 from conftest import random_theta, requires_cuda
 from torchhand import HAND_KEYPOINT_NAMES, FINGER_NAMES, load_model
 from torchhand.io import assets_from_thesis, read_thesis_model
-from torchhand.model import ArticulatedModel
+from torchhand.model.articulated import ArticulatedModel
 
 F64 = torch.float64
 
@@ -46,7 +46,7 @@ def test_scene_joint_motion_is_the_mean_joint_shift_of_a_hand_and_sees_a_rolling
     """The tracker's stopping measure: a hand's mean joint displacement (a 1 mm shift
     moves it 1 mm), an object's mean vertex displacement (a ball rolling about its
     centre moves no bone origin but its vertices), the largest over the models."""
-    from torchhand.scene import Scene
+    from torchhand.model.scene import Scene
 
     scene = Scene([model64("hand_right"), model64("ball")])
     theta = scene.zero_pose(2)
@@ -364,7 +364,7 @@ def test_keypoints_are_joint_positions(model64):
 
 
 def test_scene_output_select_equals_posing_the_selected_problems():
-    from torchhand.scene import Scene
+    from torchhand.model.scene import Scene
 
     scene = Scene.from_names(["hand_right", "ball"], dtype=torch.float64)
     gen = torch.Generator().manual_seed(3)

@@ -8,8 +8,8 @@ import torch
 
 from conftest import random_theta
 from torchhand.io import assets_from_thesis, read_motion, sequence_models, write_motion
-from torchhand.model import ArticulatedModel
-from torchhand.motion import motion_tensor, motion_to_theta, pose_like_viewer, theta_to_motion
+from torchhand.model.articulated import ArticulatedModel
+from torchhand.model.motion import motion_tensor, motion_to_theta, pose_like_viewer, theta_to_motion
 
 F64 = torch.float64
 
@@ -76,7 +76,7 @@ def test_motion_tensor_missing_bone_raises_key_error(model64):
 
 def test_pose_like_viewer_at_rest_row_returns_template(model64):
     model = model64("hand_right")
-    from torchhand.skinning import dense_weights
+    from torchhand.model.skinning import dense_weights
 
     W = dense_weights(model.skin_index, model.skin_weight, model.num_bones)
     M0 = model.rest_transforms
@@ -87,7 +87,7 @@ def test_pose_like_viewer_at_rest_row_returns_template(model64):
 def test_pose_like_viewer_equals_model_for_exact_motion(rigid_model64):
     """For MOTION produced by the model itself, the viewer's skinning is the model's."""
     model = rigid_model64("hand_right")
-    from torchhand.skinning import dense_weights
+    from torchhand.model.skinning import dense_weights
 
     W = dense_weights(model.skin_index, model.skin_weight, model.num_bones)
     theta = random_theta(model, 2, torch.Generator().manual_seed(63))
@@ -118,8 +118,8 @@ def test_real_motion_sequence_01_posed_via_theta_matches_viewer(hia_root, real_r
 def test_motion_rest_makes_the_fit_independent_of_the_bone_frame_convention():
     """A MOTION whose bone frames are rotated about their own x axes (another rigging
     convention) poses the mesh identically; with ``motion_rest`` the fit reproduces it."""
-    from torchhand.model import load_model
-    from torchhand.skinning import dense_weights
+    from torchhand.model.articulated import load_model
+    from torchhand.model.skinning import dense_weights
 
     model = load_model("hand_right", dtype=F64)
     g = torch.Generator().manual_seed(5)

@@ -322,8 +322,8 @@ def test_params_validation_and_registry():
 
 def test_with_rendered_sphere():
     trimesh = pytest.importorskip("trimesh")
-    from torchhand.camera import kinect_camera
-    from torchhand.render import render
+    from torchhand.geometry.camera import kinect_camera
+    from torchhand.geometry.render import render
 
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=60.0)
     vertices = torch.tensor(mesh.vertices, dtype=torch.float32) + torch.tensor([0.0, 0.0, 700.0])

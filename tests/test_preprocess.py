@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-import torchhand.preprocess as pp
-from torchhand.camera import kinect_camera
-from torchhand.render import render
-from torchhand.scene import Scene
+import torchhand.tracking.preprocess as pp
+from torchhand.geometry.camera import kinect_camera
+from torchhand.geometry.render import render
+from torchhand.model.scene import Scene
 
 
 @pytest.fixture(scope="module")

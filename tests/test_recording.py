@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from torchhand.camera import kinect_camera
+from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import SequenceError, read_depth, read_init_pose, read_rgb, read_sequence_info
 from torchhand.data.recording import (
     RECORDING_SHAPE,

@@ -8,8 +8,8 @@ import pytest
 import torch
 import trimesh
 
-from torchhand.camera import Camera, kinect_camera
-from torchhand.render import RenderResult, render, silhouette_edges, visible_vertices
+from torchhand.geometry.camera import Camera, kinect_camera
+from torchhand.geometry.render import RenderResult, render, silhouette_edges, visible_vertices
 
 RADIUS = 50.0
 CENTRE_Z = 500.0
@@ -152,8 +152,7 @@ def test_cropped_render_equals_the_whole_image(sphere, monkeypatch):
     """Outputs are computed on the union of the projected boxes; casting every pixel of
     the image gives the same maps, also for a batch whose boxes differ and touch the
     image border."""
-    import torchhand.render as tr
-
+    import torchhand.geometry.render as tr
     vertices, faces = sphere
     batch = torch.stack([vertices + torch.tensor([-60.0, 10.0, 0.0]), vertices + torch.tensor([290.0, 0.0, 0.0])])
     cam = kinect_camera()
@@ -245,7 +244,7 @@ def test_render_cuda(sphere):
 def test_back_face_culling_keeps_the_first_hits():
     """Leaving out faces turned away from the camera changes nothing for closed meshes
     seen from outside, even where the models interpenetrate (both hands and the ball)."""
-    from torchhand.scene import Scene
+    from torchhand.model.scene import Scene
 
     scene = Scene.from_names(["hand_right", "hand_left", "ball"])
     theta = scene.zero_pose(2)

@@ -13,7 +13,7 @@ import torch
 from conftest import requires_cuda
 from torchhand.salient import (DEFAULT_ONNX, DEFAULT_WEIGHTS, SalientConfig, SalientDetector, SalientNet,
                                average_precision, detect_peaks, export_onnx, hough_votes)
-from torchhand.salient.data import VISIBLE_MM2, SalientFrames
+from torchhand.salient.training_data import VISIBLE_MM2, SalientFrames
 
 
 def _random_net(seed: int = 0) -> SalientNet:
@@ -209,7 +209,7 @@ def test_onnx_parity_on_another_size(tmp_path):
 @pytest.fixture(scope="module")
 def rendered_frame():
     from torchhand.data.synth import demo_motion
-    from torchhand.salient.data import render_salient_frames
+    from torchhand.salient.training_data import render_salient_frames
 
     return render_salient_frames(demo_motion(frames=slice(30, 31)), seed=3, progress=False)
 
@@ -338,7 +338,7 @@ def _fake_frames(n=6, seed=0):
 
 
 def _tiny_cfg(**kw):
-    from train.salient import TrainConfig
+    from train.salient_detector import TrainConfig
 
     base = dict(steps=4, batch_size=2, crop=48, checkpoint_every=2, network={"channels": [4, 4], "dilations": [1]})
     base.update(kw)
@@ -346,7 +346,7 @@ def _tiny_cfg(**kw):
 
 
 def test_train_resume_is_exact(tmp_path):
-    from train.salient import train
+    from train.salient_detector import train
 
     data = _fake_frames()
     cfg = _tiny_cfg()
@@ -363,7 +363,7 @@ def test_train_resume_is_exact(tmp_path):
 
 
 def test_fine_tuning_starts_from_given_weights(tmp_path):
-    from train.salient import train
+    from train.salient_detector import train
 
     data = _fake_frames()
     cfg = _tiny_cfg()
@@ -386,7 +386,7 @@ def test_fine_tuning_starts_from_given_weights(tmp_path):
 def test_cli_refuses_overwrite_and_config_mismatch(tmp_path):
     from dataclasses import asdict
 
-    from train.salient import TrainConfig, main
+    from train.salient_detector import TrainConfig, main
 
     run = tmp_path / "run"
     run.mkdir()
@@ -408,8 +408,9 @@ def test_fingertips_the_sensor_does_not_measure_are_not_ground_truth():
     than the Kinect's 400 mm range has no ground-truth fingertip, and masking the
     sensed pixels masks the area."""
     from torchhand.data.synth import demo_motion
-    from torchhand.render import render
-    from torchhand.salient.data import fingertip_faces, fingertip_targets, render_salient_frames
+    from torchhand.geometry.render import render
+    from torchhand.model.fingertips import fingertip_faces
+    from torchhand.salient.training_data import fingertip_targets, render_salient_frames
 
     frames = demo_motion(frames=slice(30, 31))
     scene, cam = frames.scene, frames.cameras[0]
@@ -439,7 +440,7 @@ def test_fingertips_the_sensor_does_not_measure_are_not_ground_truth():
 
 
 def test_random_background_stays_behind_the_models_and_spheres_only_add_blobs():
-    from torchhand.salient.data import random_background
+    from torchhand.salient.training_data import random_background
 
     far = torch.tensor([500.0, 700.0, 900.0])
     plain = random_background(far, 120, 160, torch.Generator().manual_seed(4))

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from torchhand.camera import kinect_camera
-from torchhand.energies import Salient, TrackState, parse_energy
-from torchhand.energies.salient import simulated_detector
-from torchhand.preprocess import preprocess_depth
-from torchhand.render import render
+from torchhand.geometry.camera import kinect_camera
+from torchhand.tracking.energies import Salient, TrackState, parse_energy
+from torchhand.tracking.energies.salient_points import simulated_detector
+from torchhand.tracking.preprocess import preprocess_depth
+from torchhand.geometry.render import render
 from torchhand.salient.association import associate
-from torchhand.salient.data import fingertip_faces
-from torchhand.scene import Scene
+from torchhand.model.fingertips import fingertip_faces
+from torchhand.model.scene import Scene
 
 
 def _brute_force(cost, lam, ws):

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from conftest import random_theta
-from torchhand.kinematics import forward_kinematics
-from torchhand.skinning import dense_weights, lbs, lbs_dense_reference, lbs_jacobian, skinning_matrix
+from torchhand.model.kinematics import forward_kinematics
+from torchhand.model.skinning import dense_weights, lbs, lbs_dense_reference, lbs_jacobian, skinning_matrix
 
 F64 = torch.float64
 ARTICULATED = ["hand_right", "hand_left", "pipe", "rope"]
@@ -32,7 +32,7 @@ def _autograd_vertex_jacobian(model, theta, ids):
 
 def _dense_twin(model):
     """The same model with a dense skinning matrix (copy.deepcopy cannot copy CSR buffers)."""
-    from torchhand.model import ArticulatedModel
+    from torchhand.model.articulated import ArticulatedModel
 
     twin = ArticulatedModel(model.assets, dtype=model.lower.dtype)
     twin.skinning_matrix = model.skinning_matrix.to_dense()

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from torchhand.solver import levenberg_marquardt, solve_damped
+from torchhand.optim.levenberg_marquardt import levenberg_marquardt, solve_damped
 
 F64 = torch.float64
 INF = math.inf

@@ -12,8 +12,8 @@ import torch
 
 from torchhand.data.layout import frame_name, read_depth, read_poses, read_rgb, read_sequence_info, read_init_pose
 from torchhand.data.synth import SyntheticFrames, random_poses, shade_rgb, thesis_motion, write_synthetic_sequence
-from torchhand.render import RenderResult, render
-from torchhand.scene import Scene
+from torchhand.geometry.render import RenderResult, render
+from torchhand.model.scene import Scene
 
 N = 3
 

@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from torchhand.camera import kinect_camera
+from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import read_poses
-from torchhand.energies import Anatomy, DataToModel, ModelToData, Regularization, parse_energy
-from torchhand.evaluation import evaluate_sequence
-from torchhand.render import render
-from torchhand.scene import Scene
-from torchhand.tracker import Tracker, TrackerConfig, predicted_start, track_sequences
+from torchhand.tracking.energies import Anatomy, DataToModel, ModelToData, Regularization, parse_energy
+from torchhand.scoring.sequences import evaluate_sequence
+from torchhand.geometry.render import render
+from torchhand.model.scene import Scene
+from torchhand.app.runner import track_sequences
+from torchhand.tracking.tracker import Tracker, TrackerConfig, predicted_start
 
 SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "sample"
 F64 = torch.float64
@@ -38,7 +39,7 @@ def hand_frame():
 
 
 def _state(tracker, scene, theta, cam, depth):
-    from torchhand.preprocess import preprocess_depth
+    from torchhand.tracking.preprocess import preprocess_depth
 
     frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
     return tracker._state(theta, theta, [frame], [cam])
@@ -142,7 +143,7 @@ def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_fr
 
 
 def test_bone_inliers_cut_per_bone_at_mean_plus_sigma_std():
-    from torchhand.energies.base import bone_inliers
+    from torchhand.tracking.energies.base import bone_inliers
 
     d = torch.tensor([1.0] * 10 + [30.0] + [20.0] * 3, dtype=F64)
     bone = torch.tensor([0] * 11 + [2] * 3)
@@ -174,8 +175,7 @@ def test_a_rejected_step_is_retried_before_convergence(hand_frame, monkeypatch):
     damping (``step_retries``; the retry loop itself is tested in test_solver.py). Started
     4 mm off with a tiny damping, every outer iteration but the last ends with an
     accepted step and the frame converges."""
-    import torchhand.tracker as tracker_module
-
+    import torchhand.tracking.tracker as tracker_module
     scene, theta, cam, depth = hand_frame
     real, accepted, kwargs_seen = tracker_module.levenberg_marquardt, [], []
 
@@ -353,8 +353,8 @@ def test_label_data_equals_the_whole_image_transform():
     the same transform on the whole image gives the same labels."""
     import cv2
 
-    from torchhand.preprocess import DepthFrame
-    from torchhand.tracker import label_data
+    from torchhand.tracking.preprocess import DepthFrame
+    from torchhand.tracking.tracker import label_data
 
     rng = np.random.default_rng(3)
     ids = np.full((120, 160), -1, np.int64)

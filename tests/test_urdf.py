@@ -13,7 +13,7 @@ import torch
 pk = pytest.importorskip("pytorch_kinematics")
 
 from torchhand import load_model  # noqa: E402
-from torchhand.io.urdf import (  # noqa: E402
+from torchhand.model.urdf import (  # noqa: E402
     MM_TO_M,
     model_to_urdf,
     rigid_rest_transforms,
@@ -22,8 +22,8 @@ from torchhand.io.urdf import (  # noqa: E402
     urdf_joint_values,
     urdf_link_name,
 )
-from torchhand.kinematics import rotation_about_axis  # noqa: E402
-from torchhand.model import ArticulatedModel  # noqa: E402
+from torchhand.model.kinematics import rotation_about_axis  # noqa: E402
+from torchhand.model.articulated import ArticulatedModel  # noqa: E402
 
 MODELS = ["hand_right", "rope", "pipe"]
 NUM_POSES = 16

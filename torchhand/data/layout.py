@@ -29,7 +29,7 @@ from typing import Dict, List, Optional
 import cv2
 import numpy as np
 
-from ..camera import Camera
+from torchhand.geometry.camera import Camera
 
 __all__ = [
     "FORMAT",

@@ -55,8 +55,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..camera import kinect_camera
-from .layout import SequenceError, SequenceInfo, frame_name, write_depth, write_rgb, write_sequence_info
+from torchhand.geometry.camera import kinect_camera
+from torchhand.data.layout import SequenceError, SequenceInfo, frame_name, write_depth, write_rgb, write_sequence_info
 
 __all__ = [
     "RECORDING_FORMAT",

@@ -16,16 +16,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..camera import Camera, kinect_camera
-from ..io.assets import THESIS_MODEL_NAMES, load_demo_motion
-from ..io.thesis import FormatError, read_calibration, read_thesis_model, sequence_models
-from ..kinematics import so3_exp, so3_log
-from ..motion import motion_to_theta
-from ..render import RenderResult, render
-from ..scene import Scene
-from ..workspace import prepare_output_dir
-from .layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
-from .noise import apply_kinect_noise, noise_model
+from torchhand.geometry.camera import Camera, kinect_camera
+from torchhand.io.assets import THESIS_MODEL_NAMES, load_demo_motion
+from torchhand.io.thesis import FormatError, read_calibration, read_thesis_model, sequence_models
+from torchhand.model.kinematics import so3_exp, so3_log
+from torchhand.model.motion import motion_to_theta
+from torchhand.geometry.render import RenderResult, render
+from torchhand.model.scene import Scene
+from torchhand.io.output_dir import prepare_output_dir
+from torchhand.data.layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
+from torchhand.data.noise import apply_kinect_noise, noise_model
 
 __all__ = ["SyntheticFrames", "thesis_motion", "demo_motion", "random_poses", "write_synthetic_sequence", "shade_rgb"]
 

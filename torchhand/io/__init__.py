@@ -1,6 +1,6 @@
 """File formats: the thesis' model and motion files, and torchhand's model assets."""
 
-from .assets import (  # noqa: F401
+from torchhand.io.assets import (  # noqa: F401
     FINGER_NAMES,
     HAND_KEYPOINT_NAMES,
     THESIS_MODEL_NAMES,
@@ -11,4 +11,4 @@ from .assets import (  # noqa: F401
     load_assets,
     save_assets,
 )
-from .thesis import *  # noqa: F401,F403
+from torchhand.io.thesis import *  # noqa: F401,F403

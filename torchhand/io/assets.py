@@ -35,7 +35,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .thesis import FormatError, ThesisModelFiles
+from torchhand.io.thesis import FormatError, ThesisModelFiles
 
 __all__ = [
     "ModelAssets",

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..io.assets import model_dirs
+from torchhand.io.assets import model_dirs
 
 __all__ = [
     "SalientConfig",

@@ -1,0 +1,178 @@
+"""The ``torchhand`` command line: argument parsing only; the work lives in the library."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _demo(args) -> int:
+    from torchhand.app.demo import run_demo
+
+    summary = run_demo(args.out, frames=args.frames, force=args.force, device=args.device,
+                       track_frames=args.track_frames)
+    print(f"rendered {summary['frames']} frames of {', '.join(summary['models'])} "
+          f"({summary['dofs']} DoF, {summary['render_ms_per_frame']:.1f} ms/frame to render)")
+    t = summary["tracking"]
+    if t:
+        print(f"tracked {t['frames']} synthetic Kinect frames from the first-frame pose: "
+              f"mean error {t['mean_px']:.2f} px, {t['mean_mm']:.2f} mm ({t['seconds_per_frame']:.1f} s/frame)")
+    print("wrote " + ", ".join(f"{args.out}/{o}" for o in summary["outputs"]))
+    return 0
+
+
+def _frames_slice(text: str | None) -> slice | None:
+    if not text:
+        return None
+    try:
+        a, b = (int(x) if x else None for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--frames must look like A:B (e.g. 0:100), got {text!r}") from None
+    return slice(a, b)
+
+
+def _synth(args) -> int:
+    from torchhand.data.synth import demo_motion, random_poses, thesis_motion, write_synthetic_sequence
+
+    if args.demo:
+        frames = demo_motion(args.frames)
+    elif args.random:
+        if args.sequence or args.hia_root:
+            raise ValueError("--random renders random poses; do not combine it with --hia-root/--sequence")
+        n = args.frames.stop if args.frames is not None and args.frames.stop else 100
+        frames = random_poses(args.models.split(","), n, seed=args.seed)
+    else:
+        if not (args.hia_root and args.sequence):
+            raise ValueError("give --hia-root and --sequence (or --random)")
+        frames = thesis_motion(args.hia_root, args.sequence, args.frames)
+    out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
+                                   rgb=not args.no_rgb)
+    print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
+          f"(noise: {args.noise}; ground truth in {out / 'gt'})")
+    return 0
+
+
+def _eval(args) -> int:
+    from torchhand.scoring.sequences import evaluate_many
+
+    if len(args.pred) != len(args.gt):
+        raise ValueError(f"give one --gt folder per prediction: {len(args.pred)} predictions, {len(args.gt)} --gt")
+    result = evaluate_many(list(zip(args.pred, args.gt)), workers=args.workers,
+                           with_penetration=not args.no_penetration)
+    print(f"{result['frames']} frames: 2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
+          f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
+          f"AUC 0-50 mm {result['auc_0_50mm']:.3f}")
+    if "penetration" in result:
+        p = result["penetration"]
+        print(f"penetration: {p['pairs_per_frame']} intersecting triangle pairs per frame, max depth {p['max_depth_mm']:.1f} mm")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json}")
+    if args.plot:
+        from torchhand.app.drawing import plot_curves
+
+        seqs = result.get("sequences", [result])
+        curves = {r["sequence"]: (r["pck"]["thresholds_mm"], r["pck"]["fraction"]) for r in seqs}
+        plot_curves(curves, args.plot, "3D error threshold (mm)", "fraction of keypoints")
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _track(args) -> int:
+    from torchhand.app.runner import track_sequences
+    from torchhand.tracking.tracker import TrackerConfig
+
+    cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
+                        first_frame_iterations=args.first_iterations, prediction=args.prediction,
+                        prediction_limiter=args.prediction_limiter)
+    from torchhand.tracking.energies import parse_energy
+
+    parse_energy(args.energy)  # reject unknown energies before reading any data
+    summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force)
+    for s in summaries:
+        print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
+              f"{s['flagged_frames']} flagged -> {s['out']}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch CPU threads per process (default 1: the per-frame work is many small "
+                         "operations, which lose far more to thread contention than they gain; see "
+                         "docs/benchmarks.md)")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("demo", help="pose, render and draw the default scene through a short motion")
+    p.add_argument("--out", type=Path, required=True, help="output folder (created; must be new or empty)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default: all 60)")
+    p.add_argument("--track-frames", type=int, default=8, help="frames to synthesise and track (0: skip)")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    p.set_defaults(func=_demo)
+
+    p = sub.add_parser("synth", help="render a thesis motion or random poses into a sequence folder")
+    p.add_argument("--hia-root", type=Path, help="Hands-in-Action data root (Configs/, Models/, Calibration/)")
+    p.add_argument("--sequence", help="thesis sequence id, e.g. 16")
+    p.add_argument("--random", action="store_true", help="random poses within the limits, random viewpoints")
+    p.add_argument("--demo", action="store_true", help="the shipped demo motion (no thesis data needed)")
+    p.add_argument("--models", default="hand_right", help="with --random: comma-separated model names")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--frames", type=_frames_slice, default=None, help="A:B frame range (with --random: :N frames)")
+    p.add_argument("--noise", default="kinect", choices=["none", "kinect"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-rgb", action="store_true", help="depth only")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    p.set_defaults(func=_synth)
+
+    p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)")
+    p.add_argument("pred", nargs="+", type=Path, help="prediction folder(s) in the gt/ layout")
+    p.add_argument("--gt", nargs="+", type=Path, required=True, help="ground truth folder(s), one per prediction")
+    p.add_argument("--json", type=Path, help="write all scores to this JSON file")
+    p.add_argument("--plot", type=Path, help="write the PCK curves (0-50 mm) to this PNG")
+    p.add_argument("--workers", type=int, default=1, help="parallel processes over sequences")
+    p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
+    p.set_defaults(func=_eval)
+
+    p = sub.add_parser("track", help="track sequences from their first-frame pose (never reads gt/)")
+    p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--energy", default="LO", help="energy terms: LO (model-to-data + data-to-model), LO+C (collisions), LO+S (salient points), LO+CS")
+    p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
+                   help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
+    p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
+    p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
+    p.add_argument("--prediction", type=float, default=0.0,
+                   help="start each frame from the previous pose + P x its last step (minmod-limited, see "
+                        "--no-prediction-limiter): 0 = the previous pose (the thesis), 1 = constant velocity")
+    p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
+                   help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
+                        "last two steps, 0 where they disagree in sign)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--viz", action="store_true", help="write overlay PNGs and an MP4 per sequence")
+    p.add_argument("--force", action="store_true", help="replace existing output folders")
+    p.set_defaults(func=_track)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    import torch
+
+    torch.set_num_threads(max(1, args.threads))
+    try:
+        device = getattr(args, "device", "cpu")
+        if str(device).startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"--device {device}: no CUDA device is available (use --device cpu)")
+        return args.func(args)
+    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError) as err:
+        print(f"torchhand {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

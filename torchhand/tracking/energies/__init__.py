@@ -1,0 +1,45 @@
+"""Energy terms of the tracking objective (thesis Eq. 4.5), one module per term.
+
+``parse_energy("LO+C")`` builds the terms named on the command line: ``LO`` is
+model-to-data plus data-to-model, ``C`` adds collisions and ``S`` salient points
+(``LO+CS``: both); anatomy and regularisation are always added.
+"""
+
+from __future__ import annotations
+
+from typing import List
+
+from torchhand.tracking.energies.anatomy import Anatomy
+from torchhand.tracking.energies.base import EnergyTerm, Residuals, TrackState
+from torchhand.tracking.energies.collision import Collision
+from torchhand.tracking.energies.data_to_model import DataToModel
+from torchhand.tracking.energies.model_to_data import ModelToData
+from torchhand.tracking.energies.regularization import Regularization
+from torchhand.tracking.energies.salient_points import Salient
+
+__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient", "Anatomy",
+           "Regularization",
+           "parse_energy", "ENERGY_COMPONENTS"]
+
+#: components understood by parse_energy after ``LO``
+ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)",
+                     "S": "salient points (detected fingertips, Eq. 4.14-4.15)"}
+
+
+def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
+    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+CS``."""
+    parts = spec.replace(" ", "").split("+")
+    if parts[0] != "LO":
+        raise ValueError(f"energy {spec!r} must start with LO (model-to-data + data-to-model)")
+    extra = "".join(parts[1:])
+    unknown = [c for c in extra if c not in ENERGY_COMPONENTS]
+    if unknown:
+        raise ValueError(f"energy {spec!r}: unknown components {unknown}; known after LO: {sorted(ENERGY_COMPONENTS)}")
+    if len(set(extra)) != len(extra):
+        raise ValueError(f"energy {spec!r} names a component twice")
+    terms: List[EnergyTerm] = [ModelToData(metric=metric), DataToModel()]
+    if "C" in extra:
+        terms.append(Collision())
+    if "S" in extra:
+        terms.append(Salient())
+    return terms + [Anatomy(), Regularization()]

@@ -1,0 +1,366 @@
+"""The RGB-D tracker (thesis Ch. 4.2, Algorithm 1), batched over independent sequences.
+
+For every frame, starting from the previous frame's pose, repeat until the joints
+move less than 0.2 mm on average or the iteration budget is spent: render the scene at the
+current pose, find the correspondences of every energy term, and take a
+Levenberg-Marquardt step on the stacked residuals with the joint limits as box
+bounds. B sequences of the same scene are tracked as one batch: their frames are
+independent problems that share every tensor operation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import List, NamedTuple, Optional, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from torchhand.geometry.camera import Camera
+from torchhand.tracking.energies import Anatomy, EnergyTerm, Regularization, TrackState, parse_energy
+from torchhand.geometry.mesh import is_closed_outward
+from torchhand.tracking.preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
+from torchhand.geometry.render import RenderResult, render
+from torchhand.model.scene import Scene
+from torchhand.optim.levenberg_marquardt import levenberg_marquardt
+
+__all__ = ["TrackerConfig", "FrameResult", "Tracker", "label_data"]
+
+
+@dataclass
+class TrackerConfig:
+    """energy: terms (``LO``); metric: m2d distance; inner_iterations: LM steps per
+    correspondence update (1 = the thesis' alternation); max_iterations: per frame (the
+    thesis' i_thr); first_frame_iterations: for frame 0 (50 in the thesis);
+    min_joint_motion: mm, convergence when the joints of every model move less than
+    this on average in an iteration (the thesis' criterion, 0.2 mm);
+    step_retries: a rejected LM step is retried with ten times the damping up to this
+    many times before the correspondences are renewed (the retries reuse them and
+    the Jacobian); a problem whose retries all fail has converged;
+    recover_factor: a frame whose energy (per candidate correspondence, those
+    without a correspondence charged min(distance, cut-off)^2) exceeds
+    this multiple of the median of the previous frames is re-solved from ``recover_tries`` random
+    perturbations of the previous pose (the best is kept if it is better); seed: of
+    those perturbations in :func:`track_sequences`, so a run is repeatable;
+    label_radius: px, data pixels farther than this from any rendered model pixel are
+    left unlabelled; prediction: a frame's solve starts from the previous pose plus
+    ``prediction`` times the last step (:func:`predicted_start`, clamped to the joint
+    limits): 0 starts from the previous pose as the thesis does, 1 is a
+    constant-velocity prediction; prediction_limiter: per DoF, the smaller of the last
+    two steps when they have the same sign and 0 otherwise (minmod), so that
+    frame-to-frame jitter is not extrapolated. The temporal regularisation (Eq. 4.18)
+    and the recovery keep the previous pose as their reference."""
+
+    energy: str = "LO"
+    metric: str = "point-to-plane"
+    inner_iterations: int = 1
+    max_iterations: int = 50
+    first_frame_iterations: int = 50
+    min_joint_motion: float = 0.2
+    step_retries: int = 4
+    recover_factor: float = 4.0
+    recover_tries: int = 4
+    perturbation: float = 0.15
+    seed: int = 0
+    label_radius: float = 40.0
+    prediction: float = 0.0
+    prediction_limiter: bool = True
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+
+    def __post_init__(self) -> None:
+        if (isinstance(self.prediction, bool) or not isinstance(self.prediction, (int, float))
+                or not math.isfinite(self.prediction) or self.prediction < 0):
+            raise ValueError(f"prediction must be a finite number >= 0, got {self.prediction!r}")
+        if not isinstance(self.prediction_limiter, bool):
+            raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")
+
+
+class FrameResult(NamedTuple):
+    """theta: (B, D) poses; valid: (B,) False where a frame could not be used (kept
+    the previous pose); iterations: (B,); energy: (B,) final energy per candidate
+    correspondence (see :meth:`Tracker.solve`);
+    recovered: (B,) True where the recovery re-solve replaced the estimate;
+    notes: B strings, why a frame was flagged ("" when fine)."""
+
+    theta: torch.Tensor
+    valid: torch.Tensor
+    iterations: torch.Tensor
+    energy: torch.Tensor
+    recovered: torch.Tensor
+    notes: List[str]
+
+
+def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torch.Tensor:
+    """Assign every valid data pixel the id of the rendered model at it, or of the
+    nearest rendered pixel within ``radius`` px (2D distance transform); -1 otherwise.
+
+    frame: preprocessed data; model_id: (H, W) rendered ids (-1 empty) -> (H, W) int64.
+    """
+    ids = model_id.cpu().numpy()
+    valid = frame.mask.cpu().numpy()
+    labels = np.full(ids.shape, -1, np.int64)
+    rendered = ids >= 0
+    rows, cols = np.nonzero(rendered.any(1))[0], np.nonzero(rendered.any(0))[0]
+    if len(rows):
+        # only pixels within `radius` of the rendered pixels' box can get a label
+        r = int(np.ceil(radius))
+        r0, r1 = max(rows[0] - r, 0), min(rows[-1] + 1 + r, ids.shape[0])
+        c0, c1 = max(cols[0] - r, 0), min(cols[-1] + 1 + r, ids.shape[1])
+        crop, hit = ids[r0:r1, c0:c1], rendered[r0:r1, c0:c1]
+        dist, lab = cv2.distanceTransformWithLabels(np.where(hit, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        nearest = crop[hit][lab - 1]  # labels enumerate the zero (rendered) pixels row-major
+        labels[r0:r1, c0:c1] = np.where((dist <= radius) & valid[r0:r1, c0:c1], nearest, -1)
+    return torch.as_tensor(labels, device=model_id.device)
+
+
+def _same_camera(a: Camera, b: Camera) -> bool:
+    return a is b or (a.width == b.width and a.height == b.height and torch.equal(a.K, b.K)
+                      and torch.equal(a.T_cw, b.T_cw))
+
+
+class Tracker:
+    """Tracks a scene through depth frames.
+
+    Args:
+        scene: the models, in the order of their slices in theta.
+        config: :class:`TrackerConfig`.
+        terms: energy terms (default: from ``config.energy``); anatomy and
+            regularisation are scaled by the number of data correspondences.
+    """
+
+    def __init__(self, scene: Scene, config: TrackerConfig = TrackerConfig(),
+                 terms: Optional[List[EnergyTerm]] = None):
+        self.scene, self.config = scene, config
+        self.terms = terms if terms is not None else parse_energy(config.energy, config.metric)
+        self.data_terms = [t for t in self.terms if not isinstance(t, (Anatomy, Regularization))]
+        self.prior_terms = [t for t in self.terms if isinstance(t, (Anatomy, Regularization))]
+        self._energy_history: List[torch.Tensor] = []
+        # back faces can be left out of the renders when every mesh is closed and outward
+        self._cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
+
+    # ------------------------------------------------------------------ frames
+    def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera]) -> RenderResult:
+        s = self.scene
+        if all(_same_camera(c, cameras[0]) for c in cameras):  # one camera: one call for the batch
+            return render(vertices, s.faces, cameras[0], s.face_model_id, s.face_bone_id, normals=False,
+                          cull_back_faces=self._cull)
+        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id, normals=False,
+                        cull_back_faces=self._cull) for b in range(len(cameras))]
+        return RenderResult(*(None if x[0] is None else torch.cat(x, 0) for x in zip(*parts)))
+
+    def _state(self, theta, previous, frames, cameras, posed=None, labels=None) -> TrackState:
+        posed = posed if posed is not None else self.scene(theta, validate=False)
+        rend = self._render(posed.vertices.detach(), cameras)
+        if labels is None:
+            labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
+                                  for b, f in enumerate(frames)])
+        return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels)
+
+    def _residual_fn(self, state: TrackState):
+        """The stacked residuals for the solver; ``fn.posed(theta)`` returns the scene at
+        a theta the solver evaluated last (or at the state's), posing it otherwise."""
+        scene = self.scene
+        seen = [(state.theta, state.posed)]
+
+        def posed_at(theta):
+            for th, out in seen:
+                if th.shape == theta.shape and torch.equal(th, theta):
+                    return out
+            out = scene(theta, validate=False)
+            seen[1:] = [(theta, out)]  # keep the state's pose and the latest one
+            return out
+
+        def fn(theta, with_jacobian):
+            posed = posed_at(theta)
+            parts = [t.residuals(theta, posed, with_jacobian) for t in self.terms]
+            r = torch.cat([p.r for p in parts], 1)
+            J = torch.cat([p.J for p in parts], 1) if with_jacobian else None
+            return r, J
+
+        fn.posed = posed_at
+        return fn
+
+    def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[DepthFrame],
+              cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None):
+        """Algorithm 1 for a batch: alternate correspondences and LM steps.
+
+        The data pixels are labelled with the model ids rendered at the start pose
+        and keep these labels for the frame (the models move a few mm within a frame,
+        the labels reach ``label_radius`` px around them); visibility, silhouettes
+        and correspondences are renewed in every iteration.
+
+        A problem stops when its joints moved less than ``min_motion`` mm (default
+        ``config.min_joint_motion``) in an iteration, or when no LM step was accepted.
+
+        Returns (theta (B, D), iterations (B,), energy (B,)): the energy is per
+        candidate correspondence, a candidate without a correspondence charged its
+        truncated square (``EnergyTerm.unmatched``).
+        """
+        theta = start.clone()
+        B = theta.shape[0]
+        lower, upper = self.scene.lower, self.scene.upper
+        min_motion = self.config.min_joint_motion if min_motion is None else min_motion
+        iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
+        damping = theta.new_full((B,), 1e-3)
+        energy = theta.new_zeros(B)
+        self._last_count = torch.zeros(B, dtype=theta.dtype)
+        # Only the problems still moving are solved: `idx` lists them. `posed` and
+        # `labels` belong to the problems of `idx` of the previous iteration.
+        idx = torch.arange(B, device=theta.device)
+        posed, labels = None, None
+        for it in range(iterations):
+            with torch.no_grad():
+                sub = idx.tolist()
+                state = self._state(theta[idx], previous[idx], [frames[b] for b in sub], [cameras[b] for b in sub],
+                                    posed, labels)
+                labels = state.data_labels  # labelled once per frame, at its start pose
+                for t in self.data_terms:
+                    t.prepare(state)
+                count = sum(t.count for t in self.data_terms).to(theta)
+                candidates = sum(t.count if t.candidates is None else t.candidates for t in self.data_terms).to(theta)
+                unmatched = sum(t.unmatched_energy() for t in self.data_terms).to(theta)
+                self._last_count[idx.cpu()] = count.cpu()
+                for t in self.prior_terms:
+                    t.prepare(state, count)
+                fn = self._residual_fn(state)
+                res = levenberg_marquardt(fn, state.theta, lower, upper,
+                                          max_iterations=self.config.inner_iterations, damping=damping[idx],
+                                          retries=self.config.step_retries)
+                posed = fn.posed(res.theta)
+                moved = self.scene.joint_motion(state.posed, posed)
+            theta[idx], damping[idx] = res.theta, res.damping
+            energy[idx] = (res.cost + unmatched) / candidates.clamp_min(1)
+            iters[idx] += 1
+            # a problem whose step was rejected after every retry moved nothing: the
+            # correspondences would not change, so it has converged
+            going = (moved >= min_motion) & (res.iterations > 0)
+            if not bool(going.any()):  # one sync per outer iteration, next to a render
+                break
+            if not bool(going.all()):
+                idx, labels, posed = idx[going], labels[going], posed.select(going)
+        return theta, iters, energy
+
+    def track_frame(self, depths: Sequence[Optional[np.ndarray]], cameras: Sequence[Camera],
+                    previous: torch.Tensor, first: bool = False, generator: Optional[torch.Generator] = None,
+                    start: Optional[torch.Tensor] = None) -> FrameResult:
+        """Track one frame of each of B sequences.
+
+        Args:
+            depths: B depth maps (H, W) in mm, or None where a frame is missing.
+            cameras: B cameras.
+            previous: (B, D) poses of the previous frame (or the initial poses).
+            first: use the first-frame iteration budget.
+            generator: draws the recovery perturbations (torch's global generator if None).
+            start: (B, D) poses to start the solve from (default: ``previous``), e.g. a
+                motion prediction; ``previous`` stays the reference of the temporal
+                regularisation and the recovery.
+        Returns:
+            :class:`FrameResult`; problems without usable depth keep ``previous``
+            and are flagged invalid.
+        """
+        cfg, B = self.config, previous.shape[0]
+        if start is not None:
+            start = self.scene.check_theta(start, "start")
+            if start.shape[0] != B:
+                raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
+        init = previous if start is None else self.scene.clamp(start)
+        frames, ok, notes = [], [], [""] * B
+        for b, d in enumerate(depths):
+            try:
+                if d is None:
+                    raise EmptyFrameError("missing depth frame")
+                frames.append(preprocess_depth(d, cameras[b], cfg.preprocess, device=previous.device,
+                                               dtype=previous.dtype))
+                ok.append(b)
+            except EmptyFrameError as err:
+                notes[b] = f"{err}; previous pose kept"
+        theta = previous.clone()
+        valid = torch.zeros(B, dtype=torch.bool)
+        iters = torch.zeros(B, dtype=torch.int64)
+        energy = previous.new_full((B,), float("nan"))
+        recovered = torch.zeros(B, dtype=torch.bool)
+        if ok:
+            idx = torch.tensor(ok)
+            cams = [cameras[b] for b in ok]
+            n_it = cfg.first_frame_iterations if first else cfg.max_iterations
+            # the first frame refines a given initial pose: its whole budget is spent
+            # unless the solver stops accepting steps (the thesis' 50 iterations)
+            th, it, en = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
+            counts = self._last_count.clone()
+            if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
+                th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
+                recovered[idx] = rec.cpu()
+            # never return NaN: a diverged problem keeps its previous pose and is flagged
+            finite = torch.isfinite(th).all(1) & torch.isfinite(en)
+            th = torch.where(finite[:, None], th, previous[idx])
+            theta[idx], valid[idx], iters[idx], energy[idx] = th, finite.cpu(), it.cpu(), en
+            for k, b in enumerate(ok):
+                if not finite[k]:
+                    notes[b] = "the solver diverged; previous pose kept"
+                elif counts[k] == 0:
+                    notes[b] = "no correspondences (models out of view or far from the data)"
+        self._energy_history.append(energy)
+        return FrameResult(theta, valid, iters, energy, recovered, notes)
+
+    def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator):
+        """Re-solve problems whose energy rose sharply, from perturbed previous poses."""
+        hist = torch.stack(self._energy_history[-30:])[:, idx]
+        ref = torch.nanmedian(hist, 0).values
+        bad = torch.nonzero(energy > self.config.recover_factor * ref)[:, 0].tolist()
+        rec = torch.zeros(len(energy), dtype=torch.bool)
+        if not bad:
+            return theta, energy, rec
+        R = self.config.recover_tries
+        starts, fr, cams, prev = [], [], [], []
+        # every try perturbs the previous pose (the unperturbed start was just solved):
+        # the joints by N(0, perturbation) rad, the global pose by N(0, 4 mm / 0.03 rad)
+        scale = torch.full((previous.shape[1],), self.config.perturbation, dtype=previous.dtype)
+        for s in self.scene.slices.values():
+            scale[s.start : s.start + 3], scale[s.start + 3 : s.start + 6] = 4.0, 0.03
+        for b in bad:
+            for r in range(R):
+                noise = torch.randn(previous.shape[1], generator=generator, dtype=previous.dtype) * scale
+                starts.append(previous[b] + noise.to(previous.device))
+                fr.append(frames[b])
+                cams.append(cameras[b])
+                prev.append(previous[b])
+        th, _, en = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations)
+        for i, b in enumerate(bad):
+            best = int(torch.argmin(en[i * R : (i + 1) * R]))
+            if en[i * R + best] < energy[b]:
+                theta[b], energy[b], rec[b] = th[i * R + best], en[i * R + best], True
+        return theta, energy, rec
+
+
+def predicted_start(history: Sequence[tuple], factor: float, limiter: bool = True) -> Optional[torch.Tensor]:
+    """The pose to start the next frame from: ``theta_{t-1} + factor * step``.
+
+    Args:
+        history: ``(theta (B, D), tracked (B,) bool)`` of the last frames, oldest first;
+            the last one is the previous frame.
+        factor: the prediction (0: none, 1: constant velocity).
+        limiter: the step is, per DoF, the smaller of the last two steps when they have
+            the same sign and 0 otherwise (minmod); needs three tracked frames.
+            Without it, the step is the last one (two tracked frames).
+    Returns:
+        (B, D), or None when no problem has the tracked frames it needs (the step is 0
+        for the problems that lack them).
+    """
+    if not factor >= 0:
+        raise ValueError(f"factor must be >= 0, got {factor!r}")
+    need = 3 if limiter else 2
+    if factor == 0 or len(history) < need:
+        return None
+    poses = [h[0] for h in history[-need:]]
+    ok = torch.stack([h[1] for h in history[-need:]]).all(0)
+    if not bool(ok.any()):
+        return None
+    step = poses[-1] - poses[-2]
+    if limiter:
+        older = poses[-2] - poses[-3]
+        same = torch.sign(step) == torch.sign(older)
+        step = torch.where(same, torch.sign(step) * torch.minimum(step.abs(), older.abs()), torch.zeros_like(step))
+    return poses[-1] + factor * torch.where(ok[:, None], step, torch.zeros_like(step))
