@@ -50,7 +50,8 @@ import numpy as np
 
 from torchhand.data.synth import SyntheticFrames, thesis_motion, write_synthetic_sequence
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info
-from torchhand.tracking.energies import Anatomy, DataToModel, ModelToData, Regularization, Salient, parse_energy
+from torchhand.tracking.energies import (DataToModel, ModelToData, Robust, Salient, Weighted, data_to_model,
+                                        default_data_to_model, default_priors, parse_energy)
 from torchhand.tracking.energies.salient_points import simulated_detector
 from torchhand.geometry.render import render
 from torchhand.model.fingertips import fingertip_faces
@@ -303,7 +304,8 @@ def run_d2m_weight(args) -> dict:
     runs = []
     for w in [float(x) for x in args.weights.split(",")]:
         def terms(w=w):
-            return [ModelToData(metric=args.metric), DataToModel(weight=w), Anatomy(), Regularization()]
+            return [ModelToData(metric=args.metric), Weighted(Robust(DataToModel(), data_to_model.DEFAULT_LOSS), w),
+                    *default_priors()]
         runs.append({"d2m_weight": w, **track_and_score(args, folders, "LO", terms, tag=f"LO_d2m{w:g}")})
     return {"experiment": "LO against the data-to-model weight on kinect renders", "frames_per_sequence": args.frames,
             "metric": args.metric, "iterations": args.iterations, "runs": runs}
@@ -385,8 +387,8 @@ def run_detector_quality(args) -> dict:
                             first_frame_iterations=args.iterations)
         out = args.work / f"tracked_s_rate{rate:g}"
         track_sequences(list(folders.values()), out, cfg, force=True,
-                        make_terms=lambda: [ModelToData(metric=args.metric), DataToModel(), Salient(detector=det),
-                                            Anatomy(), Regularization()])
+                        make_terms=lambda: [ModelToData(metric=args.metric), default_data_to_model(),
+                                            Salient(detector=det), *default_priors()])
         res = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                          for s, f in folders.items()])
         rows.append({"detection_rate": rate, "mean_px": res["mean_px"], "mean_mm": res["mean_mm"],
@@ -407,7 +409,7 @@ def run_m2d(args) -> dict:
                                 min_joint_motion=0.0)
             out = args.work / f"tracked_m2d_{metric}_{iters}"
             summaries = track_sequences(list(folders.values()), out, cfg, force=True, progress=False,
-                                        make_terms=lambda: [ModelToData(metric=metric), Anatomy(), Regularization()])
+                                        make_terms=lambda: [ModelToData(metric=metric), *default_priors()])
             res = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                              for s, f in folders.items()])
             rows.append({"metric": metric, "iterations": iters, "mean_px": res["mean_px"], "mean_mm": res["mean_mm"],

@@ -200,3 +200,81 @@ def test_parser_defaults():
     assert args.frames == slice(3, 7) and args.noise == "kinect" and args.seed == 0 and args.models == "hand_right"
     args = build_parser().parse_args(["eval", "p", "--gt", "g"])
     assert args.workers == 1 and not args.no_penetration
+
+
+def _actions(parser):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from ((f"{name} {a}", x) for a, x in _actions(sub))
+        elif not isinstance(action, argparse._HelpAction):
+            yield "/".join(action.option_strings) or action.dest, action
+
+
+def test_every_option_has_help_and_shows_its_default():
+    parser = build_parser()
+    missing = [name for name, a in _actions(parser) if not a.help]
+    assert missing == [], f"options without help: {missing}"
+    for cmd in SUBCOMMANDS:
+        text = " ".join(parser._subparsers._group_actions[0].choices[cmd].format_help().split())
+        for name, a in _actions(parser._subparsers._group_actions[0].choices[cmd]):
+            if a.option_strings and a.default is not None and a.required is False:
+                assert f"{a.help} (default: {a.default})" in text, (cmd, name)
+
+
+@pytest.fixture()
+def sample_seq(tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(REPO / "datasets" / "sample", seq)
+    shutil.rmtree(seq / "gt")
+    return seq
+
+
+@pytest.mark.parametrize("kind", ["metres", "8-bit"])
+def test_track_refuses_unusable_depth_with_a_clear_error(sample_seq, tmp_path, capsys, kind):
+    """Depth stored in metres or as 8-bit images: no frame can be tracked. track exits
+    non-zero naming the file and writes nothing for the sequence."""
+    for png in sorted((sample_seq / "depth").iterdir()):
+        d = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        bad = np.round(d / 1000.0).astype(np.uint16) if kind == "metres" else np.clip(d // 8, 0, 255).astype(np.uint8)
+        cv2.imwrite(str(png), bad)
+    out = tmp_path / "out"
+    assert main(["track", str(sample_seq), "--out", str(out), "--iterations", "1", "--first-iterations", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "torchhand track: error" in err and "000000.png" in err and "nothing written" in err
+    assert ("metres" in err) if kind == "metres" else ("16-bit" in err)
+    assert not any(out.glob("*/theta.npy"))
+
+
+def test_track_fails_a_sequence_of_which_no_frame_is_tracked(sample_seq, tmp_path, capsys):
+    """Readable depth that holds nothing in the working range (every frame flagged)."""
+    for png in sorted((sample_seq / "depth").iterdir()):
+        cv2.imwrite(str(png), np.full((480, 640), 3000, np.uint16))  # beyond the 1.5 m far plane
+    out = tmp_path / "out"
+    assert main(["track", str(sample_seq), "--out", str(out), "--iterations", "1", "--first-iterations", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "no frame of the 4 could be tracked" in err and "no valid depth" in err
+    assert not any(out.glob("*/theta.npy"))
+
+
+def test_track_writes_labelled_overlays_and_eval_counts_flagged_frames(tmp_path, capsys):
+    seq = tmp_path / "seq"
+    shutil.copytree(REPO / "datasets" / "sample", seq)
+    (seq / "depth" / "000002.png").unlink()  # a missing frame: flagged, previous pose kept
+    out = tmp_path / "out"
+    args = ["track", str(seq), "--out", str(out), "--iterations", "2", "--first-iterations", "2", "--viz"]
+    assert main(args) == 0
+    name = json.loads((seq / "sequence.json").read_text())["name"]
+    log = json.loads((out / name / "track_log.json").read_text())
+    assert [f["valid"] for f in log["frames"]] == [True, True, False, True]
+    assert "depth frame not found" in log["frames"][2]["notes"]
+    img = cv2.imread(str(out / name / "overlays" / "000001.png"))
+    assert img is not None and (out / name / "overlays.mp4").stat().st_size > 0
+    # the labels: a dark legend box at the top left, the colour bar at the right
+    assert (img[6:12, 6:60] == 40).all(-1).mean() > 0.3
+    assert img[24:456, 640 - 62 : 640 - 48].std() > 20
+    capsys.readouterr()
+    assert main(["eval", str(out / name), "--gt", str(seq / "gt"), "--no-penetration"]) == 0
+    assert "(1 flagged by the tracker)" in capsys.readouterr().out

@@ -20,7 +20,7 @@ from torchhand.geometry.intersections import (
     triangles_intersect,
 )
 from torchhand.data.synth import demo_motion
-from torchhand.tracking.energies import Collision, TrackState, parse_energy
+from torchhand.tracking.energies import Collision, TrackState, Weighted, collision, parse_energy
 from torchhand.model.scene import Scene
 
 
@@ -284,16 +284,17 @@ def test_energy_forms_agree_and_jacobian_matches_finite_differences(demo):
     th = _pushed(scene, theta[[4, 40]], 0.28)
     posed = scene(th)
     state = TrackState(scene, th, th, posed, None, None, None, None)
-    plane, point = Collision(metric="point-to-plane"), Collision(metric="point-to-point")
-    plane.prepare(state)
+    plane = Weighted(Collision(metric="point-to-plane"), collision.DEFAULT_WEIGHT)
+    point = Weighted(Collision(metric="point-to-point"), collision.DEFAULT_WEIGHT)
+    found = plane.prepare(state)
     point.prepare(state)
-    assert (plane.pairs > 0).all() and (plane.count == 0).all()  # no data correspondences
-    r, J = plane.residuals(th, posed, True)
-    r3, J3 = point.residuals(th, posed, True)
+    assert (found.diagnostics["pairs"] > 0).all() and (found.correspondences == 0).all()  # no data correspondences
+    r, J = plane.residuals(th, posed, True)[:2]
+    r3, J3 = point.residuals(th, posed, True)[:2]
     assert r3.shape[1] == 3 * r.shape[1]
     assert torch.allclose((r**2).sum(1), (r3**2).sum(1))
     # the term's energy is gamma_c times Eq. 4.13
-    pairs = detect_collisions(posed.vertices, plane.mesh_for(scene))
+    pairs = detect_collisions(posed.vertices, plane.term.mesh_for(scene))
     assert torch.allclose((r**2).sum(1), 10.0 * collision_energy(posed.vertices, scene.faces, pairs))
     eps = 1e-6
     for d in [0, 4, 37, 39, 37 + 12, 37 + 30, 74, 76]:

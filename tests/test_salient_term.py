@@ -99,16 +99,16 @@ def test_salient_term_pulls_displaced_fingertips_and_jacobian_is_exact(hand_fram
     term = Salient(detector=simulated_detector(lambda d: rows), near_mm=15.0)
     # at the true pose every fingertip is near its detection: associated, but no pairs
     state, posed = _state(scene, cam, theta, depth)
-    term.prepare(state)
-    assert term.assigned[0] == len(visible) and term.count[0] == 0
+    found = term.prepare(state)
+    assert found.diagnostics["assigned"][0] == len(visible) and found.correspondences[0] == 0
     # move the hand 15 mm: the same detections now pull the fingertips back
     moved = theta.clone()
     moved[0, 0] += 20.0
     state, posed = _state(scene, cam, moved, depth)
-    term.prepare(state)
-    assert term.assigned[0] == len(visible) and term.count[0] > 0
-    r, J = term.residuals(moved, posed, True)
-    assert r.shape == (1, 3 * int(term.count[0])) and J.shape == (1, r.shape[1], scene.num_dofs)
+    found = term.prepare(state)
+    assert found.diagnostics["assigned"][0] == len(visible) and found.correspondences[0] > 0
+    r, J = term.residuals(moved, posed, True)[:2]
+    assert r.shape == (1, 3 * int(found.correspondences[0])) and J.shape == (1, r.shape[1], scene.num_dofs)
     # residual x components are about the 20 mm shift
     rx = r.view(1, -1, 3)[0, :, 0]
     assert 10.0 < float(rx.mean()) < 30.0
@@ -138,11 +138,11 @@ def test_salient_term_drops_detections_off_the_surface_or_below_min_score(hand_f
     moved = theta.clone()
     moved[0, 0] += 20.0
     state, posed = _state(scene, cam, moved, depth)
-    term.prepare(state)
-    assert term.assigned[0] == 1 and term.count[0] > 0
+    found = term.prepare(state)
+    assert found.diagnostics["assigned"][0] == 1 and found.correspondences[0] > 0
     none = Salient(detector=simulated_detector(lambda d: None))
-    none.prepare(state)
-    assert none.assigned[0] == 0 and none.count[0] == 0
+    found = none.prepare(state)
+    assert found.diagnostics["assigned"][0] == 0 and found.correspondences[0] == 0
     assert none.residuals(moved, posed, True).r.shape == (1, 0)
 
 

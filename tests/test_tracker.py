@@ -11,7 +11,9 @@ import torch
 
 from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import read_poses
-from torchhand.tracking.energies import Anatomy, DataToModel, ModelToData, Regularization, parse_energy
+from torchhand.optim.robust_loss import Cauchy, Huber
+from torchhand.tracking.energies import (DataToModel, ModelToData, Robust, Weighted,
+                                        default_data_to_model, default_priors, parse_energy)
 from torchhand.scoring.sequences import evaluate_sequence
 from torchhand.geometry.render import render
 from torchhand.model.scene import Scene
@@ -45,29 +47,35 @@ def _state(tracker, scene, theta, cam, depth):
     return tracker._state(theta, theta, [frame], [cam])
 
 
+def _unwrap(term):
+    while isinstance(term, (Weighted, Robust)):
+        term = term.term
+    return term
+
+
 @pytest.mark.parametrize("term", [ModelToData(metric="point-to-point"), ModelToData(metric="point-to-plane"),
-                                  DataToModel(), DataToModel(robust_scale=None), Anatomy(), Regularization()],
-                         ids=["m2d-point", "m2d-plane", "d2m", "d2m-plain", "anatomy", "regularization"])
+                                  default_data_to_model(), DataToModel(), Robust(ModelToData(), Huber(2.0)),
+                                  *default_priors()],
+                         ids=["m2d-point", "m2d-plane", "d2m", "d2m-plain", "m2d-huber", "anatomy", "regularization"])
 def test_term_jacobian_matches_finite_differences(hand_frame, term):
     scene, theta, cam, depth = hand_frame
-    tracker = Tracker(scene, TrackerConfig(), terms=[term])
+    tracker = Tracker(scene, TrackerConfig(), terms=[ModelToData(), term])
     start = theta.clone()
     start[0, :3] += torch.tensor([3.0, -2.0, 4.0], dtype=F64)
     start[0, 6:] += 0.05
     state = _state(tracker, scene, start, cam, depth)
-    if isinstance(term, (Anatomy, Regularization)):
-        term.prepare(state, torch.tensor([100.0], dtype=F64))
-    else:
-        term.prepare(state)
-        assert int(term.count[0]) > 20, "the frame must give correspondences"
-    r, J = term.residuals(start, scene(start, validate=False), True)
+    state.correspondences = torch.tensor([100])
+    found = term.prepare(state)
+    if not term.prior:
+        assert int(found.correspondences[0]) > 20, "the frame must give correspondences"
+    r, J = term.residuals(start, scene(start, validate=False), True)[:2]
     eps = 1e-6
     cols = []
     for d in range(scene.num_dofs):
         e = torch.zeros_like(start)
         e[0, d] = eps
-        rp, _ = term.residuals(start + e, scene(start + e, validate=False), False)
-        rm, _ = term.residuals(start - e, scene(start - e, validate=False), False)
+        rp = term.residuals(start + e, scene(start + e, validate=False), False).r
+        rm = term.residuals(start - e, scene(start - e, validate=False), False).r
         cols.append((rp - rm) / (2 * eps))
     J_fd = torch.stack(cols, -1)
     scale = J_fd.abs().max().clamp_min(1e-12)
@@ -76,15 +84,20 @@ def test_term_jacobian_matches_finite_differences(hand_frame, term):
 
 
 def test_anatomy_residuals_square_to_eq_4_17(hand_frame):
+    """gamma_a = 0.0015 C_all: the per-correspondence weight of the default prior."""
     scene, theta, cam, depth = hand_frame
-    term = Anatomy()
-    state = _state(Tracker(scene, terms=[term]), scene, theta, cam, depth)
-    term.prepare(state, torch.tensor([200.0], dtype=F64))
+    term = default_priors()[0]
+    state = _state(Tracker(scene, terms=[ModelToData(), term]), scene, theta, cam, depth)
+    with pytest.raises(ValueError, match="C_all"):
+        term.prepare(state)  # the data terms come first
+    state.correspondences = torch.tensor([200])
+    term.prepare(state)
     t = theta.clone()
     t[0, 10] = scene.upper[10] + 0.2  # outside the limit
-    r, _ = term.residuals(t, None, False)
-    lo, hi = scene.lower[term.joints], scene.upper[term.joints]
-    e = torch.exp(10 * (lo - t[0, term.joints])) + torch.exp(10 * (t[0, term.joints] - hi))
+    r = term.residuals(t, None, False).r
+    joints = term.term.joints
+    lo, hi = scene.lower[joints], scene.upper[joints]
+    e = torch.exp(10 * (lo - t[0, joints])) + torch.exp(10 * (t[0, joints] - hi))
     torch.testing.assert_close((r[0] ** 2).sum(), 0.0015 * 200 * e.sum())
 
 
@@ -99,47 +112,55 @@ def test_candidates_without_correspondence_are_charged_a_truncated_square(hand_f
         th = theta.clone()
         th[0, 0] += shift
         state = _state(tracker, scene, th, cam, depth)
-        for t in tracker.data_terms:
-            t.prepare(state)
-            assert (t.count <= t.candidates).all() and (t.candidates > 0).all()
-            cap = t.weight * t.max_distance ** 2 * (t.candidates - t.count).double()
-            assert (t.unmatched_energy() >= 0).all() and (t.unmatched_energy() <= cap + 1e-9).all()
+        found = {}
+        for t in tracker.terms:
+            if t.prior:
+                continue
+            f = found[t.name] = t.prepare(state)
+            assert (f.correspondences <= f.candidates).all() and (f.candidates > 0).all()
+            weight = t.weight if isinstance(t, Weighted) else 1.0
+            cap = weight * _unwrap(t).max_distance ** 2 * (f.candidates - f.correspondences).double()
+            assert (f.unmatched >= 0).all() and (f.unmatched <= cap + 1e-9).all()
         # without the per-bone rejection every dropped pair lies beyond the cut-off
-        d2m = DataToModel(outlier_sigma=None)
-        d2m.prepare(state)
-        torch.testing.assert_close(d2m.unmatched_energy(), d2m.weight * 30.0 ** 2 * (d2m.candidates - d2m.count).double())
-        m2d = tracker.data_terms[0]
-        charged.append(float(m2d.unmatched_energy()[0] / m2d.candidates[0]))
+        f = DataToModel(outlier_sigma=None).prepare(state)
+        torch.testing.assert_close(f.unmatched, 30.0 ** 2 * (f.candidates - f.correspondences).double())
+        m2d = found["m2d"]
+        charged.append(float(m2d.unmatched[0] / m2d.candidates[0]))
     assert charged[0] < 2.0 and charged[1] > 10 * charged[0], charged
 
 
 @pytest.mark.parametrize("relative", [None, 2.0])
 def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_frame, relative):
-    """robust_scale=3 multiplies each kept pair's residual (and Jacobian) by
-    (1 + (r/c)^2)^(-1/2), r its ray distance at the pose the pairs were found at, with
-    c = 3 mm, or with robust_relative the larger of 3 mm and that factor times the
-    model's median r."""
+    """Robust(DataToModel(), Cauchy(3)) multiplies each kept pair's residual (and
+    Jacobian) by (1 + (r/c)^2)^(-1/2), r its ray distance at the pose the pairs were
+    found at, with c = 3 mm, or with ``relative`` the larger of 3 mm and that factor
+    times the model's median r; the weights stay while the solver tries poses."""
     scene, theta, cam, depth = hand_frame
     start = theta.clone()
     start[0, :3] += torch.tensor([4.0, -3.0, 2.0], dtype=F64)
-    terms = [DataToModel(robust_scale=None), DataToModel(robust_scale=3.0, robust_relative=relative)]
+    terms = [DataToModel(), Robust(DataToModel(), Cauchy(3.0, relative))]
     tracker = Tracker(scene, TrackerConfig(), terms=terms)
     state = _state(tracker, scene, start, cam, depth)
     posed = scene(start, validate=False)
-    r = []
+    r, J, found = [], [], []
     for t in terms:
-        t.prepare(state)
-        r.append(t.residuals(start, posed, False).r.reshape(-1, 3))
-    assert len(r[0]) == len(r[1]) > 20 and torch.equal(terms[0].count, terms[1].count)
-    dist = r[0].norm(dim=-1) / terms[0].weight ** 0.5
+        found.append(t.prepare(state))
+        res = t.residuals(start, posed, True)
+        r.append(res.r.reshape(-1, 3))
+        J.append(res.J.reshape(-1, 3, scene.num_dofs))
+    assert len(r[0]) == len(r[1]) > 20 and torch.equal(found[0].correspondences, found[1].correspondences)
+    dist = r[0].norm(dim=-1)
     c = 3.0 if relative is None else max(3.0, relative * float(dist.median()))
     # the rigid shift moves the whole hand: its median misfit sets c (5.9 mm here)
     assert float(dist.max()) > 3.0 and (relative is None or c > 3.0), (float(dist.max()), c)
-    torch.testing.assert_close(r[1], r[0] * (1 + (dist / c) ** 2).rsqrt()[:, None])
-    with pytest.raises(ValueError, match="robust_scale"):
-        DataToModel(robust_scale=0.0)
-    with pytest.raises(ValueError, match="robust_relative"):
-        DataToModel(robust_relative=-1.0)
+    w = (1 + (dist / c) ** 2).rsqrt()
+    torch.testing.assert_close(r[1], r[0] * w[:, None])
+    torch.testing.assert_close(J[1], J[0] * w[:, None, None])
+    moved = start.clone()
+    moved[0, 0] += 1.0
+    pm = scene(moved, validate=False)
+    torch.testing.assert_close(terms[1].residuals(moved, pm, False).r.reshape(-1, 3),
+                               terms[0].residuals(moved, pm, False).r.reshape(-1, 3) * w[:, None])
 
 
 def test_bone_inliers_cut_per_bone_at_mean_plus_sigma_std():
@@ -406,8 +427,7 @@ def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose(hand_and_rope
     start[0, r.start + 6:r.stop] += 0.02 * noise
     start = scene.clamp(start)
     custom = None if terms == "default" else [ModelToData(metric="point-to-plane"),
-                                              DataToModel(robust_scale=None, outlier_sigma=None),
-                                              Anatomy(), Regularization()]
+                                              Weighted(DataToModel(outlier_sigma=None), 0.25), *default_priors()]
     tracker = Tracker(scene, TrackerConfig(max_iterations=50, first_frame_iterations=50, min_joint_motion=0.05),
                       terms=custom)
     res = tracker.track_frame([depth], [cam], start, first=True)

@@ -1,4 +1,8 @@
-"""The ``torchhand`` command line: argument parsing only; the work lives in the library."""
+"""The ``torchhand`` command line: argument parsing only; the work lives in the library.
+
+Exit status: 0 when everything worked, 1 when some sequence failed (its error is
+printed; the others are written), 2 for bad arguments or unusable input.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,9 @@ import json
 import sys
 from pathlib import Path
 
-__all__ = ["main"]
+__all__ = ["main", "build_parser"]
+
+_Formatter = argparse.ArgumentDefaultsHelpFormatter
 
 
 def _demo(args) -> int:
@@ -47,7 +53,7 @@ def _synth(args) -> int:
         frames = random_poses(args.models.split(","), n, seed=args.seed)
     else:
         if not (args.hia_root and args.sequence):
-            raise ValueError("give --hia-root and --sequence (or --random)")
+            raise ValueError("give --hia-root and --sequence (or --random, or --demo)")
         frames = thesis_motion(args.hia_root, args.sequence, args.frames)
     out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
                                    rgb=not args.no_rgb)
@@ -63,12 +69,15 @@ def _eval(args) -> int:
         raise ValueError(f"give one --gt folder per prediction: {len(args.pred)} predictions, {len(args.gt)} --gt")
     result = evaluate_many(list(zip(args.pred, args.gt)), workers=args.workers,
                            with_penetration=not args.no_penetration)
-    print(f"{result['frames']} frames: 2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
+    flagged = sum(r["flagged_frames"] for r in result.get("sequences", [result]))
+    print(f"{result['frames']} frames ({flagged} flagged by the tracker): "
+          f"2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
           f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
           f"AUC 0-50 mm {result['auc_0_50mm']:.3f}")
     if "penetration" in result:
         p = result["penetration"]
-        print(f"penetration: {p['pairs_per_frame']} intersecting triangle pairs per frame, max depth {p['max_depth_mm']:.1f} mm")
+        print(f"penetration: {p['pairs_per_frame']} intersecting triangle pairs per frame, "
+              f"max depth {p['max_depth_mm']:.1f} mm")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))
@@ -85,51 +94,61 @@ def _eval(args) -> int:
 
 def _track(args) -> int:
     from torchhand.app.runner import track_sequences
+    from torchhand.tracking.energies import parse_energy
     from torchhand.tracking.tracker import TrackerConfig
 
+    parse_energy(args.energy)  # reject unknown energies before reading any data
     cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.first_iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter)
-    from torchhand.tracking.energies import parse_energy
-
-    parse_energy(args.energy)  # reject unknown energies before reading any data
+                        prediction_limiter=args.prediction_limiter, seed=args.seed)
     summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force)
+    failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:
-        print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
-              f"{s['flagged_frames']} flagged -> {s['out']}")
+        if s["status"] == "ok":
+            print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
+                  f"{s['flagged_frames']} flagged -> {s['out']}")
+        else:
+            print(f"torchhand track: error: {s['sequence']}: {s['error']}; nothing written", file=sys.stderr)
+    if failed:
+        print(f"torchhand track: {len(failed)} of {len(summaries)} sequences failed", file=sys.stderr)
+        return 1
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.")
+    ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.",
+                                 formatter_class=_Formatter)
     ap.add_argument("--threads", type=int, default=1,
-                    help="torch CPU threads per process (default 1: the per-frame work is many small "
-                         "operations, which lose far more to thread contention than they gain; see "
-                         "docs/benchmarks.md)")
+                    help="torch CPU threads per process (1: the per-frame work is many small operations, which "
+                         "lose far more to thread contention than they gain; see docs/benchmarks.md)")
     sub = ap.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="pose, render and draw the default scene through a short motion")
+    p = sub.add_parser("demo", help="pose, render and draw the default scene, then track a few synthetic frames",
+                       formatter_class=_Formatter)
     p.add_argument("--out", type=Path, required=True, help="output folder (created; must be new or empty)")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default: all 60)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames to render (None: all 60)")
     p.add_argument("--track-frames", type=int, default=8, help="frames to synthesise and track (0: skip)")
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.set_defaults(func=_demo)
 
-    p = sub.add_parser("synth", help="render a thesis motion or random poses into a sequence folder")
+    p = sub.add_parser("synth", help="render a thesis motion or random poses into a sequence folder",
+                       formatter_class=_Formatter)
     p.add_argument("--hia-root", type=Path, help="Hands-in-Action data root (Configs/, Models/, Calibration/)")
     p.add_argument("--sequence", help="thesis sequence id, e.g. 16")
     p.add_argument("--random", action="store_true", help="random poses within the limits, random viewpoints")
     p.add_argument("--demo", action="store_true", help="the shipped demo motion (no thesis data needed)")
     p.add_argument("--models", default="hand_right", help="with --random: comma-separated model names")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--frames", type=_frames_slice, default=None, help="A:B frame range (with --random: :N frames)")
-    p.add_argument("--noise", default="kinect", choices=["none", "kinect"])
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-rgb", action="store_true", help="depth only")
+    p.add_argument("--out", type=Path, required=True, help="sequence folder to write (must be new or empty)")
+    p.add_argument("--frames", type=_frames_slice, default=None,
+                   help="A:B frame range (with --random: :N frames; None: the whole motion, or 100 random)")
+    p.add_argument("--noise", default="kinect", choices=["none", "kinect"], help="depth noise model (docs/noise.md)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the random poses")
+    p.add_argument("--no-rgb", action="store_true", help="write depth only")
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
     p.set_defaults(func=_synth)
 
-    p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)")
+    p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)",
+                       formatter_class=_Formatter)
     p.add_argument("pred", nargs="+", type=Path, help="prediction folder(s) in the gt/ layout")
     p.add_argument("--gt", nargs="+", type=Path, required=True, help="ground truth folder(s), one per prediction")
     p.add_argument("--json", type=Path, help="write all scores to this JSON file")
@@ -138,10 +157,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
     p.set_defaults(func=_eval)
 
-    p = sub.add_parser("track", help="track sequences from their first-frame pose (never reads gt/)")
+    p = sub.add_parser("track", help="track sequences from their first-frame pose (the tracking never reads gt/)",
+                       formatter_class=_Formatter)
     p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--energy", default="LO", help="energy terms: LO (model-to-data + data-to-model), LO+C (collisions), LO+S (salient points), LO+CS")
+    p.add_argument("--out", type=Path, required=True, help="output folder; each sequence gets OUT/<name>/")
+    p.add_argument("--energy", default="LO",
+                   help="energy terms: LO (model-to-data + data-to-model), LO+C (collisions), LO+S (salient "
+                        "points), LO+CS")
     p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
                    help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
@@ -152,8 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--viz", action="store_true", help="write overlay PNGs and an MP4 per sequence")
+    p.add_argument("--seed", type=int, default=0, help="seed of the recovery perturbations (runs are repeatable)")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    p.add_argument("--viz", action="store_true",
+                   help="write labelled overlay PNGs and an MP4 per sequence (with the ground-truth skeletons "
+                        "where the sequence has gt/)")
     p.add_argument("--force", action="store_true", help="replace existing output folders")
     p.set_defaults(func=_track)
     return ap

@@ -1,4 +1,5 @@
-"""Overlays for humans: depth in false colour, projected hand skeletons, videos."""
+"""Pictures for people: depth in false colour with its colour bar, projected hand
+skeletons and object outlines, labels, videos and curves (OpenCV only)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import numpy as np
 
 from torchhand.io.assets import FINGER_NAMES, HAND_KEYPOINT_NAMES
 
-__all__ = ["HAND_SKELETON", "depth_to_color", "draw_skeleton", "write_video", "plot_curves"]
+__all__ = ["HAND_SKELETON", "GT_COLOR", "OBJECT_COLOR", "depth_range", "depth_to_color", "draw_skeleton", "draw_chain",
+           "draw_hull", "draw_colorbar", "draw_legend", "write_video", "plot_curves"]
 
 #: Bones of the 21-keypoint hand skeleton as index pairs into HAND_KEYPOINT_NAMES.
 HAND_SKELETON: Tuple[Tuple[int, int], ...] = tuple(
@@ -22,6 +24,22 @@ HAND_SKELETON: Tuple[Tuple[int, int], ...] = tuple(
     )
 )
 _FINGER_COLORS = [(0, 0, 255), (0, 200, 255), (0, 255, 0), (255, 128, 0), (255, 0, 255)]  # BGR
+#: ground-truth skeletons (BGR white)
+GT_COLOR = (255, 255, 255)
+#: tracked objects (BGR cyan)
+OBJECT_COLOR = (255, 255, 0)
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def depth_range(depths, low: float = 1.0, high: float = 99.0) -> tuple:
+    """(near, far) mm for a whole sequence: the ``low`` and ``high`` percentiles of the
+    valid depth of all its (H, W) maps, so that one colour means one depth in every
+    frame; (0, 1) when no pixel is valid."""
+    valid = np.concatenate([np.asarray(d)[np.asarray(d) > 0].ravel() for d in depths]) if len(depths) else np.zeros(0)
+    if valid.size == 0:
+        return 0.0, 1.0
+    near, far = np.percentile(valid, [low, high])
+    return float(near), float(max(far, near + 1.0))
 
 
 def depth_to_color(depth: np.ndarray, near: float | None = None, far: float | None = None) -> np.ndarray:
@@ -37,13 +55,71 @@ def depth_to_color(depth: np.ndarray, near: float | None = None, far: float | No
     return img
 
 
-def draw_skeleton(image: np.ndarray, keypoints_px: np.ndarray, thickness: int = 2) -> np.ndarray:
-    """Draw one 21-keypoint hand (P=21, 2) in pixels onto a BGR image (in place, also returned)."""
-    pts = np.round(keypoints_px).astype(int)
+def _points(px: np.ndarray) -> np.ndarray:
+    px = np.asarray(px, np.float64)
+    ok = np.isfinite(px).all(-1) & (np.abs(px) < 1e5).all(-1)  # points behind the camera project anywhere
+    return np.round(np.where(ok[:, None], px, 0)).astype(int), ok
+
+
+def draw_skeleton(image: np.ndarray, keypoints_px: np.ndarray, thickness: int = 2,
+                  color: tuple | None = None) -> np.ndarray:
+    """Draw one 21-keypoint hand (P=21, 2) in pixels onto a BGR image (in place, also
+    returned): bones and joints in one colour per finger, or ``color`` for all."""
+    pts, ok = _points(keypoints_px)
     for k, (a, b) in enumerate(HAND_SKELETON):
-        cv2.line(image, tuple(pts[a]), tuple(pts[b]), _FINGER_COLORS[k // 4], thickness, cv2.LINE_AA)
-    for p in pts:
-        cv2.circle(image, tuple(p), thickness + 1, (255, 255, 255), -1, cv2.LINE_AA)
+        c = color or _FINGER_COLORS[k // 4]
+        if ok[a] and ok[b]:
+            cv2.line(image, tuple(pts[a]), tuple(pts[b]), c, thickness, cv2.LINE_AA)
+        if ok[b]:  # the joint at the bone's far end (the wrist below)
+            cv2.circle(image, tuple(pts[b]), thickness + 1, c, -1, cv2.LINE_AA)
+    if len(pts) and ok[0]:
+        cv2.circle(image, tuple(pts[0]), thickness + 2, color or (60, 60, 60), -1, cv2.LINE_AA)
+    return image
+
+
+def draw_chain(image: np.ndarray, points_px: np.ndarray, color: tuple = OBJECT_COLOR) -> np.ndarray:
+    """The bone origins (J, 2) of an articulated object as a polyline with dots."""
+    pts, ok = _points(points_px)
+    for a, b in zip(range(len(pts) - 1), range(1, len(pts))):
+        if ok[a] and ok[b]:
+            cv2.line(image, tuple(pts[a]), tuple(pts[b]), color, 2, cv2.LINE_AA)
+    for p, good in zip(pts, ok):
+        if good:
+            cv2.circle(image, tuple(p), 3, color, -1, cv2.LINE_AA)
+    return image
+
+
+def draw_hull(image: np.ndarray, points_px: np.ndarray, color: tuple = OBJECT_COLOR) -> np.ndarray:
+    """The outline (convex hull) of projected vertices (N, 2) of a rigid object."""
+    pts, ok = _points(points_px)
+    if ok.sum() >= 3:
+        cv2.polylines(image, [cv2.convexHull(pts[ok].astype(np.int32))], True, color, 2, cv2.LINE_AA)
+    return image
+
+
+def draw_colorbar(image: np.ndarray, near: float, far: float, width: int = 14) -> np.ndarray:
+    """A vertical colour bar of :func:`depth_to_color`'s map at the right edge, labelled
+    with ``near`` (top) and ``far`` (bottom) in mm."""
+    h, w = image.shape[:2]
+    top, bottom = 24, h - 24
+    x0 = w - width - 48
+    ramp = np.linspace(255, 0, max(bottom - top, 2)).astype(np.uint8)[:, None].repeat(width, 1)
+    image[top:bottom, x0 : x0 + width] = cv2.applyColorMap(ramp, cv2.COLORMAP_TURBO)
+    cv2.rectangle(image, (x0, top), (x0 + width, bottom), (255, 255, 255), 1)
+    for y, v in ((top, near), (bottom, far)):
+        cv2.putText(image, f"{v:.0f}", (x0 + width + 3, y + 4), _FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(image, "mm", (x0 + width + 3, (top + bottom) // 2), _FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return image
+
+
+def draw_legend(image: np.ndarray, title: str, entries) -> np.ndarray:
+    """A title (e.g. the frame number) and ``(label, BGR colour or None)`` entries at the
+    top left, on a dark box so they read over any depth colour."""
+    lines = [(title, (255, 255, 255))] + [(label, color or (200, 200, 200)) for label, color in entries]
+    box_w = 12 + max(cv2.getTextSize(s, _FONT, 0.5, 1)[0][0] for s, _ in lines)
+    cv2.rectangle(image, (4, 4), (4 + box_w, 10 + 18 * len(lines)), (40, 40, 40), -1)
+    for k, (text, color) in enumerate(lines):
+        cv2.putText(image, text, (10, 20 + 18 * k), _FONT, 0.5, color, 1, cv2.LINE_AA)
     return image
 
 

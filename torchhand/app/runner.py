@@ -1,31 +1,32 @@
 """The runner: tracks sequence folders (datasets/README.md layout) and writes the results.
 
 Reading sequence folders, batching same-scene sequences, and writing theta, keypoints,
-MOTION files, logs and overlays live here; the tracker itself takes frames and returns
-results (:mod:`torchhand.tracking.tracker`).
+MOTION files, logs and overlays live here; the tracker itself takes depth frames and
+returns results (:mod:`torchhand.tracking.tracker`).
 """
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
 import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchhand.app.drawing import depth_to_color, draw_skeleton, write_video
-from torchhand.data.layout import Poses, camera_dir, frame_name, read_depth, read_init_pose, read_sequence_info, write_poses
+from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to_color, draw_chain, draw_colorbar,
+                                   draw_hull, draw_legend, draw_skeleton, write_video)
+from torchhand.data.layout import (Poses, SequenceError, SequenceInfo, camera_dir, frame_name, read_depth,
+                                   read_init_pose, read_poses, read_sequence_info, write_poses)
 from torchhand.io.assets import THESIS_MODEL_NAMES
 from torchhand.io.output_dir import prepare_output_dir
 from torchhand.io.thesis import write_motion
 from torchhand.model.motion import theta_to_motion
-from torchhand.model.scene import Scene
+from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.energies import EnergyTerm
-from torchhand.tracking.tracker import Tracker, TrackerConfig, predicted_start
+from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
 __all__ = ["track_sequences"]
 
@@ -33,19 +34,26 @@ __all__ = ["track_sequences"]
 def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(), device: str = "cpu",
                     viz: bool = False, force: bool = False, progress: bool = True,
                     make_terms: Optional[Callable[[], List[EnergyTerm]]] = None) -> List[dict]:
-    """Track sequence folders (datasets/README.md layout) and write their results.
+    """Track sequence folders and write their results.
 
-    Sequences with the same models are solved as one batch, frame by frame; ``gt/``
-    is never read. For every sequence ``<out>/<name>/`` receives the ``gt/`` layout
-    (theta.npy, keypoints_3d.npy, keypoints_2d.npy, meta.json with per-frame
-    ``valid`` flags), ``motion/<Model>.MOTION`` per model (thesis format: row 0 is
-    the rigging pose, row k+1 is frame k), ``track_log.json``, and with ``viz``
-    overlay PNGs. ``make_terms`` builds custom energy terms per batch (default: from
-    ``config.energy``).
+    Sequences with the same models are solved as one batch, frame by frame; the
+    tracking never reads ``gt/``. For every sequence ``<out>/<name>/`` receives the
+    ``gt/`` layout (theta.npy, keypoints_3d.npy, keypoints_2d.npy, meta.json with
+    per-frame ``valid`` flags), ``motion/<Model>.MOTION`` per model (thesis format: row
+    0 is the rigging pose, row k+1 is frame k), ``track_log.json``, and with ``viz``
+    overlay PNGs and an MP4 (drawn after the sequence is tracked; where the sequence
+    folder has ``gt/``, its skeletons are drawn beside the tracked ones).
+    ``make_terms`` builds custom energy terms per batch (default: from ``config.energy``).
+
+    A sequence whose first depth frame cannot be read (missing, not 16-bit, values
+    that look like metres), or of which no frame could be tracked, fails: nothing is
+    written for it and its summary says why; the others are tracked.
+
+    Returns:
+        one dict per sequence, in the order of ``roots``: ``sequence``, ``status``
+        ("ok" or "failed"), ``error`` (failed), ``frames``, ``out``,
+        ``seconds_per_frame``, ``flagged_frames``.
     """
-
-
-
     roots = [Path(r) for r in roots]
     infos = [read_sequence_info(r) for r in roots]
     names = [i.name for i in infos]
@@ -56,98 +64,155 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     for t in targets:
         if t.exists() and any(t.iterdir()) and not force:
             raise FileExistsError(f"{t} is not empty; choose another --out or pass --force")
-    groups = {}
+    summaries: Dict[int, dict] = {}
+    groups: Dict[tuple, List[int]] = {}
     for k, info in enumerate(infos):
+        try:  # a sequence whose first frame is unusable fails before any tracking
+            read_depth(camera_dir(roots[k], 0) / "depth" / frame_name(0), info.depth_unit_mm)
+        except SequenceError as err:
+            summaries[k] = _failed(names[k], f"{err}")
+            continue
         groups.setdefault(tuple(info.models), []).append(k)
-    thesis_name = {v: k for k, v in THESIS_MODEL_NAMES.items()}
-    summaries = []
     for models, members in groups.items():
         scene = Scene.from_names(list(models), device=device)
         tracker = Tracker(scene, config, make_terms() if make_terms is not None else None)
-        init = []
-        for k in members:
-            th = read_init_pose(roots[k])
-            if th.shape != (scene.num_dofs,):
-                raise ValueError(f"{roots[k] / 'init_pose.json'}: theta has {th.size} values, the scene "
-                                 f"{list(models)} has {scene.num_dofs} DoF")
-            init.append(th)
-        theta = torch.as_tensor(np.stack(init), dtype=torch.float32, device=device)
-        n_frames = max(infos[k].frames for k in members)
+        init = torch.as_tensor(np.stack([_init_pose(roots[k], scene, models) for k in members]),
+                               dtype=torch.float32, device=device)
         cams = [infos[k].cameras[0].to(device) for k in members]
-        thetas, valids, logs = [], [], []
-        history = []  # (theta, tracked) of the last three frames, oldest first
-        generator = torch.Generator().manual_seed(config.seed)
+        n_frames = max(infos[k].frames for k in members)
+        read_errors: List[List[str]] = []
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
-        for f in range(n_frames):
-            depths = []
-            for k in members:
-                path = camera_dir(roots[k], 0) / "depth" / frame_name(f)
-                if f >= infos[k].frames:
-                    depths.append(None)
-                    continue
-                try:
-                    depths.append(read_depth(path, infos[k].depth_unit_mm))
-                except ValueError as err:  # missing or unreadable frame: keep the previous pose
-                    tqdm.write(f"warning: {err}; keeping the previous pose")
-                    depths.append(None)
-            t0 = time.perf_counter()
-            start = predicted_start(history, config.prediction, config.prediction_limiter)
-            res = tracker.track_frame(depths, cams, theta, first=(f == 0), generator=generator, start=start)
-            dt = time.perf_counter() - t0
-            theta = res.theta
-            history = (history + [(theta, res.valid.to(theta.device))])[-3:]
-            thetas.append(theta.detach().cpu().numpy())
-            valids.append(res.valid.numpy())
+        results: List[FrameResult] = []
+        frames = _depth_frames([roots[k] for k in members], [infos[k] for k in members], n_frames, read_errors)
+        for f, res in enumerate(tracker.track(frames, cams, init)):
+            for i, err in enumerate(read_errors[f]):
+                if err:
+                    res.notes[i] = f"{err}; previous pose kept"
             for i, note in enumerate(res.notes):
                 if note:
                     tqdm.write(f"{names[members[i]]} frame {f}: {note}")
-            logs.append({"frame": f, "seconds": dt, "iterations": res.iterations.tolist(), "notes": res.notes,
-                         "energy": [None if not np.isfinite(e) else float(e) for e in res.energy.tolist()],
-                         "valid": res.valid.tolist(), "recovered": res.recovered.tolist()})
+            results.append(res)
             bar.update(len(members))
         bar.close()
-        TH = np.stack(thetas, 1)  # (S, N, D)
-        with torch.no_grad():
-            for i, k in enumerate(members):
-                N = infos[k].frames
-                th = torch.as_tensor(TH[i, :N], device=device)
-                posed = scene(th)
-                cam = cams[i]
-                kp3 = cam.to_camera(posed.keypoints).cpu().numpy()[:, None]
-                kp2 = cam.project(posed.keypoints).cpu().numpy()[:, None]
-                target = prepare_output_dir(targets[k], force)
-                valid = np.stack(valids, 1)[i, :N]
-                write_poses(target, Poses(TH[i, :N].astype(np.float64), kp3, kp2, list(scene.names),
-                                          scene.dof_names, scene.keypoint_names, valid))
-                (target / "motion").mkdir()
-                for name, model in zip(scene.names, scene.models):
-                    mot = theta_to_motion(model, th[:, scene.slices[name]])
-                    rest = {b: model.rest_transforms[j].cpu().double().numpy()[None] for j, b in enumerate(model.bone_names)}
-                    mot = {b: np.concatenate([rest[b], m], 0) for b, m in mot.items()}
-                    write_motion(target / "motion" / f"{thesis_name.get(name, name)}.MOTION", mot)
-                log = [{"frame": e["frame"], "seconds": e["seconds"], **{key: e[key][i] for key in
-                        ("iterations", "energy", "valid", "recovered", "notes")}} for e in logs[:N]]
-                (target / "track_log.json").write_text(json.dumps({"sequence": names[k], "source": str(roots[k]),
-                                                                    "energy": config.energy, "frames": log}))
-                if viz:
-                    _write_overlays(target, roots[k], infos[k], scene, posed, cam)
-                secs = [e["seconds"] for e in logs[:N]]
-                summaries.append({"sequence": names[k], "frames": N, "out": str(target),
-                                  "seconds_per_frame": float(np.mean(secs)) / len(members),
-                                  "flagged_frames": int((~valid).sum())})
-    return summaries
+        for i, k in enumerate(members):
+            summaries[k] = _write_sequence(targets[k], roots[k], infos[k], names[k], scene, cams[i], results, i,
+                                           len(members), config, viz, force)
+    return [summaries[k] for k in range(len(roots))]
 
 
-def _write_overlays(target, root, info, scene, posed, cam):
-    """Tracked skeletons over the input depth, one PNG per frame, and an MP4."""
+def _failed(name: str, error: str) -> dict:
+    return {"sequence": name, "status": "failed", "error": error, "frames": 0, "out": None,
+            "seconds_per_frame": float("nan"), "flagged_frames": 0}
 
+
+def _init_pose(root: Path, scene: Scene, models: tuple) -> np.ndarray:
+    th = read_init_pose(root)
+    if th.shape != (scene.num_dofs,):
+        raise ValueError(f"{root / 'init_pose.json'}: theta has {th.size} values, the scene "
+                         f"{list(models)} has {scene.num_dofs} DoF")
+    return th
+
+
+def _depth_frames(roots: List[Path], infos: List[SequenceInfo], n_frames: int,
+                  errors: List[List[str]]) -> Iterator[List[Optional[np.ndarray]]]:
+    """Per frame, the depth map of every sequence (None past its end or where unreadable;
+    the reason is appended to ``errors``, one list per frame)."""
+    for f in range(n_frames):
+        depths, why = [], []
+        for root, info in zip(roots, infos):
+            depth, err = None, ""
+            if f < info.frames:
+                try:
+                    depth = read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm)
+                except SequenceError as e:  # missing or unreadable frame: the tracker keeps the previous pose
+                    err = str(e)
+            depths.append(depth)
+            why.append(err)
+        errors.append(why)
+        yield depths
+
+
+def _write_sequence(target: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
+                    batch: int, config: TrackerConfig, viz: bool, force: bool) -> dict:
+    """Write one sequence's outputs from the batch's frame results (problem ``i``)."""
+    N = info.frames
+    valid = np.array([r.valid[i].item() for r in results[:N]], bool)
+    if not valid.any():
+        first = next((r.notes[i] for r in results[:N] if r.notes[i]), "no frame could be tracked")
+        return _failed(name, f"{root}: no frame of the {N} could be tracked (frame 0: {first})")
+    TH = np.stack([r.theta[i].detach().cpu().numpy() for r in results[:N]])
+    with torch.no_grad():
+        th = torch.as_tensor(TH, device=cam.device)
+        posed = scene(th)
+        kp3 = cam.to_camera(posed.keypoints).cpu().numpy()[:, None]
+        kp2 = cam.project(posed.keypoints).cpu().numpy()[:, None]
+    target = prepare_output_dir(target, force)
+    write_poses(target, Poses(TH.astype(np.float64), kp3, kp2, list(scene.names), scene.dof_names,
+                              scene.keypoint_names, valid))
+    (target / "motion").mkdir()
+    thesis_name = {v: k for k, v in THESIS_MODEL_NAMES.items()}
+    for model_name, model in zip(scene.names, scene.models):
+        mot = theta_to_motion(model, th[:, scene.slices[model_name]])
+        rest = {b: model.rest_transforms[j].cpu().double().numpy()[None] for j, b in enumerate(model.bone_names)}
+        mot = {b: np.concatenate([rest[b], m], 0) for b, m in mot.items()}
+        write_motion(target / "motion" / f"{thesis_name.get(model_name, model_name)}.MOTION", mot)
+    log = [{"frame": f, "seconds": r.seconds, "iterations": int(r.iterations[i]),
+            "energy": None if not np.isfinite(float(r.energy[i])) else float(r.energy[i]),
+            "valid": bool(r.valid[i]), "recovered": bool(r.recovered[i]),
+            "correspondences": int(r.correspondences[i]), "notes": r.notes[i]} for f, r in enumerate(results[:N])]
+    (target / "track_log.json").write_text(json.dumps({"sequence": name, "source": str(root),
+                                                       "energy": config.energy, "frames": log}))
+    if viz:
+        _write_overlays(target, root, info, scene, posed, cam)
+    return {"sequence": name, "status": "ok", "frames": N, "out": str(target),
+            "seconds_per_frame": float(np.mean([r.seconds for r in results[:N]])) / batch,
+            "flagged_frames": int((~valid).sum())}
+
+
+def _write_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, posed: SceneOutput, cam) -> None:
+    """Overlays for a person: the input depth in false colour with one mm range for the
+    whole sequence (and its colour bar), the frame number, the tracked models (hand
+    skeletons, object outlines) and, where ``root/gt`` exists, the ground-truth
+    skeletons in white beside them. One PNG per frame and an MP4."""
     (target / "overlays").mkdir()
-    images = []
-    hands = [k for k, m in enumerate(scene.models) if m.kind == "hand"]
+    gt = _ground_truth_2d(root, scene, info.frames)
+    depths = []
     for f in range(info.frames):
-        img = depth_to_color(read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm))
-        for k in hands:
-            draw_skeleton(img, cam.project(posed.models[k].keypoints[f : f + 1])[0].cpu().numpy())
-        cv2.imwrite(str(target / "overlays" / frame_name(f)), img)
-        images.append(img)
-    write_video(images, target / "overlays.mp4")
+        try:
+            depths.append(read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm))
+        except SequenceError:
+            depths.append(np.zeros((cam.height, cam.width), np.float32))
+    near, far = depth_range(depths)
+    kinds = [m.kind for m in scene.models]
+    legend = [(f"{n}: tracked", None if kind == "hand" else OBJECT_COLOR) for n, kind in zip(scene.names, kinds)]
+    legend += [("ground truth", GT_COLOR)] if gt is not None else []
+    images = []
+    with torch.no_grad():
+        for f, depth in enumerate(depths):
+            img = depth_to_color(depth, near, far)
+            for k, (model, out) in enumerate(zip(scene.models, posed.models)):
+                if kinds[k] == "hand":
+                    draw_skeleton(img, cam.project(out.keypoints[f : f + 1])[0].cpu().numpy())
+                    if gt is not None:  # thin, over the tracked one, so that both show
+                        draw_skeleton(img, gt[f, scene.keypoint_slices[scene.names[k]]], color=GT_COLOR, thickness=1)
+                elif model.num_bones > 1:
+                    draw_chain(img, cam.project(model.joints_from(out.G[f : f + 1]))[0].cpu().numpy())
+                else:
+                    draw_hull(img, cam.project(out.vertices[f : f + 1, ::16])[0].cpu().numpy())
+            draw_colorbar(img, near, far)
+            draw_legend(img, f"frame {f}", legend)
+            cv2.imwrite(str(target / "overlays" / frame_name(f)), img)
+            images.append(img)
+    write_video(images, target / "overlays.mp4", fps=info.fps)
+
+
+def _ground_truth_2d(root: Path, scene: Scene, frames: int) -> Optional[np.ndarray]:
+    """(N, P, 2) ground-truth keypoints of camera 0 for the overlays, or None when the
+    folder has no readable ``gt/`` of this scene (the tracking itself never reads it)."""
+    try:
+        gt = read_poses(root / "gt")
+    except SequenceError:
+        return None
+    if gt.keypoint_names != scene.keypoint_names or len(gt.keypoints_2d) != frames:
+        return None
+    return gt.keypoints_2d[:, 0]

@@ -60,17 +60,20 @@ class Scene(nn.Module):
         self.models = nn.ModuleList(models)
         self.slices: Dict[str, slice] = {}
         self.vertex_slices: Dict[str, slice] = {}
-        start = vstart = 0
+        self.keypoint_slices: Dict[str, slice] = {}
+        start = vstart = kstart = 0
         faces, face_model, face_bone, vertex_model = [], [], [], []
         for k, (n, m) in enumerate(zip(names, models)):
             self.slices[n] = slice(start, start + m.num_dofs)
             self.vertex_slices[n] = slice(vstart, vstart + m.num_vertices)
+            self.keypoint_slices[n] = slice(kstart, kstart + len(m.keypoint_names))
             faces.append(m.faces + vstart)
             face_model.append(torch.full((len(m.faces),), k, dtype=torch.int64))
             face_bone.append(m.vertex_bone[m.faces[:, 0]])  # part of a face = part of its first vertex
             vertex_model.append(torch.full((m.num_vertices,), k, dtype=torch.int64))
             start += m.num_dofs
             vstart += m.num_vertices
+            kstart += len(m.keypoint_names)
         self.dof_names: List[str] = [f"{n}/{d}" for n, m in zip(names, models) for d in m.dof_names]
         self.keypoint_names: List[str] = [f"{n}/{p}" for n, m in zip(names, models) for p in m.keypoint_names]
         self.register_buffer("faces", torch.cat(faces), persistent=False)

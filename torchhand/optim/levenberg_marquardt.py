@@ -18,15 +18,25 @@ ResidualFn = Callable[[torch.Tensor, bool], Tuple[torch.Tensor, Optional[torch.T
 
 
 class LMResult(NamedTuple):
-    """theta: (B, D) solution; cost: (B,) final sum of squared residuals;
-    iterations: (B,) accepted steps per problem; converged: (B,) bool;
-    damping: (B,) final lambda (to warm-start the next solve)."""
+    """What a solve found and counted.
+
+    Attributes:
+        theta: (B, D) solution.
+        cost: (B,) final sum of squared residuals.
+        iterations: (B,) accepted steps per problem.
+        converged: (B,) bool.
+        damping: (B,) final lambda (to warm-start the next solve).
+        rejected: (B,) steps tried and rejected per problem (retries included).
+        evaluations: residual evaluations, with or without Jacobian, of the whole batch.
+    """
 
     theta: torch.Tensor
     cost: torch.Tensor
     iterations: torch.Tensor
     converged: torch.Tensor
     damping: torch.Tensor
+    rejected: torch.Tensor
+    evaluations: int
 
 
 def solve_damped(J: torch.Tensor, r: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
@@ -85,8 +95,10 @@ def levenberg_marquardt(
     B = theta.shape[0]
     lam = torch.as_tensor(damping, dtype=theta.dtype, device=theta.device).expand(B).clone()
     iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
+    rejected = torch.zeros(B, dtype=torch.int64, device=theta.device)
     done = torch.zeros(B, dtype=torch.bool, device=theta.device)
     r, J = residuals(theta, True)
+    evaluations = 1
     cost = (r * r).sum(-1)
     for it in range(max_iterations):
         if lower is not None or upper is not None:
@@ -96,8 +108,10 @@ def levenberg_marquardt(
             delta = solve_damped(J, r, lam)
             cand = _clamp(theta + delta, lower, upper)
             r_new, _ = residuals(cand, False)
+            evaluations += 1
             cost_new = (r_new * r_new).sum(-1)
             accept = (cost_new < cost) & todo
+            rejected = rejected + (todo & ~accept).long()
             theta = torch.where(accept[:, None], cand, theta)
             lam = torch.where(accept, lam * 0.1, torch.where(todo, lam * 10, lam)).clamp(1e-9, 1e9)
             iters = iters + accept.long()
@@ -110,7 +124,8 @@ def levenberg_marquardt(
             break
         if it + 1 < max_iterations:
             r, J = residuals(theta, True)
-    return LMResult(theta, cost, iters, done, lam)
+            evaluations += 1
+    return LMResult(theta, cost, iters, done, lam, rejected, evaluations)
 
 
 def _freeze_active_bounds(J, r, theta, lower, upper):

@@ -10,23 +10,31 @@ independent problems that share every tensor operation.
 
 from __future__ import annotations
 
+import collections
 import math
+import time
 from dataclasses import dataclass, field
-from typing import List, NamedTuple, Optional, Sequence
+from typing import Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 import torch
 
 from torchhand.geometry.camera import Camera
-from torchhand.tracking.energies import Anatomy, EnergyTerm, Regularization, TrackState, parse_energy
 from torchhand.geometry.mesh import is_closed_outward
-from torchhand.tracking.preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
 from torchhand.geometry.render import RenderResult, render
-from torchhand.model.scene import Scene
+from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
+from torchhand.tracking.energies import EnergyTerm, TrackState, parse_energy
+from torchhand.tracking.preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
 
-__all__ = ["TrackerConfig", "FrameResult", "Tracker", "label_data"]
+__all__ = ["TrackerConfig", "FrameResult", "SolveResult", "Tracker", "label_data", "predicted_start"]
+
+#: a depth map in mm: (H, W) tensor or array, or None for a missing frame
+Depth = Union[torch.Tensor, np.ndarray, None]
+
+#: frames whose energies the recovery rule compares a frame with (the median of these)
+ENERGY_HISTORY = 30
 
 
 @dataclass
@@ -78,18 +86,38 @@ class TrackerConfig:
 
 
 class FrameResult(NamedTuple):
-    """theta: (B, D) poses; valid: (B,) False where a frame could not be used (kept
-    the previous pose); iterations: (B,); energy: (B,) final energy per candidate
-    correspondence (see :meth:`Tracker.solve`);
-    recovered: (B,) True where the recovery re-solve replaced the estimate;
-    notes: B strings, why a frame was flagged ("" when fine)."""
+    """One tracked frame of B sequences: what the runner writes.
+
+    Attributes:
+        theta: (B, D) poses.
+        valid: (B,) bool, False where a frame could not be used (the previous pose is kept).
+        iterations: (B,) outer iterations spent.
+        energy: (B,) final energy per candidate correspondence (see :meth:`Tracker.solve`);
+            NaN where the frame was not used.
+        recovered: (B,) bool, True where the recovery re-solve replaced the estimate.
+        correspondences: (B,) int64 data correspondences (C_all) at the last outer iteration.
+        notes: B strings, why a frame was flagged ("" when fine).
+        seconds: wall time of the whole batch's frame.
+    """
 
     theta: torch.Tensor
     valid: torch.Tensor
     iterations: torch.Tensor
     energy: torch.Tensor
     recovered: torch.Tensor
+    correspondences: torch.Tensor
     notes: List[str]
+    seconds: float
+
+
+class SolveResult(NamedTuple):
+    """theta: (B, D); iterations: (B,) outer iterations; energy: (B,) per candidate
+    correspondence; correspondences: (B,) int64 C_all at the last outer iteration."""
+
+    theta: torch.Tensor
+    iterations: torch.Tensor
+    energy: torch.Tensor
+    correspondences: torch.Tensor
 
 
 def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torch.Tensor:
@@ -121,25 +149,67 @@ def _same_camera(a: Camera, b: Camera) -> bool:
                       and torch.equal(a.T_cw, b.T_cw))
 
 
+class Objective:
+    """The stacked residuals of prepared terms, as the solver calls them:
+    ``objective(theta, jacobian) -> (r (B, m), J (B, m, D) or None)``.
+
+    It poses the scene once per theta and keeps two poses (the state's and the latest
+    one the solver tried), so that the caller gets the posed scene at the solution
+    without posing it again: :meth:`posed_at`.
+    """
+
+    def __init__(self, scene: Scene, terms: Sequence[EnergyTerm], theta: torch.Tensor, posed: SceneOutput):
+        self.scene, self.terms = scene, list(terms)
+        self._poses: List[Tuple[torch.Tensor, SceneOutput]] = [(theta, posed)]
+
+    def posed_at(self, theta: torch.Tensor) -> SceneOutput:
+        """The scene posed at ``theta`` (from the cache when the solver evaluated it last)."""
+        for th, out in self._poses:
+            if th.shape == theta.shape and torch.equal(th, theta):
+                return out
+        out = self.scene(theta, validate=False)
+        self._poses[1:] = [(theta, out)]
+        return out
+
+    def __call__(self, theta: torch.Tensor, jacobian: bool):
+        posed = self.posed_at(theta)
+        parts = [t.residuals(theta, posed, jacobian) for t in self.terms]
+        r = torch.cat([p.r for p in parts], 1)
+        J = torch.cat([p.J for p in parts], 1) if jacobian else None
+        return r, J
+
+
 class Tracker:
     """Tracks a scene through depth frames.
 
     Args:
         scene: the models, in the order of their slices in theta.
         config: :class:`TrackerConfig`.
-        terms: energy terms (default: from ``config.energy``); anatomy and
-            regularisation are scaled by the number of data correspondences.
+        terms: energy terms (default: ``parse_energy(config.energy, config.metric)``).
+            Priors (``term.prior``) are prepared after the other terms, with the
+            state's C_all known.
+
+    The tracker keeps the energies of the last :data:`ENERGY_HISTORY` frames of the
+    sequences it tracks, for the recovery rule; :meth:`reset` forgets them (a new set
+    of sequences), as :meth:`track` does when it starts.
     """
 
     def __init__(self, scene: Scene, config: TrackerConfig = TrackerConfig(),
                  terms: Optional[List[EnergyTerm]] = None):
         self.scene, self.config = scene, config
-        self.terms = terms if terms is not None else parse_energy(config.energy, config.metric)
-        self.data_terms = [t for t in self.terms if not isinstance(t, (Anatomy, Regularization))]
-        self.prior_terms = [t for t in self.terms if isinstance(t, (Anatomy, Regularization))]
-        self._energy_history: List[torch.Tensor] = []
+        self.terms = list(terms) if terms is not None else parse_energy(config.energy, config.metric)
+        for k, t in enumerate(self.terms):
+            if not isinstance(t, EnergyTerm):
+                raise TypeError(f"terms[{k}] must be an EnergyTerm, got {type(t).__name__}")
+        if not any(not t.prior for t in self.terms):
+            raise ValueError("terms need at least one data term (a term that is not a prior)")
+        self._energy_history: collections.deque = collections.deque(maxlen=ENERGY_HISTORY)
         # back faces can be left out of the renders when every mesh is closed and outward
         self._cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
+
+    def reset(self) -> None:
+        """Forget the energies of earlier frames (before tracking other sequences)."""
+        self._energy_history.clear()
 
     # ------------------------------------------------------------------ frames
     def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera]) -> RenderResult:
@@ -159,32 +229,16 @@ class Tracker:
                                   for b, f in enumerate(frames)])
         return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels)
 
-    def _residual_fn(self, state: TrackState):
-        """The stacked residuals for the solver; ``fn.posed(theta)`` returns the scene at
-        a theta the solver evaluated last (or at the state's), posing it otherwise."""
-        scene = self.scene
-        seen = [(state.theta, state.posed)]
-
-        def posed_at(theta):
-            for th, out in seen:
-                if th.shape == theta.shape and torch.equal(th, theta):
-                    return out
-            out = scene(theta, validate=False)
-            seen[1:] = [(theta, out)]  # keep the state's pose and the latest one
-            return out
-
-        def fn(theta, with_jacobian):
-            posed = posed_at(theta)
-            parts = [t.residuals(theta, posed, with_jacobian) for t in self.terms]
-            r = torch.cat([p.r for p in parts], 1)
-            J = torch.cat([p.J for p in parts], 1) if with_jacobian else None
-            return r, J
-
-        fn.posed = posed_at
-        return fn
+    def _prepare(self, state: TrackState):
+        """Prepare every term: the data terms, then the priors with C_all known.
+        Returns (C_all (B,), candidates (B,), unmatched energy (B,))."""
+        found = [t.prepare(state) for t in self.terms if not t.prior]
+        state.correspondences = sum(f.correspondences for f in found)
+        found += [t.prepare(state) for t in self.terms if t.prior]
+        return state.correspondences, sum(f.candidates for f in found), sum(f.unmatched for f in found)
 
     def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[DepthFrame],
-              cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None):
+              cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None) -> SolveResult:
         """Algorithm 1 for a batch: alternate correspondences and LM steps.
 
         The data pixels are labelled with the model ids rendered at the start pose
@@ -195,9 +249,9 @@ class Tracker:
         A problem stops when its joints moved less than ``min_motion`` mm (default
         ``config.min_joint_motion``) in an iteration, or when no LM step was accepted.
 
-        Returns (theta (B, D), iterations (B,), energy (B,)): the energy is per
-        candidate correspondence, a candidate without a correspondence charged its
-        truncated square (``EnergyTerm.unmatched``).
+        Returns :class:`SolveResult`: the energy is per candidate correspondence, a
+        candidate without a correspondence charged its truncated square
+        (:attr:`Prepared.unmatched`).
         """
         theta = start.clone()
         B = theta.shape[0]
@@ -206,7 +260,7 @@ class Tracker:
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
         damping = theta.new_full((B,), 1e-3)
         energy = theta.new_zeros(B)
-        self._last_count = torch.zeros(B, dtype=theta.dtype)
+        counts = torch.zeros(B, dtype=torch.int64, device=theta.device)
         # Only the problems still moving are solved: `idx` lists them. `posed` and
         # `labels` belong to the problems of `idx` of the previous iteration.
         idx = torch.arange(B, device=theta.device)
@@ -217,22 +271,16 @@ class Tracker:
                 state = self._state(theta[idx], previous[idx], [frames[b] for b in sub], [cameras[b] for b in sub],
                                     posed, labels)
                 labels = state.data_labels  # labelled once per frame, at its start pose
-                for t in self.data_terms:
-                    t.prepare(state)
-                count = sum(t.count for t in self.data_terms).to(theta)
-                candidates = sum(t.count if t.candidates is None else t.candidates for t in self.data_terms).to(theta)
-                unmatched = sum(t.unmatched_energy() for t in self.data_terms).to(theta)
-                self._last_count[idx.cpu()] = count.cpu()
-                for t in self.prior_terms:
-                    t.prepare(state, count)
-                fn = self._residual_fn(state)
-                res = levenberg_marquardt(fn, state.theta, lower, upper,
+                count, candidates, unmatched = self._prepare(state)
+                counts[idx] = count.to(counts.device)
+                objective = Objective(self.scene, self.terms, state.theta, state.posed)
+                res = levenberg_marquardt(objective, state.theta, lower, upper,
                                           max_iterations=self.config.inner_iterations, damping=damping[idx],
                                           retries=self.config.step_retries)
-                posed = fn.posed(res.theta)
+                posed = objective.posed_at(res.theta)
                 moved = self.scene.joint_motion(state.posed, posed)
             theta[idx], damping[idx] = res.theta, res.damping
-            energy[idx] = (res.cost + unmatched) / candidates.clamp_min(1)
+            energy[idx] = (res.cost + unmatched.to(theta)) / candidates.to(theta).clamp_min(1)
             iters[idx] += 1
             # a problem whose step was rejected after every retry moved nothing: the
             # correspondences would not change, so it has converged
@@ -241,15 +289,15 @@ class Tracker:
                 break
             if not bool(going.all()):
                 idx, labels, posed = idx[going], labels[going], posed.select(going)
-        return theta, iters, energy
+        return SolveResult(theta, iters, energy, counts)
 
-    def track_frame(self, depths: Sequence[Optional[np.ndarray]], cameras: Sequence[Camera],
-                    previous: torch.Tensor, first: bool = False, generator: Optional[torch.Generator] = None,
+    def track_frame(self, depths: Sequence[Depth], cameras: Sequence[Camera], previous: torch.Tensor,
+                    first: bool = False, generator: Optional[torch.Generator] = None,
                     start: Optional[torch.Tensor] = None) -> FrameResult:
         """Track one frame of each of B sequences.
 
         Args:
-            depths: B depth maps (H, W) in mm, or None where a frame is missing.
+            depths: B depth maps (H, W) in mm (tensors or arrays), or None where a frame is missing.
             cameras: B cameras.
             previous: (B, D) poses of the previous frame (or the initial poses).
             first: use the first-frame iteration budget.
@@ -261,7 +309,11 @@ class Tracker:
             :class:`FrameResult`; problems without usable depth keep ``previous``
             and are flagged invalid.
         """
+        t0 = time.perf_counter()
         cfg, B = self.config, previous.shape[0]
+        if len(depths) != B or len(cameras) != B:
+            raise ValueError(f"give one depth map and one camera per problem: previous has {B} rows, "
+                             f"got {len(depths)} depth maps and {len(cameras)} cameras")
         if start is not None:
             start = self.scene.check_theta(start, "start")
             if start.shape[0] != B:
@@ -282,32 +334,61 @@ class Tracker:
         iters = torch.zeros(B, dtype=torch.int64)
         energy = previous.new_full((B,), float("nan"))
         recovered = torch.zeros(B, dtype=torch.bool)
+        counts = torch.zeros(B, dtype=torch.int64)
         if ok:
             idx = torch.tensor(ok)
             cams = [cameras[b] for b in ok]
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             # the first frame refines a given initial pose: its whole budget is spent
             # unless the solver stops accepting steps (the thesis' 50 iterations)
-            th, it, en = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
-            counts = self._last_count.clone()
+            sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
+            th, en = sol.theta, sol.energy
             if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
                 th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
                 recovered[idx] = rec.cpu()
             # never return NaN: a diverged problem keeps its previous pose and is flagged
             finite = torch.isfinite(th).all(1) & torch.isfinite(en)
             th = torch.where(finite[:, None], th, previous[idx])
-            theta[idx], valid[idx], iters[idx], energy[idx] = th, finite.cpu(), it.cpu(), en
+            theta[idx], valid[idx], iters[idx], energy[idx] = th, finite.cpu(), sol.iterations.cpu(), en
+            counts[idx] = sol.correspondences.cpu()
             for k, b in enumerate(ok):
                 if not finite[k]:
                     notes[b] = "the solver diverged; previous pose kept"
-                elif counts[k] == 0:
+                elif sol.correspondences[k] == 0:
                     notes[b] = "no correspondences (models out of view or far from the data)"
         self._energy_history.append(energy)
-        return FrameResult(theta, valid, iters, energy, recovered, notes)
+        return FrameResult(theta, valid, iters, energy, recovered, counts, notes, time.perf_counter() - t0)
+
+    def track(self, depths: Iterable[Sequence[Depth]], cameras: Sequence[Camera], init: torch.Tensor
+              ) -> Iterator[FrameResult]:
+        """Track B sequences frame by frame from their initial poses.
+
+        Args:
+            depths: per frame, B depth maps (H, W) in mm or None (a sequence that has
+                ended or lacks the frame keeps its pose and is flagged).
+            cameras: B cameras.
+            init: (B, D) initial poses (the first frame refines them with the
+                first-frame budget).
+        Yields:
+            one :class:`FrameResult` per frame. The starts follow
+            ``config.prediction``; the recovery perturbations are drawn from a
+            generator seeded with ``config.seed``, so a run is repeatable.
+        """
+        cfg = self.config
+        theta = self.scene.check_theta(init, "init")
+        self.reset()
+        generator = torch.Generator().manual_seed(cfg.seed)
+        history: collections.deque = collections.deque(maxlen=3)  # (theta, tracked) of the last frames
+        for f, frame in enumerate(depths):
+            start = predicted_start(list(history), cfg.prediction, cfg.prediction_limiter)
+            res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start)
+            theta = res.theta
+            history.append((theta, res.valid.to(theta.device)))
+            yield res
 
     def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator):
         """Re-solve problems whose energy rose sharply, from perturbed previous poses."""
-        hist = torch.stack(self._energy_history[-30:])[:, idx]
+        hist = torch.stack(list(self._energy_history))[:, idx]
         ref = torch.nanmedian(hist, 0).values
         bad = torch.nonzero(energy > self.config.recover_factor * ref)[:, 0].tolist()
         rec = torch.zeros(len(energy), dtype=torch.bool)
@@ -327,7 +408,8 @@ class Tracker:
                 fr.append(frames[b])
                 cams.append(cameras[b])
                 prev.append(previous[b])
-        th, _, en = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations)
+        sol = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations)
+        th, en = sol.theta, sol.energy
         for i, b in enumerate(bad):
             best = int(torch.argmin(en[i * R : (i + 1) * R]))
             if en[i * R + best] < energy[b]:

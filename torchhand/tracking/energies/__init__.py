@@ -1,29 +1,45 @@
-"""Energy terms of the tracking objective (thesis Eq. 4.5), one module per term.
+"""Energy terms of the tracking objective (thesis Eq. 4.5), one module per term, one
+interface (:mod:`torchhand.tracking.energies.base`), weights and robust losses as
+wrappers (:mod:`torchhand.tracking.energies.wrappers`).
 
-``parse_energy("LO+C")`` builds the terms named on the command line: ``LO`` is
-model-to-data plus data-to-model, ``C`` adds collisions and ``S`` salient points
-(``LO+CS``: both); anatomy and regularisation are always added.
+``parse_energy("LO+C")`` builds the terms named on the command line with the tracker's
+weights and losses: ``LO`` is model-to-data plus data-to-model, ``C`` adds collisions
+and ``S`` salient points (``LO+CS``: both); anatomy and regularisation are always added.
 """
 
 from __future__ import annotations
 
 from typing import List
 
+from torchhand.tracking.energies import anatomy, collision, data_to_model, regularization
 from torchhand.tracking.energies.anatomy import Anatomy
-from torchhand.tracking.energies.base import EnergyTerm, Residuals, TrackState
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
 from torchhand.tracking.energies.collision import Collision
 from torchhand.tracking.energies.data_to_model import DataToModel
 from torchhand.tracking.energies.model_to_data import ModelToData
 from torchhand.tracking.energies.regularization import Regularization
 from torchhand.tracking.energies.salient_points import Salient
+from torchhand.tracking.energies.wrappers import Robust, Weighted
 
-__all__ = ["EnergyTerm", "Residuals", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient", "Anatomy",
-           "Regularization",
-           "parse_energy", "ENERGY_COMPONENTS"]
+__all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
+           "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model", "default_priors",
+           "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
 ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)",
                      "S": "salient points (detected fingertips, Eq. 4.14-4.15)"}
+
+
+def default_data_to_model(**kwargs) -> EnergyTerm:
+    """The tracker's data-to-model term: Cauchy loss with a misfit-following scale,
+    weight 0.25 (:mod:`torchhand.tracking.energies.data_to_model`)."""
+    return Weighted(Robust(DataToModel(**kwargs), data_to_model.DEFAULT_LOSS), data_to_model.DEFAULT_WEIGHT)
+
+
+def default_priors() -> List[EnergyTerm]:
+    """Anatomy (gamma_a = 0.0015 C_all) and regularisation (gamma_r = 0.02 C_all)."""
+    return [Weighted(Anatomy(), anatomy.DEFAULT_WEIGHT, per_correspondence=True),
+            Weighted(Regularization(), regularization.DEFAULT_WEIGHT, per_correspondence=True)]
 
 
 def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
@@ -37,9 +53,9 @@ def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
         raise ValueError(f"energy {spec!r}: unknown components {unknown}; known after LO: {sorted(ENERGY_COMPONENTS)}")
     if len(set(extra)) != len(extra):
         raise ValueError(f"energy {spec!r} names a component twice")
-    terms: List[EnergyTerm] = [ModelToData(metric=metric), DataToModel()]
+    terms: List[EnergyTerm] = [ModelToData(metric=metric), default_data_to_model()]
     if "C" in extra:
-        terms.append(Collision())
+        terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
     if "S" in extra:
         terms.append(Salient())
-    return terms + [Anatomy(), Regularization()]
+    return terms + default_priors()

@@ -1,37 +1,94 @@
-"""The interface every energy term of the objective (thesis Eq. 4.5) implements.
+"""The one interface every energy term of the objective (thesis Eq. 4.5) implements.
 
 A term is prepared once per outer iteration of Algorithm 1 (it finds its
-correspondences at the current pose) and then evaluated, with the
-correspondences fixed, at any theta the solver tries::
+correspondences at the current pose) and then evaluated, with the correspondences
+fixed, at any theta the solver tries::
 
-    term.prepare(state)                       # correspondences at the current pose
-    r, J = term.residuals(theta, posed, True) # r: (B, m), J: (B, m, D)
+    found = term.prepare(state)                    # Prepared: counts and diagnostics
+    res = term.residuals(theta, posed, jacobian=True)
+    res.r  # (B, m) residuals        res.J  # (B, m, D) their Jacobian
 
-Residuals come out multiplied by ``sqrt(weight)``, so the stacked sum of squares of
-all terms is the weighted energy. ``count`` tells how many correspondences a term
-contributes (C_all of the thesis scales the anatomy and regularisation weights).
+Terms return their own, unweighted residuals. Weights and robust losses are wrappers
+around any term (:mod:`torchhand.tracking.energies.wrappers`), as theseus separates
+``CostFunction``, ``CostWeight`` and ``RobustCostFunction``. The stacked sum of squares
+of all (wrapped) terms is the energy the solver minimises.
+
+A *prior* (anatomy, regularisation) is prepared after every other term, when
+``state.correspondences`` holds C_all, the number of data correspondences of each
+problem, which scales the priors' weights (Eq. 4.17-4.18).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, NamedTuple, Optional
+from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import torch
 
 from torchhand.geometry.camera import Camera
-from torchhand.tracking.preprocess import DepthFrame
 from torchhand.geometry.render import RenderResult, visible_vertices
 from torchhand.model.scene import Scene, SceneOutput
+from torchhand.tracking.preprocess import DepthFrame
 
-__all__ = ["Residuals", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals", "bone_inliers"]
+__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals", "bone_inliers",
+           "prepared", "stack_rows"]
 
 
 class Residuals(NamedTuple):
-    """r: (B, m) weighted residuals; J: (B, m, D) their Jacobian, or None."""
+    """A term's residuals at one theta.
+
+    Attributes:
+        r: (B, m) residuals, m = n x ``dim``.
+        J: (B, m, D) their Jacobian with respect to theta, or None.
+        dim: residual components per correspondence row (3 for point-to-point and
+            Pluecker-line residuals, 1 for point-to-plane and scalar penalties); robust
+            losses act on the squared norm of each row.
+        mask: (B, n) 1 for real rows and 0 for padding (every problem of a batch has
+            as many rows as the one with most), or None when every row is real.
+        group: (B, n) int64 group of each row in ``[0, groups)`` (the model the row
+            belongs to), for losses whose scale is taken per group; None: one group.
+        groups: the number of groups.
+    """
 
     r: torch.Tensor
     J: Optional[torch.Tensor]
+    dim: int = 1
+    mask: Optional[torch.Tensor] = None
+    group: Optional[torch.Tensor] = None
+    groups: int = 1
+
+
+class Prepared(NamedTuple):
+    """What a term's ``prepare`` found, per problem.
+
+    Attributes:
+        correspondences: (B,) int64 data correspondences, counted into C_all (0 for
+            collisions and priors).
+        candidates: (B,) int64 candidates considered (>= correspondences): visible
+            vertices, data edge pixels, ...
+        unmatched: (B,) float64 energy charged for the candidates left without a
+            correspondence (each its truncated square, min(distance, cut-off)^2), so
+            that poses are compared fairly however many correspondences each finds.
+        diagnostics: named (B,) tensors a term reports (e.g. ``pairs`` for collisions,
+            ``assigned`` detections for salient points).
+    """
+
+    correspondences: torch.Tensor
+    candidates: torch.Tensor
+    unmatched: torch.Tensor
+    diagnostics: Dict[str, torch.Tensor] = {}
+
+
+def prepared(batch: int, device=None, correspondences: Optional[torch.Tensor] = None,
+             candidates: Optional[torch.Tensor] = None, unmatched: Optional[torch.Tensor] = None,
+             **diagnostics: torch.Tensor) -> Prepared:
+    """A :class:`Prepared` with zeros for what is not given (candidates default to the
+    correspondences)."""
+    zeros = torch.zeros(batch, dtype=torch.int64, device=device)
+    c = zeros if correspondences is None else correspondences
+    return Prepared(c, c if candidates is None else candidates,
+                    torch.zeros(batch, dtype=torch.float64, device=device) if unmatched is None else unmatched,
+                    dict(diagnostics))
 
 
 @dataclass
@@ -39,10 +96,12 @@ class TrackState:
     """What the terms see at the start of an outer iteration, for B problems.
 
     scene: the shared scene; theta: (B, D) current pose; previous: (B, D) the pose
-    of the previous frame; posed: scene output at theta; frames: one preprocessed
-    frame per problem (points and normals in the camera frame); cameras: one camera
-    per problem; render: the scene rendered at theta from each problem's camera;
-    data_labels: (B, H, W) int64 model id assigned to each data pixel (-1 none).
+    of the previous frame (the reference of Eq. 4.18); posed: scene output at theta;
+    frames: one preprocessed frame per problem (points and normals in the camera
+    frame); cameras: one camera per problem; render: the scene rendered at theta from
+    each problem's camera; data_labels: (B, H, W) int64 model id assigned to each
+    data pixel (-1 none); correspondences: (B,) C_all, the data correspondences of
+    the terms prepared so far (set by the tracker before the priors are prepared).
     """
 
     scene: Scene
@@ -53,6 +112,7 @@ class TrackState:
     cameras: List[Camera]
     render: RenderResult
     data_labels: torch.Tensor
+    correspondences: Optional[torch.Tensor] = None
     _visible: Optional[torch.Tensor] = field(default=None, repr=False)
 
     def visible_vertices(self) -> torch.Tensor:
@@ -64,32 +124,46 @@ class TrackState:
 
 
 class EnergyTerm:
-    """Base class: a named, weighted term with the prepare/residuals interface."""
+    """Base class of the terms: ``prepare(state) -> Prepared`` and
+    ``residuals(theta, posed, jacobian=True) -> Residuals``.
+
+    ``name`` names the term in logs; ``prior`` marks terms prepared after the others,
+    with ``state.correspondences`` known (module docstring).
+    """
 
     name: str = "term"
+    prior: bool = False
 
-    def __init__(self, weight: float = 1.0):
-        self.weight = float(weight)
-        self.count = None  # (B,) correspondences found by the last prepare()
-        # (B,) candidates the last prepare() considered, count of them kept; None when
-        # every candidate is a correspondence
-        self.candidates = None
-        # (B,) energy charged for the candidates left without a correspondence (each
-        # weight x min(distance, cut-off)^2, a truncated square), so that poses are
-        # compared fairly however many correspondences each finds; None = nothing
-        self.unmatched = None
-
-    def unmatched_energy(self) -> torch.Tensor:
-        """(B,) energy of the candidates that found no correspondence (zeros if none)."""
-        if self.unmatched is None:
-            return torch.zeros(self.count.shape, dtype=torch.float64)
-        return self.unmatched
-
-    def prepare(self, state: TrackState) -> None:  # pragma: no cover - interface
+    def prepare(self, state: TrackState) -> Prepared:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def residuals(self, theta: torch.Tensor, posed: SceneOutput, with_jacobian: bool) -> Residuals:
+    def residuals(self, theta: torch.Tensor, posed: SceneOutput, jacobian: bool = True) -> Residuals:
         raise NotImplementedError  # pragma: no cover - interface
+
+    def fold_weight(self, weight: torch.Tensor) -> bool:
+        """Take a fixed per-problem weight into the prepared term, if the term can.
+
+        ``weight``: (B, 1) energy weights (``Weighted`` with ``per_correspondence``, for
+        the outer iteration the last ``prepare`` was for). A term whose residual is the
+        square root of an energy (anatomy) computes ``sqrt(w E)`` in one root, as the
+        thesis writes the weighted term, and returns True. The default returns False:
+        the caller scales r and J by ``sqrt(w)``.
+        """
+        return False
+
+    def fold_row_weights(self, sqrt_w: torch.Tensor) -> bool:
+        """Take fixed row weights into the prepared correspondences, if the term can.
+
+        ``sqrt_w``: (B, n) factors for the rows of :meth:`residuals` (as found by the
+        last ``prepare``, which they stay valid for). A term whose residuals are linear
+        in stored per-row data (data-to-model's Pluecker lines) scales that data once,
+        which is cheaper than scaling r and J at every evaluation; it returns True.
+        The default returns False: the caller (``Robust``) scales r and J.
+        """
+        return False
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
 
 
 def scatter_columns(J_model: torch.Tensor, cols: slice, D: int) -> torch.Tensor:
@@ -99,10 +173,23 @@ def scatter_columns(J_model: torch.Tensor, cols: slice, D: int) -> torch.Tensor:
     return J
 
 
-def no_residuals(theta: torch.Tensor, with_jacobian: bool) -> Residuals:
+def no_residuals(theta: torch.Tensor, jacobian: bool, dim: int = 1) -> Residuals:
     """The residuals of a term without correspondences: (B, 0) and (B, 0, D)."""
     B, D = theta.shape
-    return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if with_jacobian else None)
+    return Residuals(theta.new_zeros(B, 0), theta.new_zeros(B, 0, D) if jacobian else None, dim,
+                     theta.new_zeros(B, 0), torch.zeros(B, 0, dtype=torch.int64, device=theta.device))
+
+
+def stack_rows(parts: Sequence[Residuals], theta: torch.Tensor, jacobian: bool, dim: int, groups: int) -> Residuals:
+    """Concatenate the row blocks of one term (e.g. one per model) into its Residuals."""
+    if not parts:
+        return no_residuals(theta, jacobian, dim)._replace(groups=groups)
+    B = theta.shape[0]
+    masks = [p.mask if p.mask is not None else theta.new_ones(B, p.r.shape[1] // dim) for p in parts]
+    group = [p.group if p.group is not None else torch.zeros(m.shape, dtype=torch.int64, device=theta.device)
+             for p, m in zip(parts, masks)]
+    return Residuals(torch.cat([p.r for p in parts], 1), torch.cat([p.J for p in parts], 1) if jacobian else None,
+                     dim, torch.cat(masks, 1), torch.cat(group, 1), groups)
 
 
 def bone_inliers(d: torch.Tensor, bone: torch.Tensor, keep: torch.Tensor, num_bones: int,

@@ -4,10 +4,10 @@ At every outer iteration the intersecting triangle pairs C of the posed scene ar
 found (:func:`torchhand.collision.detect_collisions`: hand-hand, hand-object and,
 within a model, parts that are not neighbours); while the solver tries poses the
 pairs stay fixed and each vertex of one triangle is penalised by the other's conic
-field Psi. The residual of an (intruder, receiver) row is ``sqrt(gamma_c) Psi``
-(Eq. 4.13, point-to-plane; gamma_c = 10 as in the thesis), or the 3-vector
-``sqrt(gamma_c) Psi n`` along the intruder's vertex normal, fixed at the pose where
-the pair was found (Eq. 4.12, point-to-point). Both give the same energy; with the
+field Psi. The residual of an (intruder, receiver) row is ``Psi`` (Eq. 4.13,
+point-to-plane), or the 3-vector ``Psi n`` along the intruder's vertex normal, fixed at
+the pose where the pair was found (Eq. 4.12, point-to-point); the tracker weights the
+term by gamma_c = 10 as the thesis does (:data:`DEFAULT_WEIGHT`). Both give the same energy; with the
 normal fixed they also give the same Gauss-Newton step, so Eq. 4.13 is the default.
 
 The Jacobian chains dPsi/d(intruder, receiver vertices), taken by autograd on the
@@ -21,16 +21,18 @@ import torch
 
 from torchhand.geometry.intersections import DEFAULT_SIGMA, CollisionMesh, conic_field, detect_collisions, intruders
 from torchhand.geometry.mesh import vertex_normals
-from torchhand.tracking.energies.base import EnergyTerm, Residuals, TrackState, no_residuals
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, no_residuals, prepared
 
-__all__ = ["Collision"]
+__all__ = ["Collision", "DEFAULT_WEIGHT"]
+
+#: gamma_c of the thesis, the tracker's weight of the term
+DEFAULT_WEIGHT = 10.0
 
 
 class Collision(EnergyTerm):
     """E_collision.
 
     Args:
-        weight: gamma_c (10 in the thesis).
         sigma: sigma of Eq. 4.10-4.11 in the scene's units (0.5).
         metric: "point-to-plane" (Eq. 4.13, one residual per row) or
             "point-to-point" (Eq. 4.12, three).
@@ -40,16 +42,13 @@ class Collision(EnergyTerm):
 
     name = "collision"
 
-    def __init__(self, weight: float = 10.0, sigma: float = DEFAULT_SIGMA, metric: str = "point-to-plane",
-                 self_collisions: bool = True):
-        super().__init__(weight)
+    def __init__(self, sigma: float = DEFAULT_SIGMA, metric: str = "point-to-plane", self_collisions: bool = True):
         if metric not in ("point-to-point", "point-to-plane"):
             raise ValueError(f"metric must be 'point-to-point' or 'point-to-plane', got {metric!r}")
         if not sigma > 0:
             raise ValueError(f"sigma must be positive, got {sigma}")
         self.sigma, self.metric, self.self_collisions = float(sigma), metric, self_collisions
         self._mesh, self._mesh_scene = None, None
-        self.pairs = None  # (B,) intersecting pairs found by the last prepare()
 
     def mesh_for(self, scene) -> CollisionMesh:
         """The scene's :class:`CollisionMesh`, built once per scene."""
@@ -57,7 +56,7 @@ class Collision(EnergyTerm):
             self._mesh, self._mesh_scene = CollisionMesh.from_scene(scene, self.self_collisions), scene
         return self._mesh
 
-    def prepare(self, state: TrackState) -> None:
+    def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         V = state.posed.vertices
         dev = V.device
@@ -86,20 +85,20 @@ class Collision(EnergyTerm):
             n = vertex_normals(V, scene.faces)
             self.normal = -n[torch.arange(B, device=dev)[:, None], self.vids[..., 0]]  # push back: -n_v
         self._scene = scene
-        self.pairs = pairs.counts(B).cpu()
-        self.count = torch.zeros(B, dtype=torch.int64)
+        # collision rows are not data correspondences (C_all)
+        return prepared(B, device=dev, pairs=pairs.counts(B))
 
-    def residuals(self, theta, posed, with_jacobian):
+    def residuals(self, theta, posed, jacobian=True):
         B, D = theta.shape
         m = self.vids.shape[1]
+        dim = 1 if self.metric == "point-to-plane" else 3
         if m == 0:
-            return no_residuals(theta, with_jacobian)
-        sw = self.weight**0.5
+            return no_residuals(theta, jacobian, dim)
         b = torch.arange(B, device=theta.device)[:, None, None]
         X = posed.vertices.detach()[b, self.vids]  # (B, m, 4, 3)
-        if not with_jacobian:
+        if not jacobian:
             psi = conic_field(X[:, :, 0], X[:, :, 1:], self.sigma) * self.mask
-            return Residuals(self._shape(sw * psi), None)
+            return Residuals(self._shape(psi), None, dim, self.mask)
         with torch.enable_grad():
             X = X.requires_grad_()
             psi = conic_field(X[:, :, 0], X[:, :, 1:], self.sigma) * self.mask
@@ -109,7 +108,7 @@ class Collision(EnergyTerm):
         for c in range(4):  # intruder, then the receiver's corners
             Jc = torch.gather(Ju, 1, self.ucol[:, :, c, None, None].expand(-1, -1, 3, D))
             J += torch.einsum("bmk,bmkd->bmd", g[:, :, c], Jc)
-        return Residuals(self._shape(sw * psi.detach()), self._shape_jacobian(sw * J))
+        return Residuals(self._shape(psi.detach()), self._shape_jacobian(J), dim, self.mask)
 
     def _shape(self, psi):
         if self.metric == "point-to-plane":

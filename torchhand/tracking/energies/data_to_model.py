@@ -7,10 +7,10 @@ pixel's projection ray, written as a Pluecker line (d, m): the residual is
 ``V x d - m`` (its norm is the vertex's distance to the ray). Pairs whose 3D
 distance, with the data depth averaged over 3x3 pixels, exceeds 30 mm are dropped,
 and, as for model-to-data, per bone the pairs whose ray distance lies beyond mean + 2
-sigma of that bone's pairs (Ballan et al. 2012, Sec. 3). The kept pairs are weighted
-by a Cauchy kernel of their ray distance whose scale follows the model's median
-misfit (iteratively reweighted least squares), a choice the thesis leaves open; see
-:class:`DataToModel`.
+sigma of that bone's pairs (Ballan et al. 2012, Sec. 3). The tracker's default wraps
+the term in a Cauchy loss of the ray distance whose scale follows the model's median
+misfit and a weight of 0.25 (:func:`torchhand.tracking.energies.parse_energy`), choices
+the thesis leaves open; see :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`.
 """
 
 from __future__ import annotations
@@ -21,59 +21,57 @@ import torch
 
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
 from torchhand.model.kinematics import skew
-from torchhand.tracking.energies.base import EnergyTerm, Residuals, TrackState, bone_inliers, no_residuals, scatter_columns
+from torchhand.optim.robust_loss import Cauchy
+from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, bone_inliers, prepared,
+                                              scatter_columns, stack_rows)
 from torchhand.tracking.energies.model_to_data import _pad_rows
 
-__all__ = ["DataToModel"]
+__all__ = ["DataToModel", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
+
+#: The tracker's weight of the term. The thesis adds E_m2d and E_d2m with weight 1
+#: (Eq. 4.5), as sums over every visible vertex and every discontinuity pixel. Here both
+#: are subsampled (up to 1,500 vertices and 600 pixels per model), which already doubles
+#: d2m's share, and the measured weight is 0.25: on Kinect noise the data silhouette is
+#: eroded by about a pixel, which pulls the models away from the camera (docs/results.md,
+#: "Data-to-model weight").
+DEFAULT_WEIGHT = 0.25
+
+#: The tracker's robust loss of the term: Cauchy weights ``1 / (1 + (r / c)^2)`` of each
+#: pair's ray distance r, with c the larger of 3 mm and twice the median ray distance of
+#: the model's kept pairs (per model and problem). Why: a data edge whose nearest model
+#: silhouette is not its own contour (the other hand, a hidden finger, noise) otherwise
+#: pulls with its full distance up to the 30 mm cut-off. At the ground-truth pose of a
+#: two-hand frame the ray distances have a median of 1.1 mm and a tail to 21 mm, and over
+#: the 231 frames of sequence 01 such pairs turned a hidden thumb 50 degrees away. A
+#: fixed c = 3 mm (about 3 pixels at the thesis' working distance) fixed that but slowed
+#: the recovery from fast motion, where all of a model's pairs are far: c follows the
+#: model's median misfit, so a model that is off as a whole is pulled at full strength
+#: and a model that fits is not pulled by its few far pairs (docs/results.md,
+#: "Data-to-model outliers").
+DEFAULT_LOSS = Cauchy(scale=3.0, relative=2.0)
 
 
 class DataToModel(EnergyTerm):
-    """E_data->model.
+    """E_data->model, unweighted and with the plain sum of squares (the tracker wraps
+    it in :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`).
 
     Args:
-        weight: term weight. The thesis adds E_m2d and E_d2m with weight 1 (Eq. 4.5),
-            as sums over every visible vertex and every discontinuity pixel. Here both
-            are subsampled (up to 1,500 vertices and 600 pixels per model), which
-            already doubles d2m's share, and the measured default is 0.25: on Kinect
-            noise the data silhouette is eroded by about a pixel, which pulls the
-            models away from the camera (docs/results.md, "Data-to-model weight").
         max_distance: mm (30 in the thesis).
         max_pixels: data edge pixels used per model and problem (a stride subsample).
         outlier_sigma: per-bone rejection of pairs whose ray distance exceeds the
             mean + ``outlier_sigma`` std of their bone's pairs (None: off).
-        robust_scale: the least c (mm) of the Cauchy weight ``1 / (1 + (r / c)^2)``
-            given to each pair at its ray distance r when the correspondences are
-            found (the weights are fixed for the outer iteration, as the pairs are);
-            None gives every pair weight 1, the thesis' plain sum of squares.
-        robust_relative: c is the larger of ``robust_scale`` and this factor times
-            the median ray distance of the model's kept pairs (per model and
-            problem; None: ``robust_scale`` alone).
-
-    Why the weights: a data edge whose nearest model silhouette is not its own contour
-    (the other hand, a hidden finger, noise) otherwise pulls with its full distance up
-    to the 30 mm cut-off. At the ground-truth pose of a two-hand frame the ray
-    distances have a median of 1.1 mm and a tail to 21 mm, and over the 231 frames of
-    sequence 01 such pairs turned a hidden thumb 50 degrees away. A fixed c = 3 mm
-    (about 3 pixels at the thesis' working distance) fixed that but slowed the
-    recovery from fast motion, where all of a model's pairs are far: c follows the
-    model's median misfit, so a model that is off as a whole is pulled at full
-    strength and a model that fits is not pulled by its few far pairs
-    (docs/results.md, "Data-to-model outliers").
     """
 
     name = "d2m"
 
-    def __init__(self, weight=0.25, max_distance=30.0, max_pixels=600, outlier_sigma=2.0, robust_scale=3.0,
-                 robust_relative=2.0):
-        super().__init__(weight)
-        if robust_scale is not None and not robust_scale > 0:
-            raise ValueError(f"robust_scale must be > 0 (mm) or None, got {robust_scale!r}")
-        if robust_relative is not None and not robust_relative > 0:
-            raise ValueError(f"robust_relative must be > 0 or None, got {robust_relative!r}")
-        self.max_distance, self.max_pixels = max_distance, max_pixels
-        self.outlier_sigma, self.robust_scale, self.robust_relative = outlier_sigma, robust_scale, robust_relative
+    def __init__(self, max_distance=30.0, max_pixels=600, outlier_sigma=2.0):
+        if not max_distance > 0:
+            raise ValueError(f"max_distance must be > 0 (mm), got {max_distance!r}")
+        if outlier_sigma is not None and not outlier_sigma > 0:
+            raise ValueError(f"outlier_sigma must be > 0 or None, got {outlier_sigma!r}")
+        self.max_distance, self.max_pixels, self.outlier_sigma = max_distance, max_pixels, outlier_sigma
 
-    def prepare(self, state: TrackState) -> None:
+    def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         self._scene = scene
         dev, dt = state.theta.device, state.theta.dtype
@@ -130,28 +128,30 @@ class DataToModel(EnergyTerm):
                     keep = within & bone_inliers(ray_dist, model.vertex_bone[vid - vs.start], within,
                                                  model.num_bones, self.outlier_sigma)
                     rejected[b] += float(ray_dist[within & ~keep].square().sum())
-                # The residual V x d - m is linear in the line (d, m): scaling both by
-                # sqrt(w) weights the pair's squared residual, and its Jacobian, by w.
-                sw = torch.ones_like(ray_dist)
-                if self.robust_scale is not None:
-                    c = self.robust_scale
-                    if self.robust_relative is not None and bool(keep.any()):
-                        c = max(c, self.robust_relative * float(ray_dist[keep].median()))
-                    sw = (1 + (ray_dist / c) ** 2).rsqrt()
-                rows.append((vid[keep] - vs.start, rays.direction[keep] * sw[keep, None],
-                             rays.moment[keep] * sw[keep, None]))
+                rows.append((vid[keep] - vs.start, rays.direction[keep], rays.moment[keep]))
                 count[b] += int(keep.sum())
                 outliers[b] += int((within & ~keep).sum())
             self.per_model.append(_pad_rows(rows, B, dev, dt))
-        self.count, self.candidates = count, candidates
         # a pair beyond the cut-off is charged the cut-off squared, an outlier its own
         # squared distance (as model-to-data does)
-        self.unmatched = self.weight * (self.max_distance ** 2 * (candidates - count - outliers).double() + rejected)
+        unmatched = self.max_distance ** 2 * (candidates - count - outliers).double() + rejected
+        return prepared(B, correspondences=count, candidates=candidates, unmatched=unmatched)
 
-    def residuals(self, theta, posed, with_jacobian):
+    def fold_row_weights(self, sqrt_w):
+        # V x d - m is linear in the line (d, m): scaling both by sqrt(w) weights the
+        # pair's squared residual, and its Jacobian, by w
+        start = 0
+        for k, (ids, d, m, mask) in enumerate(self.per_model):
+            if ids is None:
+                continue
+            sw = sqrt_w[:, start : start + ids.shape[1], None]
+            self.per_model[k] = (ids, d * sw, m * sw, mask)
+            start += ids.shape[1]
+        return True
+
+    def residuals(self, theta, posed, jacobian=True):
         B, D = theta.shape
-        rs, Js = [], []
-        sw = self.weight ** 0.5
+        parts = []
         b = torch.arange(B, device=theta.device)[:, None]
         for k, (ids, d, m, mask) in enumerate(self.per_model):
             if ids is None:
@@ -159,13 +159,12 @@ class DataToModel(EnergyTerm):
             out = posed.models[k]
             V = out.vertices[b, ids]
             r = (torch.cross(V, d, dim=-1) - m) * mask[..., None]  # Eq. 4.8
-            rs.append(sw * r.reshape(B, -1))
-            if with_jacobian:
+            J = None
+            if jacobian:
                 model = self._scene.models[k]
                 Jv = model.jacobian(None, ids, fk=(out.G, out.twists))
                 Jr = -(skew(d) @ Jv) * mask[..., None, None]  # d(V x d) = -[d]x dV
                 cols = self._scene.slices[self._scene.names[k]]
-                Js.append(sw * scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D))
-        if not rs:
-            return no_residuals(theta, with_jacobian)
-        return Residuals(torch.cat(rs, 1), torch.cat(Js, 1) if with_jacobian else None)
+                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
+            parts.append(Residuals(r.reshape(B, -1), J, 3, mask, torch.full_like(ids, k)))
+        return stack_rows(parts, theta, jacobian, 3, len(self.per_model))

@@ -19,7 +19,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from torchhand.geometry.mesh import vertex_normals
-from torchhand.tracking.energies.base import EnergyTerm, Residuals, TrackState, bone_inliers, no_residuals, scatter_columns
+from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, bone_inliers, prepared,
+                                              scatter_columns, stack_rows)
 
 __all__ = ["ModelToData"]
 
@@ -27,18 +28,21 @@ __all__ = ["ModelToData"]
 class ModelToData(EnergyTerm):
     """E_model->data.
 
+    The term's residuals are unweighted (the thesis' weight is 1); wrap it in
+    :class:`~torchhand.tracking.energies.wrappers.Weighted` or
+    :class:`~torchhand.tracking.energies.wrappers.Robust` for another weight or loss.
+
     Args:
-        weight: term weight (1 in the thesis).
-        metric: "point-to-point" (Eq. 4.6) or "point-to-plane" (Eq. 4.7).
+        metric: "point-to-plane" (Eq. 4.7, the default, as the tracker uses) or
+            "point-to-point" (Eq. 4.6).
         max_distance: mm (10 in the thesis); max_angle: degrees (45).
         max_vertices: visible vertices used per model and problem (a stride subsample).
     """
 
     name = "m2d"
 
-    def __init__(self, weight=1.0, metric="point-to-point", max_distance=10.0, max_angle=45.0,
-                 max_vertices=1500, outlier_sigma=2.0):
-        super().__init__(weight)
+    def __init__(self, metric="point-to-plane", max_distance=10.0, max_angle=45.0, max_vertices=1500,
+                 outlier_sigma=2.0):
         if not max_distance > 0:
             raise ValueError(f"max_distance must be > 0 (mm), got {max_distance!r}")
         if metric not in ("point-to-point", "point-to-plane"):
@@ -46,7 +50,7 @@ class ModelToData(EnergyTerm):
         self.metric, self.max_distance, self.cos_max = metric, max_distance, float(np.cos(np.radians(max_angle)))
         self.max_vertices, self.outlier_sigma = max_vertices, outlier_sigma
 
-    def prepare(self, state: TrackState) -> None:
+    def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         self._scene = scene
         dev, dt = state.theta.device, state.theta.dtype
@@ -81,7 +85,7 @@ class ModelToData(EnergyTerm):
                 data = self._data_points(state, b, k)
                 candidates[b] += len(vis[k][b])
                 if len(vis[k][b]) == 0 or data is None:
-                    unmatched[b] += self.weight * tau2 * len(vis[k][b])
+                    unmatched[b] += tau2 * len(vis[k][b])
                     rows.append(None)
                     continue
                 pts_w, nrm_w, tree = data
@@ -102,9 +106,9 @@ class ModelToData(EnergyTerm):
                 keep = keep & bone_inliers(d, model.vertex_bone[local], keep, model.num_bones, self.outlier_sigma)
                 rows.append((local[keep], X[keep], nV[keep]))
                 count[b] += int(keep.sum())
-                unmatched[b] += self.weight * float(d[~keep].clamp(max=self.max_distance).square().sum())
+                unmatched[b] += float(d[~keep].clamp(max=self.max_distance).square().sum())
             self.per_model.append(_pad_rows(rows, B, dev, dt))
-        self.count, self.candidates, self.unmatched = count, candidates, unmatched
+        return prepared(B, correspondences=count, candidates=candidates, unmatched=unmatched)
 
     def _data_points(self, state: TrackState, b: int, k: int):
         """(points, normals, KD-tree) of the data pixels labelled k in problem b, world
@@ -128,10 +132,10 @@ class ModelToData(EnergyTerm):
         self._data[(id(frame), k)] = _DataEntry(frame, camera, sel, data, labels, b)
         return data
 
-    def residuals(self, theta, posed, with_jacobian):
+    def residuals(self, theta, posed, jacobian=True):
         B, D = theta.shape
-        rs, Js = [], []
-        sw = self.weight ** 0.5
+        dim = 3 if self.metric == "point-to-point" else 1
+        parts = []
         b = torch.arange(B, device=theta.device)[:, None]
         for k, (ids, X, nV, mask) in enumerate(self.per_model):
             if ids is None:
@@ -139,17 +143,16 @@ class ModelToData(EnergyTerm):
             out = posed.models[k]
             diff = (out.vertices[b, ids] - X) * mask[..., None]  # (B, n, 3)
             r = diff if self.metric == "point-to-point" else (nV * diff).sum(-1, keepdim=True)
-            rs.append(sw * r.reshape(B, -1))
-            if with_jacobian:
+            J = None
+            if jacobian:
                 model = self._scene.models[k]
                 Jv = model.jacobian(None, ids, fk=(out.G, out.twists)) * mask[..., None, None]
                 if self.metric == "point-to-plane":
                     Jv = (nV[..., None] * Jv).sum(-2, keepdim=True)
                 cols = self._scene.slices[self._scene.names[k]]
-                Js.append(sw * scatter_columns(Jv.reshape(B, -1, Jv.shape[-1]), cols, D))
-        if not rs:
-            return no_residuals(theta, with_jacobian)
-        return Residuals(torch.cat(rs, 1), torch.cat(Js, 1) if with_jacobian else None)
+                J = scatter_columns(Jv.reshape(B, -1, Jv.shape[-1]), cols, D)
+            parts.append(Residuals(r.reshape(B, -1), J, dim, mask, torch.full_like(ids, k)))
+        return stack_rows(parts, theta, jacobian, dim, len(self.per_model))
 
 
 class _DataEntry(NamedTuple):

@@ -14,7 +14,7 @@ nearest surface in the box, and its centroid c_s. At every outer iteration:
    each of them is paired with its closest point of delta'_s, otherwise all of them
    with c_s (Eq. 4.15, Fig. 4.7).
 
-Residuals are point-to-point, ``sqrt(weight) (V_i - X_i)``. The thesis leaves the
+Residuals are point-to-point, ``V_i - X_i`` (weight 1 in the tracker). The thesis leaves the
 unit of w_st open; with centimetres (``unit_mm = 10``) and its lambda = 1.2, a
 detection and a fingertip are paired when they are closer than 2 lambda = 24 mm
 (with w_s = 1), which is the range a tracker moves between frames.
@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from torchhand.salient.association import associate
 from torchhand.model.fingertips import fingertip_faces
-from torchhand.tracking.energies.base import EnergyTerm, Residuals, TrackState, no_residuals
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, no_residuals, prepared
 
 __all__ = ["Salient"]
 
@@ -39,7 +39,6 @@ class Salient(EnergyTerm):
     """E_salient.
 
     Args:
-        weight: term weight.
         detector: an object with ``detect(depth (H, W) mm) -> Detections`` (default:
             the shipped network, through ONNX Runtime on CPU or torch on CUDA).
         lam: lambda of Eq. 4.14 (1.2).
@@ -58,11 +57,9 @@ class Salient(EnergyTerm):
 
     name = "salient"
 
-    def __init__(self, weight: float = 1.0, detector=None, lam: float = 1.2, min_score: float = 0.15,
-                 confidence_weighted: bool = False,
+    def __init__(self, detector=None, lam: float = 1.2, min_score: float = 0.15, confidence_weighted: bool = False,
                  unit_mm: float = 10.0, near_mm: float = 10.0, min_inside: float = 0.5, box: int = 8,
                  depth_band: float = 25.0):
-        super().__init__(weight)
         if lam < 0 or unit_mm <= 0 or box < 1:
             raise ValueError(f"need lam >= 0, unit_mm > 0 and box >= 1; got {lam}, {unit_mm}, {box}")
         self._detector = detector
@@ -71,7 +68,6 @@ class Salient(EnergyTerm):
         self.near_mm, self.min_inside, self.box, self.depth_band = near_mm, min_inside, int(box), depth_band
         self._cache: Dict[int, tuple] = {}
         self._tips, self._tips_scene = None, None
-        self.assigned = None  # (B,) detections associated by the last prepare()
 
     # ---------------------------------------------------------------- detections
     def detector_for(self, device: torch.device):
@@ -125,7 +121,7 @@ class Salient(EnergyTerm):
         return out
 
     # ------------------------------------------------------------------- prepare
-    def prepare(self, state: TrackState) -> None:
+    def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         dev, dt = state.theta.device, state.theta.dtype
         if self._tips_scene is not scene:
@@ -179,21 +175,20 @@ class Salient(EnergyTerm):
                 k = len(r[0])
                 self.ids[b, :k], self.X[b, :k], self.mask[b, :k] = r[0], r[1], 1.0
         self._scene = scene
-        self.count, self.assigned = count, assigned
+        return prepared(B, correspondences=count, assigned=assigned)
 
-    def residuals(self, theta, posed, with_jacobian):
+    def residuals(self, theta, posed, jacobian=True):
         B, D = theta.shape
         n = self.ids.shape[1]
         if n == 0:
-            return no_residuals(theta, with_jacobian)
-        sw = self.weight**0.5
+            return no_residuals(theta, jacobian, 3)
         b = torch.arange(B, device=theta.device)[:, None]
-        r = sw * (posed.vertices[b, self.ids] - self.X) * self.mask[..., None]  # (B, n, 3)
+        r = (posed.vertices[b, self.ids] - self.X) * self.mask[..., None]  # (B, n, 3)
         J = None
-        if with_jacobian:
-            J = self._scene.vertex_jacobian(posed, self.ids) * (sw * self.mask)[..., None, None]
+        if jacobian:
+            J = self._scene.vertex_jacobian(posed, self.ids) * self.mask[..., None, None]
             J = J.reshape(B, 3 * n, D)
-        return Residuals(r.reshape(B, 3 * n), J)
+        return Residuals(r.reshape(B, 3 * n), J, 3, self.mask)
 
 
 def simulated_detector(lookup: Callable[[torch.Tensor], Optional[np.ndarray]]):
