@@ -5,7 +5,7 @@
 Two posed thesis hands (hand_right and hand_left, 41,302 triangles) from the demo
 motion, the left hand pushed into the right one. Times, per evaluation:
 
-* ``torchhand_ms``: :func:`torchhand.collision.detect_collisions` between the two
+* ``torchhand_ms``: :func:`torchhand.geometry.intersections.detect_collisions` between the two
   hands (refitting the hierarchy to the pose), the Eq. 4.13 penalty and its
   gradient with respect to the vertices (``backward``);
 * ``torchhand_self_ms``: the same with self-collisions within each hand as well;

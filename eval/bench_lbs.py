@@ -6,7 +6,7 @@ The thesis right hand (10,002 vertices, 20 bones) is posed with random poses wit
 its limits. For every batch size B, in one process and on the same tensors:
 
 * ``torchhand`` (dense and sparse CSR skinning matrix): given bone motions
-  ``G: (B, J, 4, 4)`` that require grad, ``v = torchhand.skinning.lbs(G, P)`` with the
+  ``G: (B, J, 4, 4)`` that require grad, ``v = torchhand.model.skinning.lbs(G, P)`` with the
   static ``P = skinning_matrix(...)``; loss ``(v * w).sum()``; gradient w.r.t. ``G``.
   ``torchhand_ms`` is the layout the model uses by default (``model.skinning_matrix``);
   the other layout is reported as an extra key.

@@ -1,7 +1,7 @@
 """Round trip of the thesis motions through torchhand's pose parameters.
 
 For every sequence under ``--hia-root`` that has MOTION files, every model of the
-sequence is converted MOTION -> theta (``torchhand.motion.motion_to_theta``) and
+sequence is converted MOTION -> theta (``torchhand.model.motion.motion_to_theta``) and
 posed by theta -> forward kinematics -> LBS; the vertices are compared with the
 original viewer's posing ``sum_b w_b Mk_b M0_b^-1 v`` of the same frames.
 

@@ -133,3 +133,28 @@ def test_layer_packages_import_alone(layer):
     importlib.invalidate_caches()
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 0, f"importing torchhand.{layer} loaded higher layers: {res.stdout} {res.stderr[-2000:]}"
+
+
+def test_the_equation_table_names_existing_code():
+    """Every `module:name` of docs/architecture.md's equation table can be imported."""
+    import importlib
+    import re
+
+    text = (REPO / "docs" / "architecture.md").read_text()
+    table = text[text.index("## Equations and where they live"):]
+    refs = re.findall(r"`(torchhand(?:\.\w+)+):(\w+)`", table)
+    assert len(refs) >= 20, refs
+    missing = []
+    for module, name in refs:
+        try:
+            if not hasattr(importlib.import_module(module), name):
+                missing.append(f"{module}:{name}")
+        except ImportError as err:
+            missing.append(f"{module}:{name} ({err})")
+    assert missing == [], missing
+    covered = set()
+    for first, last in re.findall(r"^\| Thesis 4\.(\d+)(?:–4\.(\d+))?", table, re.M):
+        covered |= set(range(int(first), int(last or first) + 1))
+    assert covered == set(range(1, 20)), f"thesis equations missing from the table: {set(range(1, 20)) - covered}"
+    ballan = {int(n) for n in re.findall(r"Ballan (\d)\b", table)}
+    assert ballan == {1, 2, 3}, ballan

@@ -1,4 +1,4 @@
-"""Tests for torchhand.camera."""
+"""Tests for torchhand.geometry.camera."""
 
 from __future__ import annotations
 

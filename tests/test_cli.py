@@ -1,4 +1,4 @@
-"""The ``torchhand`` command line, run in-process through ``torchhand.cli.main``."""
+"""The ``torchhand`` command line, run in-process through ``torchhand.app.cli.main``."""
 
 from __future__ import annotations
 

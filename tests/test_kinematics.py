@@ -1,4 +1,4 @@
-"""SO(3) helpers and forward kinematics (torchhand.kinematics)."""
+"""SO(3) helpers and forward kinematics (torchhand.model.kinematics)."""
 
 from __future__ import annotations
 

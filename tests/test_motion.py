@@ -1,4 +1,4 @@
-"""MOTION rows <-> theta (torchhand.motion)."""
+"""MOTION rows <-> theta (torchhand.model.motion)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests for torchhand.render."""
+"""Tests for torchhand.geometry.render."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Linear blend skinning and its analytic Jacobian (torchhand.skinning, ArticulatedModel)."""
+"""Linear blend skinning and its analytic Jacobian (torchhand.model.skinning, ArticulatedModel)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Batched Levenberg-Marquardt (torchhand.solver)."""
+"""Batched Levenberg-Marquardt (torchhand.optim.levenberg_marquardt)."""
 
 from __future__ import annotations
 

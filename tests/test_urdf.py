@@ -1,4 +1,4 @@
-"""Tests for torchhand.io.urdf: URDF export checked against torchhand's own kinematics."""
+"""Tests for torchhand.model.urdf: URDF export checked against torchhand's own kinematics."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@
 1. Renders (or reuses from the cache) training frames: the thesis motions of the
    training sequences, random poses within the joint limits of one or two hands with
    and without objects, random backgrounds, the Kinect noise model
-   (:func:`torchhand.salient.data.render_salient_frames`). The validation frames are
+   (:func:`torchhand.salient.training_data.render_salient_frames`). The validation frames are
    whole held-out thesis sequences (split by sequence) plus random poses of another seed.
 2. Trains with AdamW and a one-cycle schedule on random crops (scale and flip
    augmentation), checkpointing every ``checkpoint_every`` steps. ``--resume``

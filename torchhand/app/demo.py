@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import cv2
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -14,7 +15,7 @@ from torchhand.geometry.camera import kinect_camera
 from torchhand.io.assets import load_demo_motion
 from torchhand.geometry.render import render
 from torchhand.model.scene import Scene
-from torchhand.app.drawing import depth_to_color, draw_skeleton, write_video
+from torchhand.app.drawing import depth_range, depth_to_color, draw_colorbar, draw_legend, draw_skeleton, write_video
 from torchhand.io.output_dir import prepare_output_dir
 
 __all__ = ["run_demo"]
@@ -38,7 +39,7 @@ def run_demo(out: Path, frames: int | None = None, force: bool = False, device: 
     theta = theta.to(device)
     cam = kinect_camera().to(device)
     (out / "overlays").mkdir()
-    images, kp2d, t_render = [], [], 0.0
+    depths, kp2d, t_render = [], [], 0.0
     hands = [n for n, m in zip(scene.names, scene.models) if m.kind == "hand"]
     for k in tqdm(range(len(theta)), desc="demo", unit="frame"):
         with torch.no_grad():
@@ -46,14 +47,18 @@ def run_demo(out: Path, frames: int | None = None, force: bool = False, device: 
         t0 = time.perf_counter()
         res = render(posed.vertices, scene.faces, cam, scene.face_model_id, scene.face_bone_id)
         t_render += time.perf_counter() - t0
-        img = depth_to_color(res.depth[0].cpu().numpy())
-        frame_kp = {}
+        depths.append(res.depth[0].cpu().numpy())
+        kp2d.append({n: cam.project(posed.models[scene.names.index(n)].keypoints)[0].cpu().numpy().round(2).tolist()
+                     for n in hands})
+    near, far = depth_range(depths)  # one colour scale for the whole motion
+    images = []
+    for k, depth in enumerate(depths):
+        img = depth_to_color(depth, near, far)
         for n in hands:
-            m = scene.names.index(n)
-            px = cam.project(posed.models[m].keypoints)[0].cpu().numpy()
-            draw_skeleton(img, px)
-            frame_kp[n] = px.round(2).tolist()
-        kp2d.append(frame_kp)
+            draw_skeleton(img, np.asarray(kp2d[k][n]))
+        draw_colorbar(img, near, far)
+        draw_legend(img, f"frame {k}", [(f"{n}: posed" if n in hands else f"{n} (depth only)", None)
+                                        for n in scene.names])
         cv2.imwrite(str(out / "overlays" / f"{k:06d}.png"), img)
         images.append(img)
     write_video(images, out / "demo.mp4")

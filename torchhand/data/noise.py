@@ -1,6 +1,6 @@
 """Structured-light (Kinect v1 / Primesense Carmine) depth-sensor noise.
 
-Turns clean ray-cast depth (:func:`torchhand.render.render`) into sensor-like depth:
+Turns clean ray-cast depth (:func:`torchhand.geometry.render.render`) into sensor-like depth:
 lateral jitter, axial noise growing with depth squared and with the incidence angle,
 disparity quantisation, projector shadows beside occluding edges, dropout at grazing
 angles, a few small random holes and range clipping. The model, its parameters and

@@ -2,7 +2,7 @@
 
 Source: the "Hands in Action" recordings (Tzionas, PhD thesis 2016), one folder per
 sequence, captured with a Primesense/Kinect camera (fx = fy = 525, cx = 319.5,
-cy = 239.5, 640x480; :func:`torchhand.camera.kinect_camera`)::
+cy = 239.5, 640x480; :func:`torchhand.geometry.camera.kinect_camera`)::
 
     REC/
       depth/000.yml            OpenCV FileStorage YAML, node ``depth``: 480x640 matrix,

@@ -178,7 +178,7 @@ class CollisionMesh:
     @classmethod
     def from_scene(cls, scene, self_collisions: bool = True, models: Optional[Sequence[str]] = None,
                    leaf_size: int = 2) -> "CollisionMesh":
-        """Collision mesh of a :class:`~torchhand.scene.Scene`.
+        """Collision mesh of a :class:`~torchhand.model.scene.Scene`.
 
         Parts are the bones of every model (a face belongs to the bone of its first
         vertex, as in rendering). Within a model, a bone is not tested against

@@ -175,7 +175,7 @@ def render(
         RenderResult with (B, H, W) maps on ``vertices.device``.
     """
     if not isinstance(camera, Camera):
-        raise TypeError(f"camera must be a torchhand.camera.Camera, got {type(camera).__name__}")
+        raise TypeError(f"camera must be a torchhand.geometry.camera.Camera, got {type(camera).__name__}")
     check_tensor(vertices, "vertices", ("...", None, 3), spec="(B, V, 3) or (V, 3)", floating=True)
     if vertices.ndim == 2:
         vertices = vertices[None]

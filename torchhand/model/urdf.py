@@ -9,7 +9,7 @@ Layout of the exported robot (J bones; ``<bone>`` is the torchhand bone name)::
     <bone without revolute slots>
       -- <bone>:fixed (fixed, origin = rest offset) --> <bone>
 
-Conventions (see :mod:`torchhand.kinematics`):
+Conventions (see :mod:`torchhand.model.kinematics`):
 
 * **Units: metres.** torchhand works in millimetres; every URDF length is the
   torchhand length times :data:`MM_TO_M`. Angles are radians in both.
@@ -181,7 +181,7 @@ def model_to_urdf(
     robot.append(ET.Comment(
         f" torchhand model {assets.name!r}: lengths in metres (torchhand mm x {MM_TO_M:g}), angles in "
         "radians. The root link is the root bone in its rigging frame; the global 6-DoF motion "
-        "theta[:, 0:6] is not part of this URDF, apply torchhand.io.urdf.root_transform as the base "
+        "theta[:, 0:6] is not part of this URDF, apply torchhand.model.urdf.root_transform as the base "
         "transform. Joint names are torchhand DoF names '<bone>:<axis>'. "
     ))
     links: List[str] = []
@@ -289,7 +289,7 @@ def root_transform(model_or_assets, theta: torch.Tensor, metres: bool = True) ->
 
     ``T_root(theta) = G_root(theta) T_0(0)`` with ``G_root = [R(r), c + t - R(r) c]``
     (rotation vector r about the root joint c, then translation t; see
-    :mod:`torchhand.kinematics`) and T_0(0) made rigid as in the export. The world
+    :mod:`torchhand.model.kinematics`) and T_0(0) made rigid as in the export. The world
     frame of bone j is ``root_transform(...) @ FK_urdf(j)``.
 
     Args:

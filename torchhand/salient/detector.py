@@ -19,7 +19,7 @@ squared score probability of the cell under it) is post-processing outside ``for
 :class:`SalientDetector` (torch) and :class:`OnnxSalientDetector` (ONNX Runtime) wrap
 network, padding, input checks and peak picking behind one ``detect(depth)`` call.
 
-Pixel coordinates follow :mod:`torchhand.camera`: pixel centres at integer
+Pixel coordinates follow :mod:`torchhand.geometry.camera`: pixel centres at integer
 coordinates, ``u`` = column (x), ``v`` = row (y).
 """
 

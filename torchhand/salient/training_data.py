@@ -1,7 +1,7 @@
 """Training and evaluation frames for the fingertip detector.
 
 Frames are rendered with the project's own scene, skinning, ray caster and Kinect
-noise model (:mod:`torchhand.data.synth`, :mod:`torchhand.render`,
+noise model (:mod:`torchhand.data.synth`, :mod:`torchhand.geometry.render`,
 :mod:`torchhand.data.noise`), optionally in front of a random background.
 
 Ground-truth fingertips (thesis Fig. 4.2 d-f): the centre of a fingertip is the mean of

@@ -56,7 +56,7 @@ def penetration(meshes: Sequence[tuple]) -> Penetration:
         :class:`Penetration`. The depth is the largest negative signed distance of a
         vertex of one model to another model's surface (open3d; the thesis meshes are
         closed, so inside is well defined). Pairs are counted with
-        :func:`torchhand.collision.detect_collisions` (the same pairs as python-fcl,
+        :func:`torchhand.geometry.intersections.detect_collisions` (the same pairs as python-fcl,
         see tests/test_collision.py).
     """
     import torch

@@ -1,7 +1,7 @@
 """E_collision: conic distance fields around intersecting triangles (thesis Eq. 4.9-4.13).
 
 At every outer iteration the intersecting triangle pairs C of the posed scene are
-found (:func:`torchhand.collision.detect_collisions`: hand-hand, hand-object and,
+found (:func:`torchhand.geometry.intersections.detect_collisions`: hand-hand, hand-object and,
 within a model, parts that are not neighbours); while the solver tries poses the
 pairs stay fixed and each vertex of one triangle is penalised by the other's conic
 field Psi. The residual of an (intruder, receiver) row is ``Psi`` (Eq. 4.13,
