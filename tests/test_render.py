@@ -9,10 +9,25 @@ import torch
 import trimesh
 
 from torchhand.geometry.camera import Camera, kinect_camera
-from torchhand.geometry.render import RenderResult, render, silhouette_edges, visible_vertices
+from torchhand.geometry.raycast import BACKENDS
+from torchhand.geometry.render import RenderResult, Renderer, render, silhouette_edges, visible_vertices
 
 RADIUS = 50.0
 CENTRE_Z = 500.0
+
+try:
+    import warp  # noqa: F401
+
+    HAVE_WARP = True
+except ImportError:  # pragma: no cover - the extra is part of the test install
+    HAVE_WARP = False
+
+AVAILABLE = [b for b in BACKENDS if HAVE_WARP or not b.startswith("warp")]
+
+
+@pytest.fixture(params=AVAILABLE)
+def backend(request):
+    return request.param
 
 
 @pytest.fixture(scope="module")
@@ -23,10 +38,10 @@ def sphere():
     return vertices, faces
 
 
-@pytest.fixture(scope="module")
-def sphere_render(sphere):
+@pytest.fixture()
+def sphere_render(sphere, backend):
     vertices, faces = sphere
-    return render(vertices, faces, kinect_camera())
+    return render(vertices, faces, kinect_camera(), backend=backend)
 
 
 def _box(centre, extents):
@@ -109,7 +124,7 @@ def test_visible_vertices_front_half(sphere, sphere_render):
     assert not vis[0, z > CENTRE_Z].any()
 
 
-def test_two_boxes_ids_and_occlusion():
+def test_two_boxes_ids_and_occlusion(backend):
     near_v, near_f = _box([-40.0, 0.0, 400.0], [100.0, 100.0, 20.0])
     far_v, far_f = _box([40.0, 0.0, 600.0], [150.0, 150.0, 20.0])
     vertices = torch.cat([near_v, far_v])
@@ -117,7 +132,7 @@ def test_two_boxes_ids_and_occlusion():
     model = torch.cat([torch.full((near_f.shape[0],), 3), torch.full((far_f.shape[0],), 7)])
     bone = torch.arange(faces.shape[0])
     cam = kinect_camera()
-    r = render(vertices, faces, cam, face_model_id=model, face_bone_id=bone)
+    r = render(vertices, faces, cam, face_model_id=model, face_bone_id=bone, backend=backend)
     probes = [[-60.0, 0.0, 390.0], [0.0, 0.0, 390.0], [70.0, 0.0, 590.0], [0.0, 200.0, 500.0]]
     pixels = cam.project(torch.tensor([probes]))
     cols, rows = pixels[0].round().long().unbind(-1)
@@ -134,56 +149,48 @@ def test_two_boxes_ids_and_occlusion():
     assert near_right in edge_cols.tolist() and near_right + 1 not in edge_cols.tolist()
 
 
-def test_batch_with_different_poses(sphere):
+def test_batch_with_different_poses(sphere, backend):
     vertices, faces = sphere
     batch = torch.stack([vertices, vertices + torch.tensor([30.0, 0.0, 100.0])])
-    r = render(batch, faces, kinect_camera())
+    r = render(batch, faces, kinect_camera(), backend=backend)
     assert r.depth.shape == (2, 480, 640)
     assert not torch.equal(r.depth[0], r.depth[1])
     # The sphere's minimum z moves by exactly the z offset.
     nearest = [float(d[d > 0].min()) for d in r.depth]
     assert abs(nearest[1] - nearest[0] - 100.0) < 0.5
     assert r.depth[1].nonzero()[:, 1].float().mean() > r.depth[0].nonzero()[:, 1].float().mean() + 10  # moved right
-    single = render(batch[1], faces, kinect_camera())
+    single = render(batch[1], faces, kinect_camera(), backend=backend)
     torch.testing.assert_close(single.depth[0], r.depth[1])
 
 
-def test_cropped_render_equals_the_whole_image(sphere, monkeypatch):
-    """Outputs are computed on the union of the projected boxes; casting every pixel of
-    the image gives the same maps, also for a batch whose boxes differ and touch the
-    image border."""
-    import torchhand.geometry.render as tr
+def test_normals_off_changes_nothing_else(sphere, backend):
     vertices, faces = sphere
     batch = torch.stack([vertices + torch.tensor([-60.0, 10.0, 0.0]), vertices + torch.tensor([290.0, 0.0, 0.0])])
     cam = kinect_camera()
-    cropped = render(batch, faces, cam)
-    monkeypatch.setattr(tr, "_regions_of_interest", lambda v, c: [(0, c.height, 0, c.width)] * v.shape[0])
-    whole = render(batch, faces, cam)
-    assert int(cropped.silhouette_edges.sum()) > 100
-    assert int(cropped.depth[1, :, -1].gt(0).sum()) > 0  # the second sphere leaves the image
-    for name, a, b in zip(RenderResult._fields, cropped, whole):
-        assert torch.equal(a, b), name
-    without = render(batch, faces, cam, normals=False)
+    full = render(batch, faces, cam, backend=backend)
+    without = render(batch, faces, cam, normals=False, backend=backend)
+    assert int(full.depth[1, :, -1].gt(0).sum()) > 0  # the second sphere leaves the image
     assert without.normals is None
-    for name, a, b in zip(RenderResult._fields, cropped, without):
+    for name, a, b in zip(RenderResult._fields, full, without):
         assert name == "normals" or torch.equal(a, b), name
 
 
-def test_extrinsics_move_the_scene(sphere):
+def test_extrinsics_move_the_scene(sphere, backend):
     vertices, faces = sphere
     T = torch.eye(4)
     T[:3, 3] = torch.tensor([0.0, 0.0, 100.0])  # world origin 100 mm further from the camera
-    r = render(vertices, faces, kinect_camera(T))
+    r = render(vertices, faces, kinect_camera(T), backend=backend)
     assert abs(float(r.depth[0, 240, 320]) - (CENTRE_Z + 100 - RADIUS)) < 0.5
     torch.testing.assert_close(r.normals[0, 240, 320], torch.tensor([0.0, 0.0, -1.0]), atol=0.05, rtol=0)
 
 
-def test_empty_scene_and_nothing_in_view(sphere):
+def test_empty_scene_and_nothing_in_view(sphere, backend):
     vertices, faces = sphere
     cam = kinect_camera()
     for r in (
-        render(vertices, faces[:0], cam),
-        render(vertices - torch.tensor([0.0, 0.0, 2 * CENTRE_Z]), faces, cam),  # behind the camera
+        render(vertices, faces[:0], cam, backend=backend),
+        render(vertices - torch.tensor([0.0, 0.0, 2 * CENTRE_Z]), faces, cam, backend=backend),  # behind the camera
+        render(vertices, faces, kinect_camera(torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))), backend=backend),
     ):
         assert (r.depth == 0).all() and r.depth.dtype == torch.float32
         for ids in (r.face_id, r.model_id, r.bone_id):
@@ -222,28 +229,17 @@ def test_render_bad_inputs(sphere):
         render(vertices, faces, cam.K)
 
 
-def test_render_float64_vertices(sphere):
+def test_render_float64_vertices(sphere, backend):
     vertices, faces = sphere
-    r = render(vertices.double(), faces, kinect_camera())
+    r = render(vertices.double(), faces, kinect_camera(), backend=backend)
     assert r.depth.dtype == torch.float32 and r.normals.dtype == torch.float32
     assert abs(float(r.depth[0, 240, 320]) - (CENTRE_Z - RADIUS)) < 0.5
 
 
-def test_render_cuda(sphere):
-    if not torch.cuda.is_available():
-        pytest.skip("CUDA not available")
-    vertices, faces = sphere
-    cpu = render(vertices, faces, kinect_camera())
-    r = render(vertices.cuda(), faces.cuda(), kinect_camera().to("cuda"))
-    assert all(t.is_cuda for t in r)
-    torch.testing.assert_close(r.depth.cpu(), cpu.depth)
-    torch.testing.assert_close(r.normals.cpu(), cpu.normals, atol=1e-5, rtol=0)
-    assert visible_vertices(r, faces.cuda(), vertices.shape[0]).is_cuda
-
-
-def test_back_face_culling_keeps_the_first_hits():
-    """Leaving out faces turned away from the camera changes nothing for closed meshes
-    seen from outside, even where the models interpenetrate (both hands and the ball)."""
+@pytest.fixture(scope="module")
+def hands_and_ball():
+    """Two hands and the ball, two poses (the second with bent fingers, touching), and a
+    camera off the world origin."""
     from torchhand.model.scene import Scene
 
     scene = Scene.from_names(["hand_right", "hand_left", "ball"])
@@ -252,14 +248,143 @@ def test_back_face_culling_keeps_the_first_hits():
         sl = scene.slices[name]
         c = scene.models[k].vertices_rest.mean(0)
         theta[:, sl.start : sl.start + 3] = torch.tensor([30.0 * k - 30.0, 10.0 * k, 480.0]) - c
-    theta[1, 6:] += 0.2  # another pose, fingers bent
+    theta[1, 6:] += 0.2
     T = torch.eye(4)
     T[:3, 3] = torch.tensor([5.0, -8.0, 20.0])
-    cam = kinect_camera(T)
     with torch.no_grad():
         V = scene(theta).vertices
+    return scene, V, kinect_camera(T)
+
+
+def _ties_only(a, b, faces, vertices):
+    """Where two renders name different faces, the faces share a vertex (the pixel centre
+    lies on their common edge or corner, up to float32 rounding)."""
+    diff = (a.face_id != b.face_id) & (a.face_id >= 0) & (b.face_id >= 0)
+    fa, fb = a.face_id[diff], b.face_id[diff]
+    shared = (faces[fa][:, :, None] == faces[fb][:, None, :]).any(-1).any(-1)
+    return int(diff.sum()), bool(shared.all()) if len(fa) else True
+
+
+@pytest.mark.skipif(not HAVE_WARP, reason="NVIDIA Warp is not installed")
+@pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "open3d"])
+def test_backends_agree_with_open3d(hands_and_ball, backend):
+    """Depth to 1e-3 mm, ids and face ids equal except on exact ties, on two hands and the
+    ball in two poses (42k triangles)."""
+    scene, V, cam = hands_and_ball
     args = (V, scene.faces, cam, scene.face_model_id, scene.face_bone_id)
-    full, culled = render(*args), render(*args, cull_back_faces=True)
+    ref, r = render(*args, backend="open3d"), render(*args, backend=backend)
+    hit = ref.face_id >= 0
+    assert int(hit.sum()) > 20000 and torch.equal(hit, r.face_id >= 0)
+    assert (r.depth - ref.depth).abs().max() < 1e-3
+    n, ties = _ties_only(r, ref, scene.faces, V)
+    assert n < 20 and ties, n
+    same = r.face_id == ref.face_id
+    assert torch.equal(r.model_id[same], ref.model_id[same]) and torch.equal(r.bone_id[same], ref.bone_id[same])
+    # the same hit points to 1e-3 mm (barycentrics of slivers are sensitive to the ray's rounding)
+    b_, rr, cc = torch.nonzero(same & hit, as_tuple=True)
+    tri = V[b_[:, None], scene.faces[r.face_id[b_, rr, cc]]]
+
+    def point(bary):
+        u, v = bary[b_, rr, cc].double().unbind(-1)
+        return (1 - u - v)[:, None] * tri[:, 0] + u[:, None] * tri[:, 1] + v[:, None] * tri[:, 2]
+
+    assert (point(r.barycentric) - point(ref.barycentric)).norm(dim=-1).max() < 1e-3
+    torch.testing.assert_close(r.normals[same], ref.normals[same], atol=1e-5, rtol=0)
+    assert torch.equal(r.silhouette_edges, ref.silhouette_edges)
+
+
+@pytest.mark.parametrize("per_problem", [False, True])
+def test_views_of_a_rig_and_per_problem_cameras(hands_and_ball, backend, per_problem):
+    """B problems x C cameras in one call equal the single-camera renders."""
+    scene, V, cam = hands_and_ball
+    T = torch.eye(4)
+    T[:3, 3] = torch.tensor([-40.0, 0.0, 60.0])
+    other = kinect_camera(T)
+    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=backend)
+    if per_problem:  # problem 0 sees cam, problem 1 sees other
+        r = renderer(V, [cam, other], per_problem=True)
+        assert r.depth.shape == (2, 1, 480, 640)
+        pairs = [(0, 0, cam), (1, 0, other)]
+    else:
+        r = renderer(V, [cam, other])
+        assert r.depth.shape == (2, 2, 480, 640)
+        pairs = [(b, c, x) for b in range(2) for c, x in enumerate([cam, other])]
+    for b, c, camera in pairs:
+        one = renderer(V[b : b + 1], camera)
+        for name, x, y in zip(RenderResult._fields, r, one):
+            torch.testing.assert_close(x[b, c], y[0], msg=name)
+
+
+def test_render_bad_geometry_is_refused(sphere, backend):
+    vertices, faces = sphere
+    cam = kinect_camera()
+    bad = faces.clone()
+    bad[7] = torch.tensor([5, 5, 9])
+    with pytest.raises(ValueError, match=r"degenerate triangles .* rows \[7\]"):
+        render(vertices, bad, cam, backend=backend)
+    with pytest.raises(ValueError, match="no problems"):
+        render(vertices[None, :0].expand(0, -1, -1), faces, cam, backend=backend)
+    nan = vertices[None].repeat(2, 1, 1)
+    nan[1, 11, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"finite.*\[\[1, 11\]\]"):
+        render(nan, faces, cam, backend=backend)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        render(vertices, faces, cam, backend="embree")
+    with pytest.raises(ValueError, match="share one image size"):
+        render(vertices, faces, [cam, Camera.from_intrinsics(500, 500, 160, 120, 320, 240)], backend=backend)
+
+
+def test_missing_warp_names_the_extra(sphere, monkeypatch):
+    """Without Warp the warp backends say what to install, and open3d still renders."""
+    import builtins
+    import sys
+
+    from torchhand.geometry import raycast, warp_kernels
+
+    real_import = builtins.__import__
+
+    def no_warp(name, *args, **kwargs):
+        if name == "warp" or name.startswith("warp."):
+            raise ImportError("No module named 'warp'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_warp)
+    monkeypatch.delitem(sys.modules, "warp", raising=False)
+    warp_kernels._warp.cache_clear()
+    try:
+        vertices, faces = sphere
+        assert raycast.default_backend() == "open3d"
+        with pytest.raises(ImportError, match=r"pip install torchhand\[warp\]"):
+            render(vertices, faces, kinect_camera(), backend="warp")
+        r = render(vertices, faces, kinect_camera())  # the default falls back to open3d
+        assert int((r.depth > 0).sum()) > 1000
+    finally:
+        warp_kernels._warp.cache_clear()
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
+@pytest.mark.parametrize("backend", [b for b in AVAILABLE if b != "open3d"])
+def test_render_cuda_agrees_with_the_cpu(hands_and_ball, backend):
+    scene, V, cam = hands_and_ball
+    args = (scene.faces, cam, scene.face_model_id, scene.face_bone_id)
+    cpu = render(V, *args, backend=backend)
+    r = render(V.cuda(), scene.faces.cuda(), cam.to("cuda"), scene.face_model_id.cuda(), scene.face_bone_id.cuda(),
+               backend=backend)
+    assert all(x.is_cuda for x in r)
+    assert (r.depth.cpu() - cpu.depth).abs().max() < 1e-3
+    n, ties = _ties_only(r._replace(face_id=r.face_id.cpu()), cpu, scene.faces, V)
+    assert n < 20 and ties
+    assert visible_vertices(r, scene.faces.cuda(), V.shape[1]).is_cuda
+
+
+@pytest.mark.parametrize("backend", [b for b in AVAILABLE if b == "warp"])
+def test_back_face_culling_keeps_the_first_hits(hands_and_ball, backend):
+    """Leaving out faces turned away from the camera changes nothing for closed meshes
+    seen from outside, even where the models interpenetrate (both hands and the ball)."""
+    scene, V, cam = hands_and_ball
+    args = (V, scene.faces, cam, scene.face_model_id, scene.face_bone_id)
+    full, culled = render(*args, backend=backend), render(*args, cull_back_faces=True, backend=backend)
     hit = full.depth > 0
     assert int(hit.sum()) > 20000
     assert torch.equal(hit, culled.depth > 0)
@@ -267,3 +392,14 @@ def test_back_face_culling_keeps_the_first_hits():
     same = (culled.face_id == full.face_id)[hit].float().mean()
     assert same > 0.999  # a ray through a shared edge may report either face
     assert torch.equal(culled.model_id, full.model_id) and torch.equal(culled.silhouette_edges, full.silhouette_edges)
+
+
+def test_visible_vertices_against_a_loop(hands_and_ball):
+    scene, V, cam = hands_and_ball
+    r = render(V, scene.faces, cam, normals=False)
+    vis = visible_vertices(r, scene.faces, scene.num_vertices)
+    for b in range(V.shape[0]):
+        hit = torch.unique(r.face_id[b][r.face_id[b] >= 0])
+        expected = torch.zeros(scene.num_vertices, dtype=torch.bool)
+        expected[scene.faces[hit].reshape(-1)] = True
+        assert torch.equal(vis[b], expected)

@@ -22,7 +22,9 @@ import torch
 
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
-from torchhand.geometry.render import RenderResult, render
+from torchhand.core.check import skip_checks
+from torchhand.geometry.raycast import BACKENDS, default_backend
+from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.tracking.energies import EnergyTerm, TrackState, parse_energy
@@ -59,7 +61,10 @@ class TrackerConfig:
     constant-velocity prediction; prediction_limiter: per DoF, the smaller of the last
     two steps when they have the same sign and 0 otherwise (minmod), so that
     frame-to-frame jitter is not extrapolated. The temporal regularisation (Eq. 4.18)
-    and the recovery keep the previous pose as their reference."""
+    and the recovery keep the previous pose as their reference.
+    backend: of the renders (``"warp"``, ``"warp-raycast"`` or ``"open3d"``,
+    :mod:`torchhand.geometry.raycast`) and, with it, of the neighbour searches (Warp for
+    the Warp backends, the torch reference for open3d); None: Warp when installed."""
 
     energy: str = "LO"
     metric: str = "point-to-plane"
@@ -76,6 +81,7 @@ class TrackerConfig:
     prediction: float = 0.0
     prediction_limiter: bool = True
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    backend: Optional[str] = None
 
     def __post_init__(self) -> None:
         if (isinstance(self.prediction, bool) or not isinstance(self.prediction, (int, float))
@@ -83,6 +89,18 @@ class TrackerConfig:
             raise ValueError(f"prediction must be a finite number >= 0, got {self.prediction!r}")
         if not isinstance(self.prediction_limiter, bool):
             raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")
+        if self.backend is not None and self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS} or None, got {self.backend!r}")
+
+    @property
+    def render_backend(self) -> str:
+        """The backend the renders use (``backend``, or Warp when installed)."""
+        return default_backend() if self.backend is None else self.backend
+
+    @property
+    def neighbor_backend(self) -> str:
+        """``"warp"`` with a Warp render backend, else the torch reference."""
+        return "warp" if self.render_backend.startswith("warp") else "torch"
 
 
 class FrameResult(NamedTuple):
@@ -197,7 +215,8 @@ class Tracker:
     def __init__(self, scene: Scene, config: TrackerConfig = TrackerConfig(),
                  terms: Optional[List[EnergyTerm]] = None):
         self.scene, self.config = scene, config
-        self.terms = list(terms) if terms is not None else parse_energy(config.energy, config.metric)
+        self.terms = (list(terms) if terms is not None
+                      else parse_energy(config.energy, config.metric, backend=config.neighbor_backend))
         for k, t in enumerate(self.terms):
             if not isinstance(t, EnergyTerm):
                 raise TypeError(f"terms[{k}] must be an EnergyTerm, got {type(t).__name__}")
@@ -205,29 +224,34 @@ class Tracker:
             raise ValueError("terms need at least one data term (a term that is not a prior)")
         self._energy_history: collections.deque = collections.deque(maxlen=ENERGY_HISTORY)
         # back faces can be left out of the renders when every mesh is closed and outward
-        self._cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
+        cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
+        self.renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=config.render_backend,
+                                 cull_back_faces=cull)
 
     def reset(self) -> None:
         """Forget the energies of earlier frames (before tracking other sequences)."""
         self._energy_history.clear()
 
     # ------------------------------------------------------------------ frames
-    def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera]) -> RenderResult:
-        s = self.scene
-        if all(_same_camera(c, cameras[0]) for c in cameras):  # one camera: one call for the batch
-            return render(vertices, s.faces, cameras[0], s.face_model_id, s.face_bone_id, normals=False,
-                          cull_back_faces=self._cull)
-        parts = [render(vertices[b : b + 1], s.faces, cameras[b], s.face_model_id, s.face_bone_id, normals=False,
-                        cull_back_faces=self._cull) for b in range(len(cameras))]
-        return RenderResult(*(None if x[0] is None else torch.cat(x, 0) for x in zip(*parts)))
+    def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera], slots: torch.Tensor) -> RenderResult:
+        """One render call for the batch: one camera for all, or one per problem."""
+        with skip_checks():  # the library's own posed vertices
+            if all(_same_camera(c, cameras[0]) for c in cameras):
+                return self.renderer(vertices, cameras[0], normals=False, slots=slots)
+            r = self.renderer(vertices, list(cameras), normals=False, per_problem=True, slots=slots)
+        return RenderResult(*(None if x is None else x[:, 0] for x in r))
 
-    def _state(self, theta, previous, frames, cameras, posed=None, labels=None) -> TrackState:
+    def _state(self, theta, previous, frames, cameras, problems=None, frame_data=None, posed=None,
+               labels=None) -> TrackState:
+        problems = torch.arange(theta.shape[0], device=theta.device) if problems is None else problems
+        frame_data = {} if frame_data is None else frame_data
         posed = posed if posed is not None else self.scene(theta, validate=False)
-        rend = self._render(posed.vertices.detach(), cameras)
-        if labels is None:
+        rend = self._render(posed.vertices.detach(), cameras, problems)
+        if labels is None:  # once per frame, at its start pose (OpenCV on the CPU)
             labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
                                   for b, f in enumerate(frames)])
-        return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels)
+        return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels, problems=problems,
+                          frame_data=frame_data)
 
     def _prepare(self, state: TrackState):
         """Prepare every term: the data terms, then the priors with C_all known.
@@ -261,15 +285,17 @@ class Tracker:
         damping = theta.new_full((B,), 1e-3)
         energy = theta.new_zeros(B)
         counts = torch.zeros(B, dtype=torch.int64, device=theta.device)
-        # Only the problems still moving are solved: `idx` lists them. `posed` and
+        # Only the problems still moving are solved: `sub` lists them (on the host, from
+        # the stopping rule's one sync), `idx` is the same on the device. `posed` and
         # `labels` belong to the problems of `idx` of the previous iteration.
+        sub = list(range(B))
         idx = torch.arange(B, device=theta.device)
         posed, labels = None, None
+        frame_data: dict = {}  # the terms' data side of this solve
         for it in range(iterations):
             with torch.no_grad():
-                sub = idx.tolist()
                 state = self._state(theta[idx], previous[idx], [frames[b] for b in sub], [cameras[b] for b in sub],
-                                    posed, labels)
+                                    idx, frame_data, posed, labels)
                 labels = state.data_labels  # labelled once per frame, at its start pose
                 count, candidates, unmatched = self._prepare(state)
                 counts[idx] = count.to(counts.device)
@@ -285,10 +311,14 @@ class Tracker:
             # a problem whose step was rejected after every retry moved nothing: the
             # correspondences would not change, so it has converged
             going = (moved >= min_motion) & (res.iterations > 0)
-            if not bool(going.any()):  # one sync per outer iteration, next to a render
+            flags = going.tolist()  # the stopping rule: one host sync per outer iteration
+            if not any(flags):
                 break
-            if not bool(going.all()):
-                idx, labels, posed = idx[going], labels[going], posed.select(going)
+            if not all(flags):
+                sub = [b for b, g in zip(sub, flags) if g]
+                idx = torch.tensor(sub, device=theta.device)
+                keep = torch.tensor(flags, device=going.device)
+                labels, posed = labels[keep], posed.select(keep)
         return SolveResult(theta, iters, energy, counts)
 
     def track_frame(self, depths: Sequence[Depth], cameras: Sequence[Camera], previous: torch.Tensor,

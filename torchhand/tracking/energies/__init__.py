@@ -9,7 +9,7 @@ and ``S`` salient points (``LO+CS``: both); anatomy and regularisation are alway
 
 from __future__ import annotations
 
-from typing import List
+from typing import List, Optional
 
 from torchhand.tracking.energies import anatomy, collision, data_to_model, regularization
 from torchhand.tracking.energies.anatomy import Anatomy
@@ -42,8 +42,9 @@ def default_priors() -> List[EnergyTerm]:
             Weighted(Regularization(), regularization.DEFAULT_WEIGHT, per_correspondence=True)]
 
 
-def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
-    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+CS``."""
+def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[str] = None) -> List[EnergyTerm]:
+    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+CS``; ``backend``: of
+    the data terms' neighbour searches (``"warp"`` or ``"torch"``; None: Warp when installed)."""
     parts = spec.replace(" ", "").split("+")
     if parts[0] != "LO":
         raise ValueError(f"energy {spec!r} must start with LO (model-to-data + data-to-model)")
@@ -53,7 +54,7 @@ def parse_energy(spec: str, metric: str = "point-to-plane") -> List[EnergyTerm]:
         raise ValueError(f"energy {spec!r}: unknown components {unknown}; known after LO: {sorted(ENERGY_COMPONENTS)}")
     if len(set(extra)) != len(extra):
         raise ValueError(f"energy {spec!r} names a component twice")
-    terms: List[EnergyTerm] = [ModelToData(metric=metric), default_data_to_model()]
+    terms: List[EnergyTerm] = [ModelToData(metric=metric, backend=backend), default_data_to_model(backend=backend)]
     if "C" in extra:
         terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
     if "S" in extra:

@@ -20,18 +20,20 @@ problem, which scales the priors' weights (Eq. 4.17-4.18).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import torch
 
+from torchhand.core.check import skip_checks
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.render import RenderResult, visible_vertices
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
 __all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals", "bone_inliers",
-           "prepared", "stack_rows"]
+           "prepared", "stack_rows", "stride_subsample"]
 
 
 class Residuals(NamedTuple):
@@ -101,7 +103,12 @@ class TrackState:
     frame); cameras: one camera per problem; render: the scene rendered at theta from
     each problem's camera; data_labels: (B, H, W) int64 model id assigned to each
     data pixel (-1 none); correspondences: (B,) C_all, the data correspondences of
-    the terms prepared so far (set by the tracker before the priors are prepared).
+    the terms prepared so far (set by the tracker before the priors are prepared);
+    problems: (B,) int64 the index of each problem in the solve it belongs to (problems
+    that converged leave the batch: the others keep their index); frame_data: what terms
+    derive once per solve from the frames and labels (their data side), keyed by term,
+    made by the tracker per solve and shared by its outer iterations; a term builds its
+    entry at the first iteration, when every problem of the solve is present.
     """
 
     scene: Scene
@@ -113,14 +120,23 @@ class TrackState:
     render: RenderResult
     data_labels: torch.Tensor
     correspondences: Optional[torch.Tensor] = None
+    problems: Optional[torch.Tensor] = None
+    frame_data: Dict = field(default_factory=dict, repr=False)
     _visible: Optional[torch.Tensor] = field(default=None, repr=False)
 
     def visible_vertices(self) -> torch.Tensor:
         """(B, V) bool: the vertices of the faces hit in ``render`` (found once per state,
         shared by the terms that need visibility)."""
         if self._visible is None:
-            self._visible = visible_vertices(self.render, self.scene.faces, self.scene.num_vertices)
+            with skip_checks():  # the render's own ids: no range checks (host syncs) needed
+                self._visible = visible_vertices(self.render, self.scene.faces, self.scene.num_vertices)
         return self._visible
+
+    def problem_index(self) -> torch.Tensor:
+        """(B,) int64 ``problems``, or ``arange(B)`` when not set."""
+        if self.problems is None:
+            return torch.arange(self.theta.shape[0], device=self.theta.device)
+        return self.problems
 
 
 class EnergyTerm:
@@ -194,16 +210,44 @@ def stack_rows(parts: Sequence[Residuals], theta: torch.Tensor, jacobian: bool, 
 
 def bone_inliers(d: torch.Tensor, bone: torch.Tensor, keep: torch.Tensor, num_bones: int,
                  sigma: float) -> torch.Tensor:
-    """Per-bone outlier rejection (Ballan et al. 2012, Sec. 3).
+    """Per-bone outlier rejection (Ballan et al. 2012, Sec. 3), batched over problems.
 
     Args:
-        d: (n,) correspondence distances; bone: (n,) the bone of each model point;
-        keep: (n,) bool, the pairs the statistics are taken over; sigma: the cut.
+        d: (..., n) correspondence distances; bone: (..., n) int64 the bone of each model
+            point, in [0, num_bones); keep: (..., n) bool, the pairs the statistics are
+            taken over (per leading index: one problem); sigma: the cut.
     Returns:
-        (n,) bool: d <= mean + sigma * std of the kept distances of the same bone.
+        (..., n) bool: d <= mean + sigma * std of the kept distances of the same bone and
+        problem. No host sync.
     """
-    w = keep.to(d.dtype)
-    n = torch.zeros(num_bones, dtype=d.dtype, device=d.device).index_add_(0, bone, w).clamp_min(1)
-    mean = torch.zeros_like(n).index_add_(0, bone, d * w) / n
-    std = (torch.zeros_like(n).index_add_(0, bone, (d - mean[bone]) ** 2 * w) / n).sqrt()
-    return d <= mean[bone] + sigma * std[bone] + 1e-6
+    lead = d.shape[:-1]
+    P = math.prod(lead)
+    offset = (torch.arange(P, device=d.device) * num_bones).view(*lead, 1) if lead else 0
+    key = (bone + offset).reshape(-1)
+    dd, w = d.reshape(-1), keep.reshape(-1).to(d.dtype)
+    n = torch.zeros(P * num_bones, dtype=d.dtype, device=d.device).index_add_(0, key, w).clamp_min(1)
+    mean = torch.zeros_like(n).index_add_(0, key, dd * w) / n
+    std = (torch.zeros_like(n).index_add_(0, key, (dd - mean[key]) ** 2 * w) / n).sqrt()
+    return (dd <= mean[key] + sigma * std[key] + 1e-6).view(d.shape)
+
+
+def stride_subsample(mask: torch.Tensor, count: int) -> tuple:
+    """Up to ``count`` of the True entries of each row, evenly spaced (a stride subsample:
+    entry ``floor(j (n - 1) / (count - 1))`` of the n True entries, all of them when
+    n <= count), with fixed shapes and no host sync.
+
+    Args:
+        mask: (B, L) bool.
+    Returns:
+        (index (B, count) int64 positions in the row, ok (B, count) bool: real slots).
+    """
+    B, L = mask.shape
+    n = mask.sum(1)  # (B,)
+    j = torch.arange(count, device=mask.device)
+    over = n > count
+    spread = torch.floor(j.double() * (n[:, None] - 1).double() / max(count - 1, 1)).long()
+    rank = torch.where(over[:, None], spread, j.expand(B, count))
+    ok = over[:, None] | (j[None] < n[:, None])
+    csum = torch.cumsum(mask.long(), 1)
+    index = torch.searchsorted(csum, rank + 1).clamp(max=max(L - 1, 0))  # the first position holding that rank
+    return torch.where(ok, index, torch.zeros_like(index)), ok

@@ -1,8 +1,10 @@
 """LO_d2m: data depth discontinuities to the model's silhouette (thesis Eq. 4.8).
 
 Depth-discontinuity pixels of the data (see preprocess) are matched to the nearest
-silhouette pixel of the rendered model with the same label by a 2D distance
-transform (OpenCV); the vertex seen at that silhouette pixel must lie on the data
+silhouette pixel of the rendered model with the same label, an exact nearest-pixel
+search (:func:`torchhand.geometry.neighbors.nearest_marked_pixel`) bounded by the
+distance at which a pair can still pass the 30 mm test; the vertex seen at that
+silhouette pixel must lie on the data
 pixel's projection ray, written as a Pluecker line (d, m): the residual is
 ``V x d - m`` (its norm is the vertex's distance to the ray). Pairs whose 3D
 distance, with the data depth averaged over 3x3 pixels, exceeds 30 mm are dropped,
@@ -15,16 +17,16 @@ the thesis leaves open; see :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`.
 
 from __future__ import annotations
 
-import cv2
-import numpy as np
+from typing import NamedTuple, Optional
+
 import torch
 
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
+from torchhand.geometry.neighbors import nearest_marked_pixel
 from torchhand.model.kinematics import skew
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, bone_inliers, prepared,
                                               scatter_columns, stack_rows)
-from torchhand.tracking.energies.model_to_data import _pad_rows
 
 __all__ = ["DataToModel", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -51,6 +53,19 @@ DEFAULT_WEIGHT = 0.25
 DEFAULT_LOSS = Cauchy(scale=3.0, relative=2.0)
 
 
+class _Edges(NamedTuple):
+    """The data side of a solve, (B, K, M) slots per problem and model: rc (..., 2) int64
+    pixels; X (..., 3) world points; d, m (..., 3) their Pluecker rays; valid bool;
+    radius int64 px, the search radius around each pixel."""
+
+    rc: torch.Tensor
+    X: torch.Tensor
+    d: torch.Tensor
+    m: torch.Tensor
+    valid: torch.Tensor
+    radius: torch.Tensor
+
+
 class DataToModel(EnergyTerm):
     """E_data->model, unweighted and with the plain sum of squares (the tracker wraps
     it in :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`).
@@ -64,77 +79,101 @@ class DataToModel(EnergyTerm):
 
     name = "d2m"
 
-    def __init__(self, max_distance=30.0, max_pixels=600, outlier_sigma=2.0):
+    def __init__(self, max_distance=30.0, max_pixels=600, outlier_sigma=2.0, backend: Optional[str] = None):
         if not max_distance > 0:
             raise ValueError(f"max_distance must be > 0 (mm), got {max_distance!r}")
         if outlier_sigma is not None and not outlier_sigma > 0:
             raise ValueError(f"outlier_sigma must be > 0 or None, got {outlier_sigma!r}")
-        self.max_distance, self.max_pixels, self.outlier_sigma = max_distance, max_pixels, outlier_sigma
+        if not (isinstance(max_pixels, int) and max_pixels > 0):
+            raise ValueError(f"max_pixels must be a positive int, got {max_pixels!r}")
+        self.max_distance, self.max_pixels, self.outlier_sigma = float(max_distance), max_pixels, outlier_sigma
+        self.backend = backend
+        self._bones = None  # (scene, (V,) scene-level bone of every vertex, number of bones)
+
+    def _data(self, state: TrackState) -> _Edges:
+        """The labelled data edge pixels of every problem of the solve (up to
+        ``max_pixels`` per model, evenly spaced), their points, Pluecker rays and search
+        radii; built at the solve's first outer iteration (host work once per frame)."""
+        key = ("d2m", id(self))
+        data = state.frame_data.get(key)
+        if data is not None:
+            return data
+        if state.problems is not None and not torch.equal(state.problems.cpu(), torch.arange(len(state.frames))):
+            raise RuntimeError("DataToModel builds its data side at a solve's first iteration (every problem present)")
+        dev, dt = state.theta.device, state.theta.dtype
+        B, K, M = len(state.frames), len(state.scene.models), self.max_pixels
+        rc = torch.zeros(B, K, M, 2, dtype=torch.int64, device=dev)
+        z = torch.zeros(B, K, M, dtype=dt, device=dev)
+        valid = torch.zeros(B, K, M, dtype=torch.bool, device=dev)
+        for b, frame in enumerate(state.frames):
+            if not len(frame.edges):
+                continue
+            label = state.data_labels[b][frame.edges[:, 0], frame.edges[:, 1]]
+            for k in range(K):
+                sel = torch.nonzero(label == k)[:, 0]
+                if len(sel) > M:  # a stride subsample
+                    sel = sel[torch.linspace(0, len(sel) - 1, M, device=sel.device).long()]
+                n = len(sel)
+                rc[b, k, :n], z[b, k, :n], valid[b, k, :n] = frame.edges[sel], frame.edge_depth[sel].to(dt), True
+        K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])  # (B, 3, 3)
+        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
+        uv = rc.flip(-1).to(dt).reshape(B, K * M, 2)
+        X_cam = unproject_pixels(uv, z.reshape(B, K * M), K_b)
+        X = ((X_cam - T_b[:, None, :3, 3]) @ T_b[:, :3, :3]).view(B, K, M, 3)  # to world
+        rays = pixel_rays(uv, K_b, T_b)
+        # the farthest pixel distance at which a model point can lie within max_distance of
+        # the data point: the ball's image at the nearest depth, with room for perspective
+        # off the axis and for the vertex seen at a pixel lying a triangle away from it
+        f = K_b[:, 0, 0].max()
+        near = (z - self.max_distance).clamp(min=1.0)
+        radius = torch.ceil(1.5 * f * self.max_distance / near).long().clamp(max=400) + 4
+        data = state.frame_data[key] = _Edges(rc, X, rays.direction.view(B, K, M, 3), rays.moment.view(B, K, M, 3),
+                                              valid, radius)
+        return data
 
     def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         self._scene = scene
         dev, dt = state.theta.device, state.theta.dtype
+        data = self._data(state)
+        p = state.problem_index()
+        rc, X, d, m, valid, radius = (x[p] for x in data)
+        K, M = valid.shape[1:]
         rend = state.render
-        count = torch.zeros(B, dtype=torch.int64)
-        candidates = torch.zeros(B, dtype=torch.int64)
-        outliers = torch.zeros(B, dtype=torch.int64)
-        rejected = torch.zeros(B, dtype=torch.float64)  # summed squared ray distances of outliers
-        self.per_model = []
-        # silhouette pixels (row, col) of every problem and the model each belongs to
-        sil = [torch.nonzero(rend.silhouette_edges[b]).cpu().numpy() for b in range(B)]
-        sil_model = [rend.model_id[b][rend.silhouette_edges[b]].cpu().numpy() for b in range(B)]
-        for k, (name, model) in enumerate(zip(scene.names, scene.models)):
-            vs = scene.vertex_slices[name]
-            rows = []
-            for b in range(B):
-                frame, cam = state.frames[b], state.cameras[b]
-                zero_rc = sil[b][sil_model[b] == k]  # row-major, as nonzero returns them
-                sel = torch.zeros(0, dtype=torch.int64)
-                if len(frame.edges):
-                    sel = torch.nonzero(state.data_labels[b][frame.edges[:, 0], frame.edges[:, 1]] == k)[:, 0]
-                if len(sel) > self.max_pixels:
-                    sel = sel[torch.linspace(0, len(sel) - 1, self.max_pixels, device=sel.device).long()]
-                candidates[b] += len(sel)
-                if len(zero_rc) == 0 or len(sel) == 0:
-                    rows.append(None)
-                    continue
-                rc = frame.edges[sel]
-                # Nearest model silhouette pixel of every data edge pixel, by a distance
-                # transform on the box around both pixel sets, which holds every nearest
-                # pixel (its labels index the zero pixels in row-major order).
-                rcn = rc.cpu().numpy()
-                lo = np.minimum(zero_rc.min(0), rcn.min(0))
-                hi = np.maximum(zero_rc.max(0), rcn.max(0)) + 1
-                src = np.full(hi - lo, 255, np.uint8)
-                src[zero_rc[:, 0] - lo[0], zero_rc[:, 1] - lo[1]] = 0
-                _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-                p = torch.as_tensor(zero_rc[labels[rcn[:, 0] - lo[0], rcn[:, 1] - lo[1]] - 1], device=dev)
-                fid = rend.face_id[b][p[:, 0], p[:, 1]]
-                bary = rend.barycentric[b][p[:, 0], p[:, 1]].to(dt)
-                w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)
-                vid = scene.faces[fid, w.argmax(-1)]  # global vertex seen at the model pixel
-                z = frame.edge_depth[sel].to(dt)
-                uv = rc.flip(-1).to(dt)
-                K, T_cw = cam.K.to(dev, dt), cam.T_cw.to(dev, dt)
-                X_cam = unproject_pixels(uv, z, K)
-                X = (X_cam - T_cw[:3, 3]) @ T_cw[:3, :3]  # to world
-                V = state.posed.vertices[b, vid]
-                within = (V - X).norm(dim=-1) <= self.max_distance
-                rays = pixel_rays(uv, K, T_cw)
-                ray_dist = (torch.cross(V, rays.direction, dim=-1) - rays.moment).norm(dim=-1)
-                keep = within
-                if self.outlier_sigma is not None:
-                    keep = within & bone_inliers(ray_dist, model.vertex_bone[vid - vs.start], within,
-                                                 model.num_bones, self.outlier_sigma)
-                    rejected[b] += float(ray_dist[within & ~keep].square().sum())
-                rows.append((vid[keep] - vs.start, rays.direction[keep], rays.moment[keep]))
-                count[b] += int(keep.sum())
-                outliers[b] += int((within & ~keep).sum())
-            self.per_model.append(_pad_rows(rows, B, dev, dt))
+        if self._bones is None or self._bones[0] is not scene:
+            offsets = torch.tensor([0] + [mdl.num_bones for mdl in scene.models], device=dev).cumsum(0)
+            bone = torch.cat([mdl.vertex_bone.to(dev) + offsets[k] for k, mdl in enumerate(scene.models)])
+            self._bones = (scene, bone, int(offsets[-1]))
+        _, vertex_bone, num_bones = self._bones
+        # the nearest silhouette pixel of the data pixel's model (Eq. 4.8's pairs)
+        marks = torch.where(rend.silhouette_edges, rend.model_id, torch.full_like(rend.model_id, -1))
+        groups = torch.where(valid, torch.arange(K, device=dev)[None, :, None], -1).reshape(B, K * M)
+        px = nearest_marked_pixel(marks, rc.reshape(B, K * M, 2), groups, radius.reshape(B, K * M), K, self.backend)
+        found = px[..., 0] >= 0
+        b = torch.arange(B, device=dev)[:, None]
+        r_, c_ = px[..., 0].clamp(min=0), px[..., 1].clamp(min=0)
+        fid = rend.face_id[b, r_, c_].clamp(min=0)
+        bary = rend.barycentric[b, r_, c_].to(dt)
+        w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)
+        vid = scene.faces[fid, w.argmax(-1)]  # (B, K M) the scene vertex seen at the model pixel
+        V = state.posed.vertices[b, vid]
+        Xf, df, mf = X.reshape(B, K * M, 3), d.reshape(B, K * M, 3), m.reshape(B, K * M, 3)
+        within = found & ((V - Xf).norm(dim=-1) <= self.max_distance)
+        ray_dist = (torch.cross(V, df, dim=-1) - mf).norm(dim=-1)
+        keep = within
+        if self.outlier_sigma is not None:
+            keep = within & bone_inliers(ray_dist, vertex_bone[vid], within, num_bones, self.outlier_sigma)
+        outlier = within & ~keep
+        candidates, count = valid.reshape(B, -1).sum(1), keep.sum(1)
         # a pair beyond the cut-off is charged the cut-off squared, an outlier its own
         # squared distance (as model-to-data does)
-        unmatched = self.max_distance ** 2 * (candidates - count - outliers).double() + rejected
+        unmatched = (self.max_distance ** 2 * (candidates - count - outlier.sum(1)).double()
+                     + torch.where(outlier, ray_dist ** 2, torch.zeros_like(ray_dist)).sum(1).double())
+        self.per_model = []
+        for k, name in enumerate(scene.names):
+            rows = slice(k * M, (k + 1) * M)
+            local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
+            self.per_model.append((local, df[:, rows], mf[:, rows], keep[:, rows].to(dt)))
         return prepared(B, correspondences=count, candidates=candidates, unmatched=unmatched)
 
     def fold_row_weights(self, sqrt_w):
@@ -142,8 +181,6 @@ class DataToModel(EnergyTerm):
         # pair's squared residual, and its Jacobian, by w
         start = 0
         for k, (ids, d, m, mask) in enumerate(self.per_model):
-            if ids is None:
-                continue
             sw = sqrt_w[:, start : start + ids.shape[1], None]
             self.per_model[k] = (ids, d * sw, m * sw, mask)
             start += ids.shape[1]
@@ -154,8 +191,6 @@ class DataToModel(EnergyTerm):
         parts = []
         b = torch.arange(B, device=theta.device)[:, None]
         for k, (ids, d, m, mask) in enumerate(self.per_model):
-            if ids is None:
-                continue
             out = posed.models[k]
             V = out.vertices[b, ids]
             r = (torch.cross(V, d, dim=-1) - m) * mask[..., None]  # Eq. 4.8
