@@ -42,7 +42,7 @@ def _slow_nearest(pts, problem, group, q, problems, qgroup, radius):
     return out
 
 
-@pytest.mark.parametrize("backend", ["torch", pytest.param("warp", marks=needs_warp)])
+@pytest.mark.parametrize("backend", ["torch", "cpu", pytest.param("warp", marks=needs_warp)])
 def test_point_index_finds_the_nearest_of_the_same_problem_and_group(backend):
     pts, problem, group, q, qgroup = _points()
     problems = torch.tensor([2, 0, 1])  # rows of queries belong to these problems
@@ -68,7 +68,7 @@ def test_point_index_radius_is_inclusive():
     pts = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 0.0, 10.5]])
     zero = torch.zeros(3, dtype=torch.int64)
     q = torch.tensor([[[0.0, 0.0, 10.0], [20.0, 0.0, 0.0], [0.0, -10.0, 0.0]]])
-    for backend in ("warp", "torch"):
+    for backend in ("warp", "cpu", "torch"):
         index = PointIndex(pts, zero, zero, 1, 1, 10.0, backend)
         got = index.nearest(q, torch.tensor([0]), torch.zeros(1, 3, dtype=torch.int64))
         assert got.tolist() == [[2, 1, 0]], backend  # 0.5 beats 10; a distance of exactly 10 counts
@@ -102,6 +102,16 @@ def test_nearest_marked_pixel_warp_equals_brute_force():
             == groups[found]).all()
     d = (got - queries).double().norm(dim=-1)
     assert (d[found] <= radius[found].double()).all()
+
+
+def test_nearest_marked_pixel_scipy_is_exact_too():
+    marks, queries, groups, radius = _marks()
+    got = nearest_marked_pixel(marks, queries, groups, radius, 2, "cpu")
+    want = nearest_marked_pixel(marks, queries, groups, radius, 2, "torch")
+    assert torch.equal(got[..., 0] >= 0, want[..., 0] >= 0)
+    found = want[..., 0] >= 0
+    d = lambda p: ((p - queries) ** 2).sum(-1)  # noqa: E731
+    assert torch.equal(d(got)[found], d(want)[found])  # the same distance; ties may differ
 
 
 def test_nearest_marked_pixel_is_the_exact_nearest():

@@ -444,3 +444,62 @@ def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose(hand_and_rope
         assert err0 > 8.0
     errs = sorted(errs)
     assert errs[-1] < 3.0 and (errs[1] + errs[2]) / 2 < 1.5, errs
+
+
+class _SyncCounter:
+    """Counts the calls that read tensor values on the host (a synchronisation on a GPU)."""
+
+    METHODS = ("item", "cpu", "numpy", "tolist", "__bool__", "__int__", "__float__", "__index__")
+    FUNCTIONS = ("equal", "nonzero", "unique", "masked_select", "argwhere")
+
+    def __init__(self, monkeypatch):
+        self.calls = []
+        for name in self.METHODS:
+            monkeypatch.setattr(torch.Tensor, name, self._wrap(getattr(torch.Tensor, name), name))
+        for name in self.FUNCTIONS:
+            monkeypatch.setattr(torch, name, self._wrap(getattr(torch, name), "torch." + name))
+        self.active = False
+
+    def _wrap(self, fn, name):
+        def counted(*args, **kwargs):
+            if self.active:
+                import traceback
+
+                frame = traceback.extract_stack(limit=2)[0]
+                self.calls.append(f"{name} at {frame.filename.split('torchhand')[-1]}:{frame.lineno}")
+            return fn(*args, **kwargs)
+
+        return counted
+
+
+def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
+    """Inside the outer iterations of Algorithm 1 (render, correspondences, LM step with
+    retries, stopping rule) the LO tracker reads one value set from the device: the
+    stopping rule's flags, read with the solver's retry check. Counted on the CPU by
+    patching every tensor-to-host call: n + 1 iterations cost one more than n."""
+    from torchhand.tracking.preprocess import preprocess_depth
+
+    scene, theta, cam, depth = hand_frame
+    tracker = Tracker(scene, TrackerConfig())
+    frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
+    start = theta.clone()
+    start[0, :3] += torch.tensor([3.0, -2.0, 2.0], dtype=F64)
+    counter = _SyncCounter(monkeypatch)
+
+    def syncs(iterations):
+        counter.calls.clear()
+        counter.active = True
+        try:
+            res = tracker.solve(start, start, [frame], [cam], iterations, 0.0)  # min motion 0: every iteration runs
+        finally:
+            counter.active = False
+        assert int(res.iterations[0]) == iterations
+        return list(counter.calls)
+
+    syncs(2)  # one-time work (kernels, caches) out of the way
+    three, four = syncs(3), syncs(4)
+    extra = list(four)
+    for c in three:
+        extra.remove(c)
+    assert len(extra) == 1, extra
+    assert "levenberg_marquardt" in extra[0] and "tolist" in extra[0]

@@ -7,11 +7,19 @@
   given mark within a radius (data-to-model, Eq. 4.8: the model silhouette pixel nearest
   to a data edge pixel).
 
-Backends: ``"warp"`` (a grouped Warp hash grid; an exact ring search in a Warp kernel,
-CPU and CUDA, no host synchronisation) and ``"torch"`` (brute force: the slow, obviously
-correct reference the Warp kernels are tested against, and the fallback without Warp).
-Both return the exact nearest neighbour; ties go to the smaller index (points) or to the
-smaller :func:`pixel_hash` (pixels).
+Backends:
+
+- ``"warp"``: a grouped Warp hash grid; an exact ring search in a Warp kernel; CPU and
+  CUDA, no host synchronisation.
+- ``"cpu"``: scipy's KD-tree and exact Euclidean distance transform (with the nearest
+  pixel's index), per problem and group on the CPU: the fallback without Warp, as fast
+  as the CPU makes it.
+- ``"torch"``: brute force, the slow, obviously correct reference the others are tested
+  against.
+
+All return the exact nearest neighbour. Ties go to the smaller index (points) or, for
+``"warp"`` and ``"torch"``, to the smaller :func:`pixel_hash` (pixels); scipy breaks
+pixel ties its own way.
 
 Why an exact search and not a distance transform for the pixels: the term needs the
 nearest pixel's *position* (it reads the face seen there), which kornia's
@@ -30,14 +38,14 @@ from torchhand.core.check import check_tensor
 
 __all__ = ["PointIndex", "nearest_marked_pixel", "NEIGHBOR_BACKENDS", "default_neighbor_backend"]
 
-NEIGHBOR_BACKENDS = ("warp", "torch")
+NEIGHBOR_BACKENDS = ("warp", "cpu", "torch")
 
 
 def default_neighbor_backend() -> str:
-    """``"warp"`` when NVIDIA Warp is installed, else ``"torch"``."""
+    """``"warp"`` when NVIDIA Warp is installed, else ``"cpu"``."""
     from torchhand.geometry.raycast import default_backend
 
-    return "warp" if default_backend().startswith("warp") else "torch"
+    return "warp" if default_backend().startswith("warp") else "cpu"
 
 
 def _check_backend(backend: Optional[str]) -> str:
@@ -78,7 +86,20 @@ class PointIndex:
         if self.backend == "warp":
             from torchhand.geometry import warp_kernels
 
-            self._grid = warp_kernels.build_grid(self.points, self.key, self.radius)
+            # cells of a quarter of the radius: the queries grow their radius from there
+            self._grid = warp_kernels.build_grid(self.points, self.key, self.radius / 4)
+            self._grid.radius = self.radius
+        elif self.backend == "cpu":
+            from scipy.spatial import cKDTree
+
+            keys = self.key.cpu()
+            order = torch.argsort(keys, stable=True)
+            uniq, counts = torch.unique_consecutive(keys[order], return_counts=True)
+            pts = self.points.detach().cpu().double().numpy()
+            self._trees = {}
+            for k, idx in zip(uniq.tolist(), torch.split(order, counts.tolist())):
+                # an unbalanced tree builds in about two thirds of the time and queries as fast
+                self._trees[k] = (cKDTree(pts[idx.numpy()], balanced_tree=False), idx)
 
     def nearest(self, queries: torch.Tensor, problems: torch.Tensor, groups: torch.Tensor,
                 radius: Optional[float] = None) -> torch.Tensor:
@@ -101,7 +122,27 @@ class PointIndex:
             from torchhand.geometry import warp_kernels
 
             return warp_kernels.nearest_in_grid(self._grid, queries, key, radius)
+        if self.backend == "cpu":
+            return self._nearest_kdtree(queries, key, radius)
         return _nearest_brute_force(self.points, self.key, queries, key, radius)
+
+    def _nearest_kdtree(self, queries, key, radius) -> torch.Tensor:
+        import numpy as np
+
+        flat_k = key.reshape(-1).cpu()
+        flat_q = queries.detach().reshape(-1, 3).cpu().double().numpy()
+        out = torch.full((flat_k.shape[0],), -1, dtype=torch.int64)
+        bound = float(np.nextafter(radius, np.inf))  # scipy's bound is exclusive; ours inclusive
+        for k in torch.unique(flat_k[flat_k >= 0]).tolist():
+            if k not in self._trees:
+                continue
+            tree, idx = self._trees[k]
+            qi = torch.nonzero(flat_k == k)[:, 0]
+            d, j = tree.query(flat_q[qi.numpy()], k=1, distance_upper_bound=bound)
+            ok = torch.as_tensor(np.isfinite(d))
+            j = torch.as_tensor(np.where(np.isfinite(d), j, 0))
+            out[qi] = torch.where(ok, idx[j], torch.full_like(j, -1))
+        return out.view(key.shape).to(queries.device)
 
 
 def _nearest_brute_force(points, point_key, queries, key, radius, chunk: int = 4096) -> torch.Tensor:
@@ -148,6 +189,8 @@ def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: tor
         from torchhand.geometry import warp_kernels
 
         return warp_kernels.nearest_marked_pixel(marks, _group_boxes(marks, num_groups), queries, groups, radius)
+    if backend == "cpu":
+        return _nearest_pixel_edt(marks, queries, groups, radius)
     out = torch.full((B, queries.shape[1], 2), -1, dtype=torch.int64, device=marks.device)
     for b in range(B):
         for g in torch.unique(groups[b][groups[b] >= 0]).tolist():
@@ -169,6 +212,33 @@ def pixel_hash(row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
     row and column would pull every tied data-to-model pair the same way (along a rope's
     axis, say), a hash has no preferred direction and is the same on every device."""
     return ((row.long() * 40503) ^ (col.long() * 31337)) & 2147483647  # int32-safe below 32768 px, as in Warp
+
+
+def _nearest_pixel_edt(marks, queries, groups, radius) -> torch.Tensor:
+    """The ``"cpu"`` backend: scipy's exact Euclidean distance transform with indices, on
+    the box holding a group's pixels and its queries."""
+    import numpy as np
+    from scipy.ndimage import distance_transform_edt
+
+    B = marks.shape[0]
+    m, q, g, rad = marks.cpu().numpy(), queries.cpu().numpy(), groups.cpu().numpy(), radius.cpu().numpy()
+    out = np.full(q.shape, -1, np.int64)
+    for b in range(B):
+        for k in np.unique(g[b][g[b] >= 0]):
+            qi = np.nonzero(g[b] == k)[0]
+            pix = np.argwhere(m[b] == k)
+            if len(pix) == 0:
+                continue
+            lo = np.minimum(pix.min(0), q[b, qi].min(0))
+            hi = np.maximum(pix.max(0), q[b, qi].max(0)) + 1
+            feature = np.ones(hi - lo, bool)
+            feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
+            _, (ri, ci) = distance_transform_edt(feature, return_indices=True)
+            rr, cc = q[b, qi, 0] - lo[0], q[b, qi, 1] - lo[1]
+            near = np.stack([ri[rr, cc], ci[rr, cc]], -1) + lo
+            ok = ((near - q[b, qi]) ** 2).sum(-1) <= rad[b, qi] ** 2
+            out[b, qi] = np.where(ok[:, None], near, -1)
+    return torch.as_tensor(out, device=marks.device)
 
 
 def _group_boxes(marks: torch.Tensor, num_groups: int) -> torch.Tensor:

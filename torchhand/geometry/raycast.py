@@ -35,7 +35,7 @@ from typing import List, NamedTuple, Optional, Sequence
 import numpy as np
 import torch
 
-from torchhand.core.check import check_tensor
+from torchhand.core.check import check_index, check_tensor, checks_enabled
 from torchhand.geometry.camera import Camera
 
 __all__ = ["Hits", "BACKENDS", "default_backend", "RayCaster", "views_of", "Views", "camera_rays"]
@@ -169,11 +169,15 @@ class RayCaster:
         self._mesh = None  # warp-raycast: the grouped BVH
         self._rays = None  # cached (views key, origins, directions)
 
-    def __call__(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor] = None) -> Hits:
+    def __call__(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor] = None,
+                 box: Optional[tuple] = None) -> Hits:
         """Hits of (B, V, 3) world-frame vertices in every view.
 
         ``slots``: (B,) int64 the problem slot of each row, for ``"warp-raycast"`` (a
         problem keeps its BVH group from call to call; default ``arange(B)``).
+        ``box``: (r0, r1, c0, c1) host ints, the pixels that can be hit (a caller that
+        knows where its meshes project saves the rest of the image); None: the box of
+        the projected vertices, found here (a host synchronisation).
         Returns :class:`Hits` with N = B x C, problem-major.
         """
         B, V = vertices.shape[:2]
@@ -184,7 +188,7 @@ class RayCaster:
             return Hits(torch.full(shape, -1, dtype=torch.int64, device=dev), torch.zeros(shape, device=dev),
                         torch.zeros(*shape, 2, device=dev))
         if self.backend == "warp":
-            return self._rasterize(vertices, views)
+            return self._rasterize(vertices, views, box)
         if self.backend == "warp-raycast":
             return self._warp_raycast(vertices, views, slots)
         return self._open3d(vertices, views)
@@ -195,13 +199,17 @@ class RayCaster:
             self._faces32 = self.faces.to(device=device, dtype=torch.int32).contiguous()
         return self._faces32
 
-    def _rasterize(self, vertices: torch.Tensor, views: Views) -> Hits:
+    def _rasterize(self, vertices: torch.Tensor, views: Views, box: Optional[tuple]) -> Hits:
         from torchhand.geometry import warp_kernels
 
-        face, t, u, v = warp_kernels.rasterize(vertices.to(torch.float32), self._faces_int32(vertices.device),
-                                               views.intrinsics, views.rotation, views.translation, views.views,
-                                               views.height, views.width, self.cull_back_faces)
-        return Hits(face.long(), t, torch.stack([u, v], -1))
+        vertices = vertices.to(torch.float32)
+        if box is None:
+            b = _box_of(vertices, views)
+            box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
+        face, t, bary = warp_kernels.rasterize(vertices, self._faces_int32(vertices.device), views.intrinsics,
+                                               views.rotation, views.translation, views.views, views.height,
+                                               views.width, self.cull_back_faces, box)
+        return Hits(face, t, bary)
 
     def _warp_raycast(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor]) -> Hits:
         from torchhand.geometry import warp_kernels
@@ -311,12 +319,11 @@ def check_vertices_faces(vertices: torch.Tensor, faces: torch.Tensor) -> tuple:
     vertices, faces = vertices.detach(), faces.detach().long()
     if vertices.shape[0] == 0:
         raise ValueError("vertices has no problems (B = 0): nothing to render")
-    if not bool(torch.isfinite(vertices).all()):
-        bad = torch.nonzero(~torch.isfinite(vertices).all(-1))[:3].tolist()
-        raise ValueError(f"vertices must be finite, got NaN or inf values (first at [problem, vertex] {bad})")
-    V = vertices.shape[1]
-    if faces.shape[0] > 0 and (int(faces.min()) < 0 or int(faces.max()) >= V):
-        raise ValueError(f"faces must index vertices in [0, {V}), got range [{int(faces.min())}, {int(faces.max())}]")
+    if checks_enabled():  # reads every value: skipped inside the tracker's iterations
+        if not bool(torch.isfinite(vertices).all()):
+            bad = torch.nonzero(~torch.isfinite(vertices).all(-1))[:3].tolist()
+            raise ValueError(f"vertices must be finite, got NaN or inf values (first at [problem, vertex] {bad})")
+        check_index(faces, "faces", vertices.shape[1], "vertices")
     return vertices, faces
 
 

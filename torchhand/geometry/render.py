@@ -25,7 +25,8 @@ from torchhand.core.check import check_index, check_tensor, checks_enabled
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.image_ops import max_filter_3x3
 from torchhand.geometry.mesh import face_corners, face_normals
-from torchhand.geometry.raycast import BACKENDS, Hits, RayCaster, _listify, check_vertices_faces, views_of
+from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, _box_of, _listify, check_vertices_faces,
+                                       views_of)
 
 __all__ = ["RenderResult", "Renderer", "render", "silhouette_edges", "visible_vertices", "DEFAULT_EDGE_THRESHOLD_MM",
            "BACKENDS"]
@@ -127,24 +128,34 @@ class Renderer:
         self.bone_ids = _check_ids("face_bone_id", face_bone_id, faces.shape[0], faces)
         self.edge_threshold = float(edge_threshold)
         self.caster = RayCaster(faces, backend, cull_back_faces)
+        self._views_cache = None
 
     @property
     def backend(self) -> str:
         return self.caster.backend
 
+    def _views(self, cams, per_problem: bool, B: int, device) -> Views:
+        """The cameras as tensors, kept while the same camera objects come back."""
+        key = (tuple(id(c) for c in cams), per_problem, B if per_problem else 0, str(device))
+        if self._views_cache is None or self._views_cache[0] != key:
+            views = views_of(cams, len(cams) // B if per_problem else len(cams), device)
+            self._views_cache = (key, views, cams)  # holding the cameras keeps their ids unique
+        return self._views_cache[1]
+
     def hits(self, vertices: torch.Tensor, cameras: Cameras, per_problem: bool = False,
-             slots: Optional[torch.Tensor] = None) -> Hits:
+             slots: Optional[torch.Tensor] = None, box: Optional[tuple] = None) -> Hits:
         """The backend's raw :class:`Hits` (N = B x C views); see :meth:`__call__`."""
         vertices, _ = check_vertices_faces(vertices, self.faces)
-        cams = _listify(cameras)
+        return self._hits(vertices, _listify(cameras), per_problem, slots, box)
+
+    def _hits(self, vertices, cams, per_problem, slots, box) -> Hits:
         B = vertices.shape[0]
         if per_problem and len(cams) % B:
             raise ValueError(f"per_problem needs a multiple of B = {B} cameras (problem-major), got {len(cams)}")
-        views = views_of(cams, len(cams) // B if per_problem else len(cams), vertices.device)
-        return self.caster(vertices, views, slots)
+        return self.caster(vertices, self._views(cams, per_problem, B, vertices.device), slots, box)
 
     def __call__(self, vertices: torch.Tensor, cameras: Cameras, *, normals: bool = True, per_problem: bool = False,
-                 slots: Optional[torch.Tensor] = None) -> RenderResult:
+                 slots: Optional[torch.Tensor] = None, box: Optional[tuple] = None) -> RenderResult:
         """Render (B, V, 3) (or (V, 3)) world-frame vertices in mm.
 
         Args:
@@ -154,6 +165,10 @@ class Renderer:
             normals: compute the pixel normals (the tracker does not need them).
             slots: with ``"warp-raycast"``, the BVH group of each problem (see
                 :class:`~torchhand.geometry.raycast.RayCaster`).
+            box: (r0, r1, c0, c1) host ints: the pixels that can be hit, with at least a
+                2 px empty border around the meshes' projections (the derived maps are
+                computed there only; the rest of the image is empty). None: the box of
+                the projected vertices (found with a host synchronisation).
         """
         vertices, faces = check_vertices_faces(vertices, self.faces)
         if self.model_ids.device != vertices.device:
@@ -161,32 +176,47 @@ class Renderer:
                                                         (self.faces, self.model_ids, self.bone_ids))
             self.caster.faces = self.faces
         single = isinstance(cameras, Camera)
-        hits = self.hits(vertices, cameras, per_problem, slots)
+        cams = _listify(cameras)
         B = vertices.shape[0]
+        views = self._views(cams, per_problem, B, vertices.device)
+        if box is None:
+            b = _box_of(vertices.to(torch.float32), views)
+            box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
+        H, W = views.height, views.width
+        box = (max(int(box[0]), 0), min(int(box[1]), H), max(int(box[2]), 0), min(int(box[3]), W))
+        hits = self.caster(vertices, views, slots, box)
         C = hits.face_id.shape[0] // B
-        res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, _listify(cameras),
-                     self.edge_threshold, normals)
+        res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, cams, self.edge_threshold,
+                     normals, box)
         if single:
             return res
         return RenderResult(*(None if x is None else x.view(B, C, *x.shape[1:]) for x in res))
 
 
 def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
-           views: int, cameras, edge_threshold: float, normals: bool) -> RenderResult:
-    """Depth, ids, normals and silhouettes of (N, H, W) hits, N = B x ``views``."""
+           views: int, cameras, edge_threshold: float, normals: bool, box: tuple) -> RenderResult:
+    """Depth, ids, normals and silhouettes of (N, H, W) hits, N = B x ``views``, computed
+    inside ``box`` (r0, r1, c0, c1) and empty outside it."""
+    r0, r1, c0, c1 = box
+    crop = (slice(None), slice(r0, r1), slice(c0, c1))
     face_id = hits.face_id
-    hit = face_id >= 0
-    depth = torch.where(hit, hits.t, torch.zeros((), dtype=hits.t.dtype, device=hits.t.device))
-    safe = face_id.clamp(min=0)
-    empty = torch.full((), -1, dtype=torch.int64, device=face_id.device)
-    if faces.shape[0] == 0:
-        model_id = bone_id = face_id.new_full(face_id.shape, -1)
-    else:
-        model_id = torch.where(hit, model_ids.take(safe), empty)  # take: a flat gather
-        bone_id = torch.where(hit, bone_ids.take(safe), empty)
-    pixel_normals = _pixel_normals(vertices, faces, face_id, hit, views, cameras) if normals else None
-    return RenderResult(depth, face_id, model_id, bone_id, pixel_normals, silhouette_edges(depth, edge_threshold),
-                        hits.barycentric * hit[..., None])
+    hit = face_id[crop] >= 0
+    depth = torch.zeros_like(hits.t)
+    depth[crop] = torch.where(hit, hits.t[crop], 0.0)
+    model_id, bone_id = torch.full_like(face_id, -1), torch.full_like(face_id, -1)
+    if faces.shape[0]:
+        safe = face_id[crop].clamp(min=0)
+        model_id[crop] = torch.where(hit, model_ids.take(safe), -1)  # take: a flat gather
+        bone_id[crop] = torch.where(hit, bone_ids.take(safe), -1)
+    edges = torch.zeros_like(face_id, dtype=torch.bool)
+    edges[crop] = silhouette_edges(depth[crop], edge_threshold)  # the box keeps an empty border
+    bary = torch.zeros_like(hits.barycentric)
+    bary[crop] = hits.barycentric[crop] * hit[..., None]
+    pixel_normals = None
+    if normals:
+        pixel_normals = torch.zeros(*face_id.shape, 3, dtype=torch.float32, device=face_id.device)
+        pixel_normals[crop] = _pixel_normals(vertices, faces, face_id[crop], hit, views, cameras)
+    return RenderResult(depth, face_id, model_id, bone_id, pixel_normals, edges, bary)
 
 
 def _pixel_normals(vertices, faces, face_id, hit, views, cameras) -> torch.Tensor:
@@ -240,13 +270,15 @@ def render(vertices: torch.Tensor, faces: torch.Tensor, camera: Cameras, face_mo
         vertices, camera, normals=normals)
 
 
-def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
+def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_vertices: int,
+                     box: Optional[tuple] = None) -> torch.Tensor:
     """Vertices of triangles hit by at least one pixel (batched, no host sync).
 
     Args:
         render_result: output of :func:`render`; only ``face_id`` (B, H, W) is used.
         faces: (F, 3) int64 faces that were rendered.
         num_vertices: V, the number of rendered vertices.
+        box: (r0, r1, c0, c1) the pixels the render covered (None: all).
 
     Returns:
         (B, V) bool visibility mask on the device of ``render_result.face_id``.
@@ -260,6 +292,8 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     check_index(faces, "faces", num_vertices, "vertices")  # host syncs, skipped under skip_checks()
     check_index(face_id[face_id >= 0] if checks_enabled() else face_id[:0], "render_result.face_id", num_faces, "faces")
     faces = faces.long().to(face_id.device)
+    if box is not None:
+        face_id = face_id[:, box[0] : box[1], box[2] : box[3]]
     flat = face_id.reshape(B, -1).long()
     # one extra column collects the empty pixels (-1)
     hit_faces = torch.zeros(B, num_faces + 1, dtype=torch.uint8, device=face_id.device)

@@ -21,6 +21,7 @@ torch zero-copy (``wp.from_torch``), never through numpy, on the tensors' own de
 
 from __future__ import annotations
 
+import contextlib
 import functools
 
 import torch
@@ -51,6 +52,19 @@ def _warp():
 def require_warp():
     """The ``warp`` module, initialised quietly; ImportError naming the extra when missing."""
     return _warp()
+
+
+@contextlib.contextmanager
+def on_torch_stream(device: torch.device):
+    """Run the enclosed Warp work on torch's current stream of ``device`` (CUDA), so that
+    it is ordered with the torch operations around it without a synchronisation."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        yield
+        return
+    wp = _warp()
+    with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(device))):
+        yield
 
 
 def wp_device(device: torch.device) -> str:
@@ -126,14 +140,20 @@ def _kernels():
             return
         x = queries[b, k]
         best = int(-1)
-        best_d2 = radius * radius
-        query = wp.hash_grid_query(grid, x, radius, g)
-        j = int(0)
-        while wp.hash_grid_query_next(query, j):
-            d2 = wp.length_sq(points[j] - x)
-            if d2 < best_d2 or (d2 == best_d2 and (best < 0 or j < best)):
-                best_d2 = d2
-                best = j
+        # growing radii, radius / 4, / 2, / 1: every point within rho lies in the cells
+        # the query at rho visits, so a point found within rho is the exact nearest; most
+        # queries (vertices near their data) stop at the first, cheap radius
+        rho = radius * 0.25
+        while best < 0 and rho <= radius * 1.0001:
+            best_d2 = rho * rho
+            query = wp.hash_grid_query(grid, x, rho, g)
+            j = int(0)
+            while wp.hash_grid_query_next(query, j):
+                d2 = wp.length_sq(points[j] - x)
+                if d2 < best_d2 or (d2 == best_d2 and (best < 0 or j < best)):
+                    best_d2 = d2
+                    best = j
+            rho = rho * 2.0
         index_out[b, k] = best
 
     @wp.func
@@ -200,7 +220,8 @@ def _kernels():
     @wp.kernel(enable_backward=False)
     def raster_kernel(verts: wp.array2d(dtype=wp.vec3), faces: wp.array2d(dtype=wp.int32),
                       intr: wp.array2d(dtype=wp.float32), rot: wp.array(dtype=wp.mat33), trans: wp.array(dtype=wp.vec3),
-                      views: int, cam_batch: int, cull: int, zbuf: wp.array3d(dtype=wp.int64)):
+                      views: int, cam_batch: int, cull: int, r_lo: int, r_hi: int, c_lo: int, c_hi: int,
+                      zbuf: wp.array3d(dtype=wp.int64)):
         i, f = wp.tid()  # i = b * views + view
         b = i // views
         cam = (b % cam_batch) * views + (i - b * views)
@@ -226,12 +247,11 @@ def _kernels():
         y1 = fy * p1[1] / p1[2] + cy
         x2 = (fx * p2[0] + sk * p2[1]) / p2[2] + cx
         y2 = fy * p2[1] / p2[2] + cy
-        H = zbuf.shape[1]
-        W = zbuf.shape[2]
-        c0 = wp.max(int(wp.ceil(wp.min(wp.min(x0, x1), x2))), 0)
-        c1 = wp.min(int(wp.floor(wp.max(wp.max(x0, x1), x2))), W - 1)
-        r0 = wp.max(int(wp.ceil(wp.min(wp.min(y0, y1), y2))), 0)
-        r1 = wp.min(int(wp.floor(wp.max(wp.max(y0, y1), y2))), H - 1)
+        # the pixel centres the face covers, within the box [r_lo, r_hi) x [c_lo, c_hi)
+        c0 = wp.max(int(wp.ceil(wp.min(wp.min(x0, x1), x2))), c_lo)
+        c1 = wp.min(int(wp.floor(wp.max(wp.max(x0, x1), x2))), c_hi - 1)
+        r0 = wp.max(int(wp.ceil(wp.min(wp.min(y0, y1), y2))), r_lo)
+        r1 = wp.min(int(wp.floor(wp.max(wp.max(y0, y1), y2))), r_hi - 1)
         for r in range(r0, r1 + 1):
             py = float(r)
             for c in range(c0, c1 + 1):
@@ -251,22 +271,21 @@ def _kernels():
                             # the nearest depth wins, then the smaller face id: positive float bits
                             # order as integers, so one 64-bit atomic min resolves both
                             key = (wp.int64(wp.cast(z, wp.int32)) << wp.int64(32)) | wp.int64(f)
-                            wp.atomic_min(zbuf, i, r, c, key)
+                            wp.atomic_min(zbuf, i, r - r_lo, c - c_lo, key)
 
     @wp.kernel(enable_backward=False)
     def resolve_kernel(zbuf: wp.array3d(dtype=wp.int64), verts: wp.array2d(dtype=wp.vec3),
                        faces: wp.array2d(dtype=wp.int32), intr: wp.array2d(dtype=wp.float32),
                        rot: wp.array(dtype=wp.mat33), trans: wp.array(dtype=wp.vec3), views: int, cam_batch: int,
-                       face_out: wp.array3d(dtype=wp.int32), t_out: wp.array3d(dtype=wp.float32),
-                       u_out: wp.array3d(dtype=wp.float32), v_out: wp.array3d(dtype=wp.float32)):
-        i, r, c = wp.tid()
-        face_out[i, r, c] = -1
-        t_out[i, r, c] = 0.0
-        u_out[i, r, c] = 0.0
-        v_out[i, r, c] = 0.0
-        key = zbuf[i, r, c]
+                       r_lo: int, c_lo: int, face_out: wp.array3d(dtype=wp.int64), t_out: wp.array3d(dtype=wp.float32),
+                       bary_out: wp.array4d(dtype=wp.float32)):
+        # over the box; the outputs come filled with "empty" (-1 and 0)
+        i, rb, cb = wp.tid()
+        key = zbuf[i, rb, cb]
         if key == EMPTY:
             return
+        r = rb + r_lo
+        c = cb + c_lo
         f = int(key & wp.int64(0xFFFFFFFF))
         b = i // views
         cam = (b % cam_batch) * views + (i - b * views)
@@ -287,10 +306,10 @@ def _kernels():
             return
         tvec = -p0
         qvec = wp.cross(tvec, e1)
-        face_out[i, r, c] = f
+        face_out[i, r, c] = wp.int64(f)
         t_out[i, r, c] = wp.float32(wp.dot(e2, qvec) / det)
-        u_out[i, r, c] = wp.float32(wp.dot(tvec, pvec) / det)
-        v_out[i, r, c] = wp.float32(wp.dot(dd, qvec) / det)
+        bary_out[i, r, c, 0] = wp.float32(wp.dot(tvec, pvec) / det)
+        bary_out[i, r, c, 1] = wp.float32(wp.dot(dd, qvec) / det)
 
     return cast_kernel, nearest_grid_kernel, nearest_pixel_kernel, raster_kernel, resolve_kernel
 
@@ -325,10 +344,11 @@ class GroupedMesh:
         """Build the BVH for the current points (and find every group's root)."""
         wp = _warp()
         # the groups array stays referenced by the BVH for its lifetime
-        self.mesh = wp.Mesh(points=self._wp_points, indices=self._wp_indices, groups=wp.from_torch(self._groups))
-        self.refits = 0
-        wp.launch(_roots_kernel(), dim=self.capacity, inputs=[self.mesh.id], outputs=[wp.from_torch(self.roots)],
-                  device=wp_device(self.device))
+        with on_torch_stream(self.device):
+            self.mesh = wp.Mesh(points=self._wp_points, indices=self._wp_indices, groups=wp.from_torch(self._groups))
+            self.refits = 0
+            wp.launch(_roots_kernel(), dim=self.capacity, inputs=[self.mesh.id], outputs=[wp.from_torch(self.roots)],
+                      device=wp_device(self.device))
 
     def matches(self, faces: torch.Tensor, num_vertices: int, capacity: int, device: torch.device) -> bool:
         """True when this mesh can serve ``capacity`` problem slots of this topology."""
@@ -339,7 +359,8 @@ class GroupedMesh:
     def update(self, vertices: torch.Tensor, slots: torch.Tensor) -> None:
         """Write (b, V, 3) vertices into the problem slots ``slots`` (b,) int64 and refit."""
         self.points.view(self.capacity, self.num_vertices, 3)[slots] = vertices.detach().to(torch.float32)
-        self.mesh.refit()
+        with on_torch_stream(self.device):
+            self.mesh.refit()
         self.refits += 1
 
 
@@ -383,19 +404,21 @@ def cast_rays(gm: GroupedMesh, slots: torch.Tensor, origins: torch.Tensor, dirs:
     face = torch.empty(N, H, W, dtype=torch.int32, device=dev)
     t, u, v = (torch.empty(N, H, W, dtype=torch.float32, device=dev) for _ in range(3))
     ray_batch = origins.shape[0] // views
-    wp.launch(cast_kernel, dim=(N, H, W),
-              inputs=[gm.mesh.id, wp.from_torch(slots.to(torch.int32).contiguous()), wp.from_torch(gm.roots),
-                      gm._wp_points, gm._wp_indices,
-                      wp.from_torch(origins.contiguous(), dtype=wp.vec3), wp.from_torch(dirs.contiguous(), dtype=wp.vec3),
-                      wp.from_torch(boxes.contiguous()), views, ray_batch, gm.faces.shape[0]],
-              outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(u), wp.from_torch(v)],
-              device=wp_device(dev))
+    with on_torch_stream(dev):
+        wp.launch(cast_kernel, dim=(N, H, W),
+                  inputs=[gm.mesh.id, wp.from_torch(slots.to(torch.int32).contiguous()), wp.from_torch(gm.roots),
+                          gm._wp_points, gm._wp_indices,
+                          wp.from_torch(origins.contiguous(), dtype=wp.vec3), wp.from_torch(dirs.contiguous(), dtype=wp.vec3),
+                          wp.from_torch(boxes.contiguous()), views, ray_batch, gm.faces.shape[0]],
+                  outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(u), wp.from_torch(v)],
+                  device=wp_device(dev))
     return face, t, u, v
 
 
 def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Tensor, rotations: torch.Tensor,
-              translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool) -> tuple:
-    """Hits of the pixel centres of B x ``views`` pinhole views.
+              translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool,
+              box: tuple) -> tuple:
+    """Hits of the pixel centres of B x ``views`` pinhole views, inside a pixel box.
 
     Args:
         vertices: (B, V, 3) float32 world-frame vertices.
@@ -405,27 +428,35 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
         rotations, translations: (R, 3, 3) and (R, 3) float32 world-to-camera.
         cull_back_faces: skip faces turned away from the camera (exact for closed meshes
             with outward normals seen from outside).
+        box: (r0, r1, c0, c1) the pixels drawn; the others stay empty.
     Returns:
-        face (B x views, H, W) int32 (-1: none), t (depth, mm), u, v: as :func:`cast_rays`.
+        face (B x views, H, W) int64 (-1: none), t (depth, mm; 0: none), barycentric
+        (B x views, H, W, 2) float32 (0: none), as :func:`cast_rays`.
     """
     wp = _warp()
     _, _, _, raster_kernel, resolve_kernel = _kernels()
     N = vertices.shape[0] * views
     dev = vertices.device
+    r0, r1, c0, c1 = (int(x) for x in box)
+    r0, r1, c0, c1 = max(r0, 0), min(r1, height), max(c0, 0), min(c1, width)
+    h, w = max(r1 - r0, 0), max(c1 - c0, 0)
     cam_batch = intrinsics.shape[0] // views
-    zbuf = torch.full((N, height, width), EMPTY_KEY, dtype=torch.int64, device=dev)
+    face = torch.full((N, height, width), -1, dtype=torch.int64, device=dev)
+    t = torch.zeros(N, height, width, dtype=torch.float32, device=dev)
+    bary = torch.zeros(N, height, width, 2, dtype=torch.float32, device=dev)
+    if h == 0 or w == 0 or faces.shape[0] == 0:
+        return face, t, bary
+    zbuf = torch.full((N, h, w), EMPTY_KEY, dtype=torch.int64, device=dev)
     args = [wp.from_torch(vertices.contiguous(), dtype=wp.vec3), wp.from_torch(faces.contiguous()),
             wp.from_torch(intrinsics.contiguous()), wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
             wp.from_torch(translations.contiguous(), dtype=wp.vec3), views, cam_batch]
     device = wp_device(dev)
-    if faces.shape[0]:
-        wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces)],
+    with on_torch_stream(dev):
+        wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=device)
-    face = torch.empty(N, height, width, dtype=torch.int32, device=dev)
-    t, u, v = (torch.empty(N, height, width, dtype=torch.float32, device=dev) for _ in range(3))
-    wp.launch(resolve_kernel, dim=(N, height, width), inputs=[wp.from_torch(zbuf)] + args,
-              outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(u), wp.from_torch(v)], device=device)
-    return face, t, u, v
+        wp.launch(resolve_kernel, dim=(N, h, w), inputs=[wp.from_torch(zbuf)] + args + [r0, c0],
+                  outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary)], device=device)
+    return face, t, bary
 
 
 class Grid:
@@ -440,7 +471,8 @@ class Grid:
         self.grid = wp.HashGrid(dims, dims, dims, device=wp_device(self.device))
         self._wp_points = wp.from_torch(self.points, dtype=wp.vec3)
         if len(self.points):
-            self.grid.build(self._wp_points, self.radius, groups=wp.from_torch(self.groups))
+            with on_torch_stream(self.device):
+                self.grid.build(self._wp_points, self.radius, groups=wp.from_torch(self.groups))
 
 
 def build_grid(points: torch.Tensor, groups: torch.Tensor, radius: float) -> Grid:
@@ -462,11 +494,12 @@ def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, rad
         return out.fill_(-1).long()
     if radius > grid.radius + 1e-6:
         raise ValueError(f"radius {radius} exceeds the grid's cell size {grid.radius}")
-    wp.launch(kernel, dim=(B, n),
-              inputs=[grid.grid.id, grid._wp_points,
-                      wp.from_torch(queries.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
-                      wp.from_torch(groups.to(torch.int32).contiguous()), float(radius)],
-              outputs=[wp.from_torch(out)], device=wp_device(queries.device))
+    with on_torch_stream(queries.device):
+        wp.launch(kernel, dim=(B, n),
+                  inputs=[grid.grid.id, grid._wp_points,
+                          wp.from_torch(queries.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
+                          wp.from_torch(groups.to(torch.int32).contiguous()), float(radius)],
+                  outputs=[wp.from_torch(out)], device=wp_device(queries.device))
     return out.long()
 
 
@@ -485,9 +518,10 @@ def nearest_marked_pixel(marks: torch.Tensor, boxes: torch.Tensor, queries: torc
     out = torch.empty(B, n, 2, dtype=torch.int32, device=marks.device)
     if B * n == 0:
         return out.long()
-    wp.launch(kernel, dim=(B, n),
-              inputs=[wp.from_torch(marks.to(torch.int32).contiguous()), wp.from_torch(boxes.to(torch.int32).contiguous()),
-                      wp.from_torch(queries.to(torch.int32).contiguous()), wp.from_torch(groups.to(torch.int32).contiguous()),
-                      wp.from_torch(radius.to(torch.int32).contiguous())],
-              outputs=[wp.from_torch(out)], device=wp_device(marks.device))
+    with on_torch_stream(marks.device):
+        wp.launch(kernel, dim=(B, n),
+                  inputs=[wp.from_torch(marks.to(torch.int32).contiguous()), wp.from_torch(boxes.to(torch.int32).contiguous()),
+                          wp.from_torch(queries.to(torch.int32).contiguous()), wp.from_torch(groups.to(torch.int32).contiguous()),
+                          wp.from_torch(radius.to(torch.int32).contiguous())],
+                  outputs=[wp.from_torch(out)], device=wp_device(marks.device))
     return out.long()

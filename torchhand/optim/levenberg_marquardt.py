@@ -28,6 +28,9 @@ class LMResult(NamedTuple):
         damping: (B,) final lambda (to warm-start the next solve).
         rejected: (B,) steps tried and rejected per problem (retries included).
         evaluations: residual evaluations, with or without Jacobian, of the whole batch.
+        status: the host list of ``status(theta, iterations)`` at the returned theta when
+            it was read together with the retry check, else None (see
+            :func:`levenberg_marquardt`).
     """
 
     theta: torch.Tensor
@@ -37,6 +40,7 @@ class LMResult(NamedTuple):
     damping: torch.Tensor
     rejected: torch.Tensor
     evaluations: int
+    status: Optional[list] = None
 
 
 def solve_damped(J: torch.Tensor, r: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
@@ -67,6 +71,7 @@ def levenberg_marquardt(
     step_tolerance: float = 0.0,
     check_every: int = 5,
     retries: int = 0,
+    status: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None,
 ) -> LMResult:
     """Minimise sum(r(theta)^2) for a batch of independent problems.
 
@@ -85,7 +90,17 @@ def levenberg_marquardt(
             Jacobian (theta has not moved); only the residuals at the new candidate
             are evaluated. An iteration thus ends with an accepted step unless the
             retries run out. With retries the loop synchronises with the host once per
-            retry, to stop retrying when every problem has accepted.
+            attempt that could be followed by another, to stop retrying when every
+            problem has accepted.
+        status: optional ``status(theta (B, D), iterations (B,)) -> (B,) bool``, read from
+            the device in the same transfer as that retry check, so that a caller that
+            needs a per-problem flag at the solution (a stopping rule) gets it without a
+            second synchronisation: :attr:`LMResult.status`.
+
+    An objective that keeps what it computed at the thetas it was called with (the
+    posed scene, say) may define ``accept(mask)``: after every attempt the solver calls
+    it with the (B,) bool mask of the problems whose candidate it took, so the objective
+    can follow the solver's theta without recomputing it.
     Returns:
         :class:`LMResult`.
     """
@@ -100,7 +115,10 @@ def levenberg_marquardt(
     r, J = residuals(theta, True)
     evaluations = 1
     cost = (r * r).sum(-1)
+    on_accept = getattr(residuals, "accept", None)
+    host_status = None
     for it in range(max_iterations):
+        host_status = None
         if lower is not None or upper is not None:
             J = _freeze_active_bounds(J, r, theta, lower, upper)
         todo = ~done  # problems still looking for an acceptable step in this iteration
@@ -113,19 +131,28 @@ def levenberg_marquardt(
             accept = (cost_new < cost) & todo
             rejected = rejected + (todo & ~accept).long()
             theta = torch.where(accept[:, None], cand, theta)
+            if on_accept is not None:
+                on_accept(accept)
             lam = torch.where(accept, lam * 0.1, torch.where(todo, lam * 10, lam)).clamp(1e-9, 1e9)
             iters = iters + accept.long()
             done = done | (accept & (delta.abs().amax(-1) <= step_tolerance)) | (lam >= 1e9)
             cost = torch.where(accept, cost_new, cost)
             todo = todo & ~accept & ~done
-            if attempt < retries and not bool(todo.any()):
-                break
+            if attempt < retries:
+                if status is None:
+                    if not bool(todo.any()):
+                        break
+                    continue
+                flags = torch.cat([todo.any()[None], status(theta, iters).bool()]).tolist()  # one transfer
+                if not flags[0]:
+                    host_status = flags[1:]
+                    break
         if (it + 1) % check_every == 0 and bool(done.all()):
             break
         if it + 1 < max_iterations:
             r, J = residuals(theta, True)
             evaluations += 1
-    return LMResult(theta, cost, iters, done, lam, rejected, evaluations)
+    return LMResult(theta, cost, iters, done, lam, rejected, evaluations, host_status)
 
 
 def _freeze_active_bounds(J, r, theta, lower, upper):

@@ -14,7 +14,7 @@ import collections
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Iterable, Iterator, List, NamedTuple, Optional, Sequence, Union
 
 import cv2
 import numpy as np
@@ -23,7 +23,7 @@ import torch
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.core.check import skip_checks
-from torchhand.geometry.raycast import BACKENDS, default_backend
+from torchhand.geometry.raycast import BACKENDS, _box_of, default_backend
 from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
@@ -64,7 +64,10 @@ class TrackerConfig:
     and the recovery keep the previous pose as their reference.
     backend: of the renders (``"warp"``, ``"warp-raycast"`` or ``"open3d"``,
     :mod:`torchhand.geometry.raycast`) and, with it, of the neighbour searches (Warp for
-    the Warp backends, the torch reference for open3d); None: Warp when installed."""
+    the Warp backends, the CPU reference for open3d); None: Warp when installed;
+    render_margin: px around the projection of a solve's start poses that its renders
+    cover (the models move a few mm within a frame: 48 px are about 40 mm at 450 mm; a
+    model that leaves the box loses the pixels outside it for that frame)."""
 
     energy: str = "LO"
     metric: str = "point-to-plane"
@@ -82,6 +85,7 @@ class TrackerConfig:
     prediction_limiter: bool = True
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     backend: Optional[str] = None
+    render_margin: int = 48
 
     def __post_init__(self) -> None:
         if (isinstance(self.prediction, bool) or not isinstance(self.prediction, (int, float))
@@ -99,8 +103,8 @@ class TrackerConfig:
 
     @property
     def neighbor_backend(self) -> str:
-        """``"warp"`` with a Warp render backend, else the torch reference."""
-        return "warp" if self.render_backend.startswith("warp") else "torch"
+        """``"warp"`` with a Warp render backend, else scipy on the CPU (``"cpu"``)."""
+        return "warp" if self.render_backend.startswith("warp") else "cpu"
 
 
 class FrameResult(NamedTuple):
@@ -171,30 +175,43 @@ class Objective:
     """The stacked residuals of prepared terms, as the solver calls them:
     ``objective(theta, jacobian) -> (r (B, m), J (B, m, D) or None)``.
 
-    It poses the scene once per theta and keeps two poses (the state's and the latest
-    one the solver tried), so that the caller gets the posed scene at the solution
-    without posing it again: :meth:`posed_at`.
+    It poses the scene once per theta it is called with and follows the solver's
+    accepted steps (:meth:`accept`), so that :attr:`current` is the scene posed at the
+    solver's theta without posing it again, and without comparing tensors (a host sync).
+    The solver's first call is at its start clamped to the bounds: ``theta`` (with its
+    ``posed`` scene) must lie within them, so that this call reuses ``posed``.
     """
 
     def __init__(self, scene: Scene, terms: Sequence[EnergyTerm], theta: torch.Tensor, posed: SceneOutput):
         self.scene, self.terms = scene, list(terms)
-        self._poses: List[Tuple[torch.Tensor, SceneOutput]] = [(theta, posed)]
-
-    def posed_at(self, theta: torch.Tensor) -> SceneOutput:
-        """The scene posed at ``theta`` (from the cache when the solver evaluated it last)."""
-        for th, out in self._poses:
-            if th.shape == theta.shape and torch.equal(th, theta):
-                return out
-        out = self.scene(theta, validate=False)
-        self._poses[1:] = [(theta, out)]
-        return out
+        self.current = posed  # the scene at the solver's current theta
+        self._first, self._last = True, (theta, posed)  # the latest theta evaluated and its pose
 
     def __call__(self, theta: torch.Tensor, jacobian: bool):
-        posed = self.posed_at(theta)
+        if self._first:  # the start (clamping a theta within the bounds changes no value)
+            self._first, posed = False, self.current
+        elif theta is self._last[0]:
+            posed = self._last[1]
+        else:
+            posed = self.scene(theta, validate=False)
+            self._last = (theta, posed)
         parts = [t.residuals(theta, posed, jacobian) for t in self.terms]
         r = torch.cat([p.r for p in parts], 1)
         J = torch.cat([p.J for p in parts], 1) if jacobian else None
         return r, J
+
+    def accept(self, mask: torch.Tensor) -> None:
+        """The solver took the latest candidate for the problems of ``mask`` (B,) bool."""
+        cand = self._last[1]
+        self.current = SceneOutput(*(_where(mask, a, b) for a, b in zip(cand[:2], self.current[:2])),
+                                   [type(mc)(*(_where(mask, a, b) for a, b in zip(mc, mo)))
+                                    for mc, mo in zip(cand.models, self.current.models)])
+
+
+def _where(mask: torch.Tensor, a, b):
+    if not isinstance(a, torch.Tensor):
+        return a
+    return torch.where(mask.view(-1, *([1] * (a.dim() - 1))), a, b)
 
 
 class Tracker:
@@ -233,25 +250,38 @@ class Tracker:
         self._energy_history.clear()
 
     # ------------------------------------------------------------------ frames
-    def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera], slots: torch.Tensor) -> RenderResult:
-        """One render call for the batch: one camera for all, or one per problem."""
+    def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera], slots: torch.Tensor,
+                shared: bool, box: Optional[tuple]) -> RenderResult:
+        """One render call for the batch: one camera for all (``shared``), or one per problem."""
         with skip_checks():  # the library's own posed vertices
-            if all(_same_camera(c, cameras[0]) for c in cameras):
-                return self.renderer(vertices, cameras[0], normals=False, slots=slots)
-            r = self.renderer(vertices, list(cameras), normals=False, per_problem=True, slots=slots)
+            if shared:
+                return self.renderer(vertices, cameras[0], normals=False, slots=slots, box=box)
+            r = self.renderer(vertices, list(cameras), normals=False, per_problem=True, slots=slots, box=box)
         return RenderResult(*(None if x is None else x[:, 0] for x in r))
 
+    def _box(self, vertices: torch.Tensor, cameras: Sequence[Camera], shared: bool) -> tuple:
+        """The pixel box the solve renders in: the projections of its start poses, widened
+        by ``config.render_margin`` px for the motion within the frame (one host sync per
+        solve)."""
+        cams = [cameras[0]] if shared else list(cameras)
+        views = self.renderer._views(cams, not shared, vertices.shape[0], vertices.device)
+        b = _box_of(vertices.detach().to(torch.float32), views)
+        m = self.config.render_margin
+        lo, hi = b.amin(0).tolist(), b.amax(0).tolist()
+        return (lo[0] - m, hi[1] + m, lo[2] - m, hi[3] + m)
+
     def _state(self, theta, previous, frames, cameras, problems=None, frame_data=None, posed=None,
-               labels=None) -> TrackState:
+               labels=None, shared=None, box=None) -> TrackState:
         problems = torch.arange(theta.shape[0], device=theta.device) if problems is None else problems
         frame_data = {} if frame_data is None else frame_data
+        shared = all(_same_camera(c, cameras[0]) for c in cameras) if shared is None else shared
         posed = posed if posed is not None else self.scene(theta, validate=False)
-        rend = self._render(posed.vertices.detach(), cameras, problems)
+        rend = self._render(posed.vertices.detach(), cameras, problems, shared, box)
         if labels is None:  # once per frame, at its start pose (OpenCV on the CPU)
             labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
                                   for b, f in enumerate(frames)])
         return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels, problems=problems,
-                          frame_data=frame_data)
+                          frame_data=frame_data, box=box)
 
     def _prepare(self, state: TrackState):
         """Prepare every term: the data terms, then the priors with C_all known.
@@ -277,7 +307,7 @@ class Tracker:
         candidate without a correspondence charged its truncated square
         (:attr:`Prepared.unmatched`).
         """
-        theta = start.clone()
+        theta = self.scene.clamp(start)  # within the bounds, as the solver keeps it (see Objective)
         B = theta.shape[0]
         lower, upper = self.scene.lower, self.scene.upper
         min_motion = self.config.min_joint_motion if min_motion is None else min_motion
@@ -292,32 +322,40 @@ class Tracker:
         idx = torch.arange(B, device=theta.device)
         posed, labels = None, None
         frame_data: dict = {}  # the terms' data side of this solve
+        shared = all(_same_camera(c, cameras[0]) for c in cameras)  # once per solve (compares tensors)
+        with torch.no_grad():
+            posed = self.scene(theta, validate=False)
+            box = self._box(posed.vertices, cameras, shared)
         for it in range(iterations):
             with torch.no_grad():
                 state = self._state(theta[idx], previous[idx], [frames[b] for b in sub], [cameras[b] for b in sub],
-                                    idx, frame_data, posed, labels)
+                                    idx, frame_data, posed, labels, shared, box)
                 labels = state.data_labels  # labelled once per frame, at its start pose
                 count, candidates, unmatched = self._prepare(state)
                 counts[idx] = count.to(counts.device)
                 objective = Objective(self.scene, self.terms, state.theta, state.posed)
+
+                def going(th, steps, objective=objective, state=state):
+                    # a problem goes on while its joints move; one whose step was rejected
+                    # after every retry moved nothing: its correspondences would not change
+                    return (self.scene.joint_motion(state.posed, objective.current) >= min_motion) & (steps > 0)
+
                 res = levenberg_marquardt(objective, state.theta, lower, upper,
                                           max_iterations=self.config.inner_iterations, damping=damping[idx],
-                                          retries=self.config.step_retries)
-                posed = objective.posed_at(res.theta)
-                moved = self.scene.joint_motion(state.posed, posed)
+                                          retries=self.config.step_retries, status=going)
+                posed = objective.current
             theta[idx], damping[idx] = res.theta, res.damping
             energy[idx] = (res.cost + unmatched.to(theta)) / candidates.to(theta).clamp_min(1)
             iters[idx] += 1
-            # a problem whose step was rejected after every retry moved nothing: the
-            # correspondences would not change, so it has converged
-            going = (moved >= min_motion) & (res.iterations > 0)
-            flags = going.tolist()  # the stopping rule: one host sync per outer iteration
+            # the stopping rule: one host sync per outer iteration, read with the solver's
+            # retry check when there is one
+            flags = res.status if res.status is not None else going(res.theta, res.iterations).tolist()
             if not any(flags):
                 break
             if not all(flags):
                 sub = [b for b, g in zip(sub, flags) if g]
                 idx = torch.tensor(sub, device=theta.device)
-                keep = torch.tensor(flags, device=going.device)
+                keep = torch.tensor(flags, device=theta.device)
                 labels, posed = labels[keep], posed.select(keep)
         return SolveResult(theta, iters, energy, counts)
 

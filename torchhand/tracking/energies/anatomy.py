@@ -30,9 +30,10 @@ class Anatomy(EnergyTerm):
         self.scale = 1.0  # the folded weight (B, 1), see fold_weight
 
     def prepare(self, state: TrackState) -> Prepared:
-        lo, hi = state.scene.lower, state.scene.upper
-        self.joints = torch.nonzero(torch.isfinite(lo) & torch.isfinite(hi))[:, 0]
-        self.lo, self.hi = lo[self.joints], hi[self.joints]
+        if getattr(self, "_scene", None) is not state.scene:  # the limited joints, once per scene
+            lo, hi = state.scene.lower, state.scene.upper
+            self.joints = torch.nonzero(torch.isfinite(lo) & torch.isfinite(hi))[:, 0]
+            self.lo, self.hi, self._scene = lo[self.joints], hi[self.joints], state.scene
         self.scale = 1.0
         return prepared(state.theta.shape[0], device=state.theta.device)
 

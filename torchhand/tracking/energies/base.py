@@ -108,7 +108,8 @@ class TrackState:
     that converged leave the batch: the others keep their index); frame_data: what terms
     derive once per solve from the frames and labels (their data side), keyed by term,
     made by the tracker per solve and shared by its outer iterations; a term builds its
-    entry at the first iteration, when every problem of the solve is present.
+    entry at the first iteration, when every problem of the solve is present; box: the
+    pixel box (r0, r1, c0, c1) the renders of the solve cover (None: the whole image).
     """
 
     scene: Scene
@@ -122,6 +123,7 @@ class TrackState:
     correspondences: Optional[torch.Tensor] = None
     problems: Optional[torch.Tensor] = None
     frame_data: Dict = field(default_factory=dict, repr=False)
+    box: Optional[tuple] = None
     _visible: Optional[torch.Tensor] = field(default=None, repr=False)
 
     def visible_vertices(self) -> torch.Tensor:
@@ -129,7 +131,7 @@ class TrackState:
         shared by the terms that need visibility)."""
         if self._visible is None:
             with skip_checks():  # the render's own ids: no range checks (host syncs) needed
-                self._visible = visible_vertices(self.render, self.scene.faces, self.scene.num_vertices)
+                self._visible = visible_vertices(self.render, self.scene.faces, self.scene.num_vertices, self.box)
         return self._visible
 
     def problem_index(self) -> torch.Tensor:
