@@ -503,3 +503,22 @@ def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
         extra.remove(c)
     assert len(extra) == 1, extra
     assert "levenberg_marquardt" in extra[0] and "tolist" in extra[0]
+
+
+def test_a_hand_near_the_image_border_is_tracked(hand_frame):
+    """The solve's render box, widened by the margin, is clamped to the image: a box
+    starting above the first row once emptied the visible vertices (negative slice)."""
+    scene, theta, cam, _ = hand_frame
+    up = theta.clone()
+    up[0, 1] -= 120.0  # near the top edge
+    with torch.no_grad():
+        depth = render(scene(up).vertices, scene.faces, cam).depth[0].numpy()
+        box = Tracker(scene)._box(scene(up).vertices, [cam], True)
+    assert box[0] == 0 and box[1] <= 480 and box[2] >= 0 and box[3] <= 640
+    start = up.clone()
+    start[0, :3] += torch.tensor([3.0, -2.0, 3.0], dtype=F64)
+    res = Tracker(scene, TrackerConfig(max_iterations=15, first_frame_iterations=15)).track_frame([depth], [cam], start,
+                                                                                                  first=True)
+    with torch.no_grad():
+        err = float((scene(res.theta).keypoints - scene(up).keypoints).norm(dim=-1).mean())
+    assert err < 1.5, err

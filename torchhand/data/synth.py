@@ -21,7 +21,7 @@ from torchhand.io.assets import THESIS_MODEL_NAMES, load_demo_motion
 from torchhand.io.thesis import FormatError, read_calibration, read_thesis_model, sequence_models
 from torchhand.model.kinematics import so3_exp, so3_log
 from torchhand.model.motion import motion_to_theta
-from torchhand.geometry.render import RenderResult, render
+from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene
 from torchhand.io.output_dir import prepare_output_dir
 from torchhand.data.layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
@@ -160,11 +160,13 @@ def write_synthetic_sequence(
     rgb: bool = True,
     batch_size: int = 8,
     progress: bool = True,
+    backend: Optional[str] = None,
 ) -> Path:
     """Render ``frames`` into a new sequence folder (see datasets/README.md).
 
     Depth (with the named noise model), optional shaded RGB, and ground truth under
-    ``gt/``. An existing non-empty ``out`` is refused unless ``force``.
+    ``gt/``. An existing non-empty ``out`` is refused unless ``force``. ``backend``: of
+    the renders (:mod:`torchhand.geometry.raycast`; None: Warp when installed).
     """
     params = noise_model(noise)  # validates the name before anything is written
     out = prepare_output_dir(out, force)
@@ -180,13 +182,14 @@ def write_synthetic_sequence(
     kp3d = np.zeros((N, len(cams), len(scene.keypoint_names), 3))
     kp2d = np.zeros((N, len(cams), len(scene.keypoint_names), 2))
     bar = tqdm(total=N, desc=f"synth {frames.name}", unit="frame", disable=not progress)
+    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=backend)
     for s in range(0, N, batch_size):
         th = theta[s : s + batch_size].to(scene.lower.dtype)
         with torch.no_grad():
             posed = scene(th)
         for c, cam in enumerate(cams):
             camd = cam.to(dtype=posed.vertices.dtype)
-            res = render(posed.vertices, scene.faces, camd, scene.face_model_id, scene.face_bone_id)
+            res = renderer(posed.vertices, camd)
             depth = res.depth
             if params is not None:
                 depth = apply_kinect_noise(depth, res.normals, camd.K.float(), params, generator=g)

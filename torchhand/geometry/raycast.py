@@ -67,11 +67,15 @@ class Hits(NamedTuple):
         t: (N, H, W) float32 ray parameter of the hit: the camera-frame depth in mm; 0 where none.
         barycentric: (N, H, W, 2) float32 ``(u, v)``: the hit is ``(1 - u - v) v0 + u v1 + v v2``
             of the face's vertices; 0 where none.
+        normals: (N, H, W, 3) float32 camera-frame unit normals of the hit faces, towards
+            the camera, when the backend computed them on the way (``"warp"`` when
+            asked), else None (the renderer derives them from the faces).
     """
 
     face_id: torch.Tensor
     t: torch.Tensor
     barycentric: torch.Tensor
+    normals: Optional[torch.Tensor] = None
 
 
 class Views(NamedTuple):
@@ -170,14 +174,15 @@ class RayCaster:
         self._rays = None  # cached (views key, origins, directions)
 
     def __call__(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor] = None,
-                 box: Optional[tuple] = None) -> Hits:
+                 box: Optional[tuple] = None, normals: bool = False) -> Hits:
         """Hits of (B, V, 3) world-frame vertices in every view.
 
         ``slots``: (B,) int64 the problem slot of each row, for ``"warp-raycast"`` (a
         problem keeps its BVH group from call to call; default ``arange(B)``).
         ``box``: (r0, r1, c0, c1) host ints, the pixels that can be hit (a caller that
         knows where its meshes project saves the rest of the image); None: the box of
-        the projected vertices, found here (a host synchronisation).
+        the projected vertices, found here (a host synchronisation). ``normals``: ask
+        the backend for the hit faces' normals if it computes them on the way.
         Returns :class:`Hits` with N = B x C, problem-major.
         """
         B, V = vertices.shape[:2]
@@ -188,7 +193,7 @@ class RayCaster:
             return Hits(torch.full(shape, -1, dtype=torch.int64, device=dev), torch.zeros(shape, device=dev),
                         torch.zeros(*shape, 2, device=dev))
         if self.backend == "warp":
-            return self._rasterize(vertices, views, box)
+            return self._rasterize(vertices, views, box, normals)
         if self.backend == "warp-raycast":
             return self._warp_raycast(vertices, views, slots)
         return self._open3d(vertices, views)
@@ -199,17 +204,17 @@ class RayCaster:
             self._faces32 = self.faces.to(device=device, dtype=torch.int32).contiguous()
         return self._faces32
 
-    def _rasterize(self, vertices: torch.Tensor, views: Views, box: Optional[tuple]) -> Hits:
+    def _rasterize(self, vertices: torch.Tensor, views: Views, box: Optional[tuple], normals: bool) -> Hits:
         from torchhand.geometry import warp_kernels
 
         vertices = vertices.to(torch.float32)
         if box is None:
             b = _box_of(vertices, views)
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
-        face, t, bary = warp_kernels.rasterize(vertices, self._faces_int32(vertices.device), views.intrinsics,
-                                               views.rotation, views.translation, views.views, views.height,
-                                               views.width, self.cull_back_faces, box)
-        return Hits(face, t, bary)
+        face, t, bary, nrm = warp_kernels.rasterize(vertices, self._faces_int32(vertices.device), views.intrinsics,
+                                                    views.rotation, views.translation, views.views, views.height,
+                                                    views.width, self.cull_back_faces, box, normals)
+        return Hits(face, t, bary, nrm)
 
     def _warp_raycast(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor]) -> Hits:
         from torchhand.geometry import warp_kernels

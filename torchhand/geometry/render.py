@@ -184,7 +184,7 @@ class Renderer:
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
         H, W = views.height, views.width
         box = (max(int(box[0]), 0), min(int(box[1]), H), max(int(box[2]), 0), min(int(box[3]), W))
-        hits = self.caster(vertices, views, slots, box)
+        hits = self.caster(vertices, views, slots, box, normals)
         C = hits.face_id.shape[0] // B
         res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, cams, self.edge_threshold,
                      normals, box)
@@ -213,7 +213,9 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
     bary = torch.zeros_like(hits.barycentric)
     bary[crop] = hits.barycentric[crop] * hit[..., None]
     pixel_normals = None
-    if normals:
+    if normals and hits.normals is not None:  # the backend computed them on the way
+        pixel_normals = hits.normals
+    elif normals:
         pixel_normals = torch.zeros(*face_id.shape, 3, dtype=torch.float32, device=face_id.device)
         pixel_normals[crop] = _pixel_normals(vertices, faces, face_id[crop], hit, views, cameras)
     return RenderResult(depth, face_id, model_id, bone_id, pixel_normals, edges, bary)
@@ -292,8 +294,8 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     check_index(faces, "faces", num_vertices, "vertices")  # host syncs, skipped under skip_checks()
     check_index(face_id[face_id >= 0] if checks_enabled() else face_id[:0], "render_result.face_id", num_faces, "faces")
     faces = faces.long().to(face_id.device)
-    if box is not None:
-        face_id = face_id[:, box[0] : box[1], box[2] : box[3]]
+    if box is not None:  # clamped: a negative start would slice from the end
+        face_id = face_id[:, max(box[0], 0) : max(box[1], 0), max(box[2], 0) : max(box[3], 0)]
     flat = face_id.reshape(B, -1).long()
     # one extra column collects the empty pixels (-1)
     hit_faces = torch.zeros(B, num_faces + 1, dtype=torch.uint8, device=face_id.device)

@@ -277,8 +277,9 @@ def _kernels():
     def resolve_kernel(zbuf: wp.array3d(dtype=wp.int64), verts: wp.array2d(dtype=wp.vec3),
                        faces: wp.array2d(dtype=wp.int32), intr: wp.array2d(dtype=wp.float32),
                        rot: wp.array(dtype=wp.mat33), trans: wp.array(dtype=wp.vec3), views: int, cam_batch: int,
-                       r_lo: int, c_lo: int, face_out: wp.array3d(dtype=wp.int64), t_out: wp.array3d(dtype=wp.float32),
-                       bary_out: wp.array4d(dtype=wp.float32)):
+                       r_lo: int, c_lo: int, with_normals: int, face_out: wp.array3d(dtype=wp.int64),
+                       t_out: wp.array3d(dtype=wp.float32), bary_out: wp.array4d(dtype=wp.float32),
+                       normal_out: wp.array4d(dtype=wp.float32)):
         # over the box; the outputs come filled with "empty" (-1 and 0)
         i, rb, cb = wp.tid()
         key = zbuf[i, rb, cb]
@@ -310,6 +311,13 @@ def _kernels():
         t_out[i, r, c] = wp.float32(wp.dot(e2, qvec) / det)
         bary_out[i, r, c, 0] = wp.float32(wp.dot(tvec, pvec) / det)
         bary_out[i, r, c, 1] = wp.float32(wp.dot(dd, qvec) / det)
+        if with_normals != 0:
+            n = wp.normalize(wp.cross(e1, e2))
+            if wp.dot(n, p0) > wp.float64(0.0):  # turn it towards the camera (the origin)
+                n = -n
+            normal_out[i, r, c, 0] = wp.float32(n[0])
+            normal_out[i, r, c, 1] = wp.float32(n[1])
+            normal_out[i, r, c, 2] = wp.float32(n[2])
 
     return cast_kernel, nearest_grid_kernel, nearest_pixel_kernel, raster_kernel, resolve_kernel
 
@@ -417,7 +425,7 @@ def cast_rays(gm: GroupedMesh, slots: torch.Tensor, origins: torch.Tensor, dirs:
 
 def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Tensor, rotations: torch.Tensor,
               translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool,
-              box: tuple) -> tuple:
+              box: tuple, normals: bool = False) -> tuple:
     """Hits of the pixel centres of B x ``views`` pinhole views, inside a pixel box.
 
     Args:
@@ -429,9 +437,12 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
         cull_back_faces: skip faces turned away from the camera (exact for closed meshes
             with outward normals seen from outside).
         box: (r0, r1, c0, c1) the pixels drawn; the others stay empty.
+        normals: also return the camera-frame unit normals of the hit faces, turned
+            towards the camera.
     Returns:
         face (B x views, H, W) int64 (-1: none), t (depth, mm; 0: none), barycentric
-        (B x views, H, W, 2) float32 (0: none), as :func:`cast_rays`.
+        (B x views, H, W, 2) float32 (0: none), as :func:`cast_rays`; normals
+        (B x views, H, W, 3) float32 (0: none) or None.
     """
     wp = _warp()
     _, _, _, raster_kernel, resolve_kernel = _kernels()
@@ -444,8 +455,9 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     face = torch.full((N, height, width), -1, dtype=torch.int64, device=dev)
     t = torch.zeros(N, height, width, dtype=torch.float32, device=dev)
     bary = torch.zeros(N, height, width, 2, dtype=torch.float32, device=dev)
+    nrm = torch.zeros(N, height, width, 3, dtype=torch.float32, device=dev) if normals else None
     if h == 0 or w == 0 or faces.shape[0] == 0:
-        return face, t, bary
+        return face, t, bary, nrm
     zbuf = torch.full((N, h, w), EMPTY_KEY, dtype=torch.int64, device=dev)
     args = [wp.from_torch(vertices.contiguous(), dtype=wp.vec3), wp.from_torch(faces.contiguous()),
             wp.from_torch(intrinsics.contiguous()), wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
@@ -454,9 +466,10 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     with on_torch_stream(dev):
         wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=device)
-        wp.launch(resolve_kernel, dim=(N, h, w), inputs=[wp.from_torch(zbuf)] + args + [r0, c0],
-                  outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary)], device=device)
-    return face, t, bary
+        wp.launch(resolve_kernel, dim=(N, h, w), inputs=[wp.from_torch(zbuf)] + args + [r0, c0, int(normals)],
+                  outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary),
+                           wp.from_torch(nrm if normals else bary.new_zeros(1, 1, 1, 3))], device=device)
+    return face, t, bary, nrm
 
 
 class Grid:

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from torchhand.geometry.camera import Camera
 from torchhand.data.noise import apply_kinect_noise, noise_model
 from torchhand.data.synth import SyntheticFrames
-from torchhand.geometry.render import render
+from torchhand.geometry.render import Renderer
 from torchhand.model.fingertips import FingertipSets, fingertip_faces
 
 __all__ = ["FingertipTargets", "SalientFrames", "fingertip_targets",
@@ -199,12 +199,13 @@ def render_salient_frames(
     out_z = np.full((N, max_tips), np.nan, np.float32)
     out_area = np.zeros((N, max_tips), np.float32)
     bar = tqdm(total=N, desc=f"render {frames.name}", unit="frame", disable=not progress, leave=False)
+    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id)
     for s in range(0, N, batch_size):
         th = theta[s: s + batch_size].to(scene.lower.dtype)
         with torch.no_grad():
             verts = scene(th).vertices
         camd = cam.to(dtype=verts.dtype)
-        res = render(verts, scene.faces, camd, scene.face_model_id, scene.face_bone_id)
+        res = renderer(verts, camd)
         depth = res.depth
         normals = res.normals
         if background:

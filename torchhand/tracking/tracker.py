@@ -266,9 +266,9 @@ class Tracker:
         cams = [cameras[0]] if shared else list(cameras)
         views = self.renderer._views(cams, not shared, vertices.shape[0], vertices.device)
         b = _box_of(vertices.detach().to(torch.float32), views)
-        m = self.config.render_margin
+        m, H, W = self.config.render_margin, views.height, views.width
         lo, hi = b.amin(0).tolist(), b.amax(0).tolist()
-        return (lo[0] - m, hi[1] + m, lo[2] - m, hi[3] + m)
+        return (max(lo[0] - m, 0), min(hi[1] + m, H), max(lo[2] - m, 0), min(hi[3] + m, W))
 
     def _state(self, theta, previous, frames, cameras, problems=None, frame_data=None, posed=None,
                labels=None, shared=None, box=None) -> TrackState:
