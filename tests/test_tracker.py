@@ -473,12 +473,17 @@ class _SyncCounter:
 
 
 def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
-    """Inside the outer iterations of Algorithm 1 (render, correspondences, LM step with
+    """The Warp backends only (open3d and scipy are host libraries).
+
+    Inside the outer iterations of Algorithm 1 (render, correspondences, LM step with
     retries, stopping rule) the LO tracker reads one value set from the device: the
     stopping rule's flags, read with the solver's retry check. Counted on the CPU by
     patching every tensor-to-host call: n + 1 iterations cost one more than n."""
+    from torchhand.geometry.raycast import default_backend
     from torchhand.tracking.preprocess import preprocess_depth
 
+    if default_backend() != "warp":
+        pytest.skip("Warp cannot load here")
     scene, theta, cam, depth = hand_frame
     tracker = Tracker(scene, TrackerConfig())
     frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
@@ -522,3 +527,39 @@ def test_a_hand_near_the_image_border_is_tracked(hand_frame):
     with torch.no_grad():
         err = float((scene(res.theta).keypoints - scene(up).keypoints).norm(dim=-1).mean())
     assert err < 1.5, err
+
+
+@pytest.mark.parametrize("backend", ["open3d", pytest.param("warp-raycast", marks=pytest.mark.skipif(
+    __import__("importlib").util.find_spec("warp") is None, reason="NVIDIA Warp is not installed"))])
+def test_other_backends_track_a_frame_too(hand_frame, backend):
+    """open3d renders with scipy neighbour searches (the path without Warp) and Warp's BVH
+    ray casting converge like the default."""
+    scene, theta, cam, depth = hand_frame
+    start = theta.clone()
+    start[0, :3] += torch.tensor([4.0, -3.0, 5.0], dtype=F64)
+    cfg = TrackerConfig(max_iterations=25, first_frame_iterations=25, min_joint_motion=0.05, backend=backend)
+    res = Tracker(scene, cfg).track_frame([depth], [cam], start, first=True)
+    with torch.no_grad():
+        err = float((scene(res.theta).keypoints - scene(theta).keypoints).norm(dim=-1).mean())
+    assert bool(res.valid[0]) and err < 1.5, err
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
+def test_cuda_tracks_like_the_cpu(hand_frame):
+    """One frame and a batch of three on the GPU: the same poses as on the CPU (to the
+    chaos of float32 on other hardware: well within a millimetre)."""
+    scene, theta, cam, depth = hand_frame
+    start = theta.repeat(3, 1)
+    start[:, :3] += torch.tensor([[4.0, -3.0, 5.0], [-3.0, 2.0, 4.0], [2.0, 2.0, -3.0]], dtype=F64)
+    cfg = TrackerConfig(max_iterations=15, first_frame_iterations=15)
+    cpu = Tracker(scene, cfg).track_frame([depth] * 3, [cam] * 3, start, first=True)
+    gscene = Scene.from_names(["hand_right"], dtype=F64, device="cuda")
+    gpu = Tracker(gscene, cfg).track_frame([torch.as_tensor(depth).cuda()] * 3, [cam.to("cuda")] * 3, start.cuda(),
+                                          first=True)
+    assert gpu.theta.is_cuda and bool(gpu.valid.all())
+    with torch.no_grad():
+        kc, kg = scene(cpu.theta).keypoints, scene(gpu.theta.cpu()).keypoints
+        truth = scene(theta).keypoints
+    assert (kc - kg).norm(dim=-1).mean() < 0.5
+    assert (kg - truth).norm(dim=-1).mean(-1).max() < 1.5

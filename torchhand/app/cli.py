@@ -56,7 +56,7 @@ def _synth(args) -> int:
             raise ValueError("give --hia-root and --sequence (or --random, or --demo)")
         frames = thesis_motion(args.hia_root, args.sequence, args.frames)
     out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
-                                   rgb=not args.no_rgb)
+                                   rgb=not args.no_rgb, backend=args.backend)
     print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
           f"(noise: {args.noise}; ground truth in {out / 'gt'})")
     return 0
@@ -100,7 +100,7 @@ def _track(args) -> int:
     parse_energy(args.energy)  # reject unknown energies before reading any data
     cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.first_iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter, seed=args.seed)
+                        prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend)
     summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force)
     failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:
@@ -113,6 +113,14 @@ def _track(args) -> int:
         print(f"torchhand track: {len(failed)} of {len(summaries)} sequences failed", file=sys.stderr)
         return 1
     return 0
+
+
+def _backend_option(p: argparse.ArgumentParser) -> None:
+    from torchhand.geometry.raycast import BACKENDS
+
+    p.add_argument("--backend", default=None, choices=BACKENDS,
+                   help="renderer: Warp rasterisation, Warp BVH ray casting, or open3d (the CPU reference); "
+                        "default: warp where it loads")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -144,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default="kinect", choices=["none", "kinect"], help="depth noise model (docs/noise.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the random poses")
     p.add_argument("--no-rgb", action="store_true", help="write depth only")
+    _backend_option(p)
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
     p.set_defaults(func=_synth)
 
@@ -176,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "last two steps, 0 where they disagree in sign)")
     p.add_argument("--seed", type=int, default=0, help="seed of the recovery perturbations (runs are repeatable)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    _backend_option(p)
     p.add_argument("--viz", action="store_true",
                    help="write labelled overlay PNGs and an MP4 per sequence (with the ground-truth skeletons "
                         "where the sequence has gt/)")

@@ -64,7 +64,8 @@ class Hits(NamedTuple):
 
     Attributes:
         face_id: (N, H, W) int64 index of the hit face of the problem's faces, -1 where none.
-        t: (N, H, W) float32 ray parameter of the hit: the camera-frame depth in mm; 0 where none.
+        t: (N, H, W) float32 ray parameter of the hit: the camera-frame depth in mm; 0 where
+            none (every backend guarantees it: the renderer uses t as the depth map).
         barycentric: (N, H, W, 2) float32 ``(u, v)``: the hit is ``(1 - u - v) v0 + u v1 + v v2``
             of the face's vertices; 0 where none.
         normals: (N, H, W, 3) float32 camera-frame unit normals of the hit faces, towards

@@ -201,8 +201,7 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
     crop = (slice(None), slice(r0, r1), slice(c0, c1))
     face_id = hits.face_id
     hit = face_id[crop] >= 0
-    depth = torch.zeros_like(hits.t)
-    depth[crop] = torch.where(hit, hits.t[crop], 0.0)
+    depth = hits.t  # every backend leaves 0 where nothing is hit (Hits)
     model_id, bone_id = torch.full_like(face_id, -1), torch.full_like(face_id, -1)
     if faces.shape[0]:
         safe = face_id[crop].clamp(min=0)
@@ -210,8 +209,7 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
         bone_id[crop] = torch.where(hit, bone_ids.take(safe), -1)
     edges = torch.zeros_like(face_id, dtype=torch.bool)
     edges[crop] = silhouette_edges(depth[crop], edge_threshold)  # the box keeps an empty border
-    bary = torch.zeros_like(hits.barycentric)
-    bary[crop] = hits.barycentric[crop] * hit[..., None]
+    bary = hits.barycentric  # 0 where nothing is hit
     pixel_normals = None
     if normals and hits.normals is not None:  # the backend computed them on the way
         pixel_normals = hits.normals

@@ -72,12 +72,14 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     """Preprocess one depth map.
 
     Args:
-        depth: (H, W) float depth in mm (0 = invalid).
+        depth: (H, W) float depth in mm (0 = invalid), an array or a tensor on any device.
         camera: its camera (intrinsics used for back-projection).
         mask: optional (H, W) bool, True where the hands/objects may be.
     Raises:
         EmptyFrameError: when no pixel remains.
     """
+    if isinstance(depth, torch.Tensor):  # the OpenCV filters below run on the host, once per frame
+        depth = depth.detach().cpu().numpy()
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2 or depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth must have shape ({camera.height}, {camera.width}), got {depth.shape}")

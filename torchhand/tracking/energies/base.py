@@ -134,6 +134,18 @@ class TrackState:
                 self._visible = visible_vertices(self.render, self.scene.faces, self.scene.num_vertices, self.box)
         return self._visible
 
+    def data_side(self, term: "EnergyTerm", build) -> object:
+        """A term's data side of this solve: ``build(state)`` at the solve's first outer
+        iteration, when every problem is present (host work once per frame), then kept."""
+        key = (type(term).__name__, id(term))
+        data = self.frame_data.get(key)
+        if data is None:
+            if self.problems is not None and self.problems.shape[0] != len(self.frames):
+                raise RuntimeError(f"{type(term).__name__} builds its data side at a solve's first iteration, with "
+                                   f"every problem present ({self.problems.shape[0]} of {len(self.frames)} here)")
+            data = self.frame_data[key] = build(self)
+        return data
+
     def problem_index(self) -> torch.Tensor:
         """(B,) int64 ``problems``, or ``arange(B)`` when not set."""
         if self.problems is None:

@@ -90,16 +90,10 @@ class DataToModel(EnergyTerm):
         self.backend = backend
         self._bones = None  # (scene, (V,) scene-level bone of every vertex, number of bones)
 
-    def _data(self, state: TrackState) -> _Edges:
+    def _build(self, state: TrackState) -> _Edges:
         """The labelled data edge pixels of every problem of the solve (up to
         ``max_pixels`` per model, evenly spaced), their points, Pluecker rays and search
         radii; built at the solve's first outer iteration (host work once per frame)."""
-        key = ("d2m", id(self))
-        data = state.frame_data.get(key)
-        if data is not None:
-            return data
-        if state.problems is not None and not torch.equal(state.problems.cpu(), torch.arange(len(state.frames))):
-            raise RuntimeError("DataToModel builds its data side at a solve's first iteration (every problem present)")
         dev, dt = state.theta.device, state.theta.dtype
         B, K, M = len(state.frames), len(state.scene.models), self.max_pixels
         rc = torch.zeros(B, K, M, 2, dtype=torch.int64, device=dev)
@@ -127,15 +121,13 @@ class DataToModel(EnergyTerm):
         f = K_b[:, 0, 0].max()
         near = (z - self.max_distance).clamp(min=1.0)
         radius = torch.ceil(1.5 * f * self.max_distance / near).long().clamp(max=400) + 4
-        data = state.frame_data[key] = _Edges(rc, X, rays.direction.view(B, K, M, 3), rays.moment.view(B, K, M, 3),
-                                              valid, radius)
-        return data
+        return _Edges(rc, X, rays.direction.view(B, K, M, 3), rays.moment.view(B, K, M, 3), valid, radius)
 
     def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         self._scene = scene
         dev, dt = state.theta.device, state.theta.dtype
-        data = self._data(state)
+        data = state.data_side(self, self._build)
         p = state.problem_index()
         rc, X, d, m, valid, radius = (x[p] for x in data)
         K, M = valid.shape[1:]

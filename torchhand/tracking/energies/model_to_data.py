@@ -68,15 +68,9 @@ class ModelToData(EnergyTerm):
         self.metric, self.max_distance, self.cos_max = metric, float(max_distance), float(np.cos(np.radians(max_angle)))
         self.max_vertices, self.outlier_sigma, self.backend = max_vertices, outlier_sigma, backend
 
-    def _data(self, state: TrackState) -> _Data:
+    def _build(self, state: TrackState) -> _Data:
         """The labelled data points of every problem of the solve, built at its first
         outer iteration (host syncs: once per frame)."""
-        key = ("m2d", id(self))
-        data = state.frame_data.get(key)
-        if data is not None:
-            return data
-        if state.problems is not None and not torch.equal(state.problems.cpu(), torch.arange(len(state.frames))):
-            raise RuntimeError("ModelToData builds its data side at a solve's first iteration (every problem present)")
         dev, dt = state.theta.device, state.theta.dtype
         pts, nrm, prob, lab = [], [], [], []
         for b, (frame, camera) in enumerate(zip(state.frames, state.cameras)):
@@ -92,14 +86,13 @@ class ModelToData(EnergyTerm):
         if len(points):
             index = PointIndex(points, torch.cat(prob), torch.cat(lab), len(state.frames), len(state.scene.models),
                                self.max_distance, self.backend)
-        data = state.frame_data[key] = _Data(points, normals, index)
-        return data
+        return _Data(points, normals, index)
 
     def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
         self._scene = scene
         dev, dt = state.theta.device, state.theta.dtype
-        data = self._data(state)
+        data = state.data_side(self, self._build)
         problems = state.problem_index()
         visible = state.visible_vertices()
         V = state.posed.vertices
