@@ -270,3 +270,63 @@ def test_max_depth_sign_does_not_flip_on_a_grazing_ray(hia_root):
         out = scene(fr.theta[27:28].double())
     depth = max_depth([(o.vertices[0].numpy(), m.faces.numpy()) for o, m in zip(out.models, scene.models)])
     assert 1.0 < depth < 2.0, depth
+
+
+# ------------------------------------------------------------------ every model scored
+@pytest.fixture(scope="module")
+def hand_objects():
+    return _gt_poses(["hand_right", "ball", "cube", "rope"], 3, seed=2)
+
+
+def _moved(p: Poses, model: str, dofs: dict) -> Poses:
+    """p with the root DoFs of one model changed (``{"root:tx": 5.0}``), keypoints kept."""
+    theta = p.theta.copy()
+    for dof, delta in dofs.items():
+        theta[:, p.dof_names.index(f"{model}/{dof}")] += delta
+    return Poses(theta, p.keypoints_3d.copy(), p.keypoints_2d.copy(), p.models, p.dof_names, p.keypoint_names)
+
+
+def test_every_model_scored_zero_against_itself(hand_objects, tmp_path):
+    write_poses(tmp_path / "gt", hand_objects)
+    r = evaluate_sequence(tmp_path / "gt", tmp_path / "gt", with_penetration=False)
+    assert set(r["models"]) == {"hand_right", "ball", "cube", "rope"}
+    assert {n: m["metric"] for n, m in r["models"].items()} == {
+        "hand_right": "keypoints", "ball": "ADD-S (sphere)", "cube": "ADD-S (cube)", "rope": "bone origins"}
+    for m in r["models"].values():
+        assert m["mean_mm"] <= 1e-9 and m["worst_frame_mm"] <= 1e-9 and m["frames_over_20mm"] == 0
+    assert r["lost_frames"] == 0
+
+
+def test_a_known_shift_of_each_model_is_its_score(hand_objects, tmp_path):
+    """A rigid shift of 5 mm is ADD 5 mm (ADD-S at most that), a rope shifted by 25 mm
+    has its bone origins and vertices 25 mm off and every frame lost; the hand is untouched."""
+    write_poses(tmp_path / "gt", hand_objects)
+    pred = _moved(_moved(_moved(hand_objects, "ball", {"root:tx": 5.0}), "cube", {"root:ty": -5.0}),
+                  "rope", {"root:tz": 25.0})
+    write_poses(tmp_path / "pred", pred)
+    r = evaluate_sequence(tmp_path / "pred", tmp_path / "gt", with_penetration=False)
+    m = r["models"]
+    assert m["hand_right"]["mean_mm"] <= 1e-9
+    for name in ("ball", "cube"):
+        assert abs(m[name]["add_mean_mm"] - 5.0) <= 1e-6
+        assert 0.0 < m[name]["mean_mm"] <= 5.0 + 1e-6
+    assert abs(m["rope"]["mean_mm"] - 25.0) <= 1e-6 and abs(m["rope"]["vertices_mean_mm"] - 25.0) <= 1e-6
+    assert m["rope"]["frames_over_20mm"] == 3 and r["lost_frames"] == 3
+
+
+def test_a_symmetric_pose_costs_nothing_under_add_s(tmp_path):
+    """The cube turned by 90 degrees about one of its axes is the same shape: ADD-S near 0
+    (the vertices differ by their sampling only), ADD large."""
+    gt = _gt_poses(["cube"], 2, seed=3)
+    gt.theta[:, 3:6] = 0.0  # axis-aligned, so that a quarter turn about z maps the cube onto itself
+    write_poses(tmp_path / "gt", gt)
+    scene = Scene.from_names(["cube"], dtype=torch.float64)
+    turned = gt.theta.copy()
+    turned[:, 5] = np.pi / 2
+    with torch.no_grad():  # the root translation puts the turned cube's centre back
+        centre = [scene(torch.as_tensor(t)).vertices.mean(1).numpy() for t in (gt.theta, turned)]
+    turned[:, :3] += centre[0] - centre[1]
+    write_poses(tmp_path / "pred", Poses(turned, gt.keypoints_3d, gt.keypoints_2d, gt.models, gt.dof_names,
+                                          gt.keypoint_names))
+    m = evaluate_sequence(tmp_path / "pred", tmp_path / "gt", with_penetration=False)["models"]["cube"]
+    assert m["mean_mm"] < 1.0 and m["add_mean_mm"] > 10.0, m

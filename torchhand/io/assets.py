@@ -21,7 +21,8 @@ per vertex, P keypoints):
 ``group_ids``       (G,) i8      vertex ids of all named groups, concatenated
 ``group_offsets``   (n+1,) i8    group i is group_ids[offsets[i]:offsets[i+1]]
 ``meta``            (n,) u1      UTF-8 JSON: name, kind, side, bone_names,
-                                 keypoint_names, group_names, zones, source
+                                 keypoint_names, group_names, zones, source,
+                                 symmetry (optional)
 ==================  ===========  ==================================================
 """
 
@@ -42,6 +43,7 @@ __all__ = [
     "HAND_KEYPOINT_NAMES",
     "FINGER_NAMES",
     "THESIS_MODEL_NAMES",
+    "SYMMETRIES",
     "assets_from_thesis",
     "save_assets",
     "load_assets",
@@ -65,6 +67,15 @@ THESIS_MODEL_NAMES = {
     "Model_Object_Cube": "cube",
     "Model_Object_Pipe_Gray": "pipe",
     "Model_Object_Pipe_Green_Long": "rope",
+}
+#: the shape symmetries of the thesis objects (the thesis files do not record them): a
+#: symmetric object's pose is scored up to its symmetry (ADD-S, docs/results.md)
+SYMMETRIES = ("sphere", "cylinder", "cube")
+THESIS_SYMMETRY = {
+    "Model_Object_Ball": "sphere",
+    "Model_Object_Cube": "cube",
+    "Model_Object_Pipe_Gray": "cylinder",
+    "Model_Object_Pipe_Green_Long": "cylinder",
 }
 # Thesis finger index -> anatomical finger (identified from the bone lengths: finger 4
 # has three bones, metacarpal lengths grow from 0 to 3).
@@ -95,6 +106,7 @@ class ModelAssets:
     groups: Dict[str, np.ndarray] = field(default_factory=dict)
     zones: Dict[str, float] = field(default_factory=dict)
     source: str = ""
+    symmetry: Optional[str] = None  # None, or one of SYMMETRIES (the surface is invariant under it)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -120,6 +132,8 @@ class ModelAssets:
                 raise ValueError(f"model {self.name!r}: {what}")
 
         need(self.kind in ("hand", "object"), f"kind must be 'hand' or 'object', got {self.kind!r}")
+        need(self.symmetry is None or self.symmetry in SYMMETRIES,
+             f"symmetry must be None or one of {SYMMETRIES}, got {self.symmetry!r}")
         need(self.vertices.shape == (V, 3) and V > 0, f"vertices must be (V, 3) with V > 0, got {self.vertices.shape}")
         need(np.isfinite(self.vertices).all(), "vertices contain NaN or inf")
         need(self.faces.ndim == 2 and self.faces.shape[1] == 3, f"faces must be (F, 3), got {self.faces.shape}")
@@ -256,6 +270,7 @@ def assets_from_thesis(
         slot_axes=slot_axes, slot_used=slot_used, slot_limits=slot_limits,
         keypoint_names=kp_names, keypoint_bones=np.asarray(kp_bones, np.int64),
         keypoint_rest=np.asarray(kp_rest).reshape(-1, 3), groups=groups, zones=zones, source=source,
+        symmetry=THESIS_SYMMETRY.get(files.name),
     )
 
 
@@ -328,7 +343,7 @@ def save_assets(assets: ModelAssets, path, overwrite: bool = False) -> Path:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
     meta = dict(name=assets.name, kind=assets.kind, side=assets.side, bone_names=assets.bone_names,
                 keypoint_names=list(assets.keypoint_names), group_names=list(assets.groups),
-                zones=assets.zones, source=assets.source, format=1)
+                zones=assets.zones, source=assets.source, symmetry=assets.symmetry, format=1)
     ids = [assets.groups[g] for g in assets.groups]
     offsets = np.cumsum([0] + [len(i) for i in ids])
     arrays = {k: getattr(assets, k) for k in _ARRAYS}
@@ -360,7 +375,7 @@ def load_assets(path) -> ModelAssets:
         return ModelAssets(
             name=meta["name"], kind=meta["kind"], side=meta["side"], bone_names=meta["bone_names"],
             keypoint_names=meta["keypoint_names"], groups=groups, zones=meta["zones"], source=meta["source"],
-            **{k: data[k] for k in _ARRAYS},
+            symmetry=meta.get("symmetry"), **{k: data[k] for k in _ARRAYS},
         )
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None

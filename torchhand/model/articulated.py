@@ -49,6 +49,7 @@ class ArticulatedModel(nn.Module):
         self.assets = assets
         self.name = assets.name
         self.kind = assets.kind
+        self.symmetry = assets.symmetry  # None or the shape symmetry (torchhand.io.assets.SYMMETRIES)
         self.side = assets.side
         self.bone_names: List[str] = list(assets.bone_names)
         self.dof_names: List[str] = assets.dof_names

@@ -2,6 +2,20 @@
 
 Both sides use the ``gt/`` layout (datasets/README.md): ``theta.npy``,
 ``keypoints_3d.npy`` (N, C, P, 3), ``keypoints_2d.npy`` (N, C, P, 2), ``meta.json``.
+
+Every model is scored per frame (``models`` in the result), in mm in the world frame:
+
+- hands: the mean 3D error of their keypoints (as the px/mm/AUC figures, which are
+  over the hand keypoints of all cameras);
+- rigid objects: ADD, the mean distance between corresponding vertices of the two
+  posed meshes; for an object whose model declares a symmetry (ball, cube, pipe), the
+  score is ADD-S, the mean distance from each true vertex to the nearest tracked one
+  (Hinterstoisser et al. 2012), since poses that differ by the symmetry look the same;
+- articulated objects (more than one bone): the mean distance between true and tracked
+  bone origins (a tube's are on its axis, so its symmetry costs nothing), with the mean
+  vertex error beside it.
+
+A frame is *lost* when any model's error exceeds :data:`LOST_MM`.
 """
 
 from __future__ import annotations
@@ -15,7 +29,10 @@ import numpy as np
 from torchhand.data.layout import Poses, SequenceError, read_poses
 from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, max_depth, model_pair_counts, pck_curve
 
-__all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize"]
+__all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize", "model_errors", "LOST_MM"]
+
+#: mm, a frame in which some model is farther off than this is lost
+LOST_MM = 20.0
 
 
 class EvaluationError(ValueError):
@@ -33,6 +50,11 @@ def _resolve(folder) -> Path:
 def _check_pair(pred: Poses, gt: Poses, pred_dir: Path, gt_dir: Path) -> None:
     if len(pred.theta) != len(gt.theta):
         raise EvaluationError(f"{pred_dir} has {len(pred.theta)} frames but {gt_dir} has {len(gt.theta)}")
+    if list(pred.models) != list(gt.models):
+        raise EvaluationError(f"{pred_dir} holds the models {list(pred.models)} but {gt_dir} {list(gt.models)}")
+    if pred.theta.shape != gt.theta.shape:
+        raise EvaluationError(f"{pred_dir / 'theta.npy'} is {pred.theta.shape} but {gt_dir / 'theta.npy'} "
+                              f"{gt.theta.shape}")
     if pred.keypoint_names != gt.keypoint_names:
         raise EvaluationError(f"keypoint names of {pred_dir} differ from {gt_dir}")
     if pred.keypoints_3d.shape != gt.keypoints_3d.shape or pred.keypoints_2d.shape != gt.keypoints_2d.shape:
@@ -67,12 +89,93 @@ def evaluate_sequence(pred_dir, gt_dir, with_penetration: bool = True) -> Dict:
         prediction=str(pred_dir),
         per_keypoint={n: {"px": float(e2[..., p].mean()), "mm": float(e3[..., p].mean())}
                       for p, n in enumerate(gt.keypoint_names)},
-        per_frame={"px": e2.mean(axis=(1, 2)).tolist(), "mm": e3.mean(axis=(1, 2)).tolist()},
+        per_frame={"px": _frame_means(e2), "mm": _frame_means(e3)},  # NaN for a scene without keypoints
         flagged_frames=int((~np.asarray(pred.valid, bool)).sum()),
     )
+    per_model = model_errors(pred, gt)
+    result["models"] = {name: _model_summary(m) for name, m in per_model.items()}
+    lost = np.zeros(len(gt.theta), bool)
+    for m in per_model.values():
+        lost |= m["per_frame"] > LOST_MM
+    result["lost_frames"] = int(lost.sum())
+    result["lost_frame_ids"] = np.nonzero(lost)[0].tolist()
     if with_penetration and len(gt.models) > 1:
         result["penetration"] = _penetration(pred)
     return result
+
+
+def _frame_means(e: np.ndarray) -> list:
+    if len(e) == 0 or e[0].size == 0:
+        return [float("nan")] * len(e)
+    return e.mean(axis=(1, 2)).tolist()
+
+
+def model_errors(pred: Poses, gt: Poses, chunk: int = 32) -> Dict[str, Dict]:
+    """Per model and frame, the error of :mod:`this module's docstring <torchhand.scoring.sequences>`.
+
+    Returns ``{name: {"kind", "metric", "per_frame" (N,) mm, and extra (N,) arrays:
+    "add" / "add_s" for rigid objects, "bone_origins" / "vertices" for articulated
+    ones}}``.
+    """
+    import torch
+    from scipy.spatial import cKDTree
+
+    from torchhand.model.scene import Scene
+
+    scene = Scene.from_names(gt.models, dtype=torch.float64)
+    N = len(gt.theta)
+    out: Dict[str, Dict] = {}
+    hands = [k for k, m in enumerate(scene.models) if m.kind == "hand"]
+    for k in hands:
+        name = scene.names[k]
+        cols = [i for i, n in enumerate(gt.keypoint_names) if n.startswith(name + "/")]
+        e = keypoint_errors(pred.keypoints_3d[:, :, cols], gt.keypoints_3d[:, :, cols])  # (N, C, P)
+        out[name] = {"kind": "hand", "metric": "keypoints", "per_frame": e.reshape(N, -1).mean(1)}
+    objects = [k for k in range(len(scene.models)) if k not in hands]
+    if not objects:
+        return out
+    rows = {scene.names[k]: {"a": [], "b": []} for k in objects}
+    with torch.no_grad():
+        for i in range(0, N, chunk):
+            th_p = torch.as_tensor(pred.theta[i : i + chunk], dtype=torch.float64)
+            th_g = torch.as_tensor(gt.theta[i : i + chunk], dtype=torch.float64)
+            sp, sg = scene(th_p), scene(th_g)
+            for k in objects:
+                model, name = scene.models[k], scene.names[k]
+                Vp, Vg = sp.models[k].vertices, sg.models[k].vertices
+                vert = (Vp - Vg).norm(dim=-1).mean(1).numpy()
+                if model.num_bones > 1:
+                    bones = (model.joints_from(sp.models[k].G) - model.joints_from(sg.models[k].G)).norm(dim=-1)
+                    rows[name]["a"].append(bones.mean(1).numpy())
+                    rows[name]["b"].append(vert)
+                else:
+                    rows[name]["a"].append(vert)
+                    if model.symmetry is not None:  # ADD-S: true vertices to the nearest tracked one
+                        rows[name]["b"].append(np.array([cKDTree(p.numpy()).query(g.numpy())[0].mean()
+                                                         for p, g in zip(Vp, Vg)]))
+    for k in objects:
+        model, name = scene.models[k], scene.names[k]
+        a = np.concatenate(rows[name]["a"])
+        b = np.concatenate(rows[name]["b"]) if rows[name]["b"] else None
+        if model.num_bones > 1:
+            out[name] = {"kind": "articulated", "metric": "bone origins", "per_frame": a, "bone_origins": a,
+                         "vertices": b}
+        elif b is not None:
+            out[name] = {"kind": "rigid", "metric": f"ADD-S ({model.symmetry})", "per_frame": b, "add": a, "add_s": b}
+        else:
+            out[name] = {"kind": "rigid", "metric": "ADD", "per_frame": a, "add": a}
+    return out
+
+
+def _model_summary(m: Dict) -> Dict:
+    e = m["per_frame"]
+    summary = {"kind": m["kind"], "metric": m["metric"], "mean_mm": float(e.mean()), "median_mm": float(np.median(e)),
+               "worst_frame_mm": float(e.max()), "worst_frame": int(e.argmax()),
+               "frames_over_20mm": int((e > LOST_MM).sum()), "per_frame_mm": e.tolist()}
+    for key in ("add", "add_s", "vertices"):
+        if m.get(key) is not None:
+            summary[f"{key}_mean_mm"] = float(np.mean(m[key]))
+    return summary
 
 
 def _scores(e2: np.ndarray, e3: np.ndarray) -> Dict:
@@ -142,6 +245,17 @@ def summarize(results: List[Dict]) -> Dict:
         "auc_0_50mm": float(np.average([r["auc_0_50mm"] for r in results], weights=w)),
         "keypoint_errors": int(w.sum()),
     }
+    pooled["lost_frames"] = sum(r["lost_frames"] for r in results)
+    models: Dict[str, Dict] = {}
+    for r in results:
+        for name, m in r["models"].items():
+            models.setdefault(name, {"metric": m["metric"], "per_frame_mm": []})["per_frame_mm"] += m["per_frame_mm"]
+    pooled["models"] = {}
+    for name, m in models.items():
+        e = np.asarray(m["per_frame_mm"])
+        pooled["models"][name] = {"metric": m["metric"], "mean_mm": float(e.mean()), "median_mm": float(np.median(e)),
+                                  "worst_frame_mm": float(e.max()), "frames_over_20mm": int((e > LOST_MM).sum()),
+                                  "frames": int(len(e))}
     if len(results) == 1:
         return results[0]
     pooled["note"] = "median_px/median_mm pooled over per-frame mean errors of all sequences"
