@@ -265,34 +265,42 @@ def rope_from_pipe_sequence(hia_root: Path, frames: int, work: Path, noise: str,
 
 
 def run_rope(args) -> dict:
-    """Two hands and the rope: the hands scored by keypoints, the rope by its bone origins."""
+    """Two hands and the rope: the hands scored by keypoints, the rope by its bone origins;
+    one run per noise model, energy (``--energies``) and labelling (``--labels``)."""
     rows = []
-    cfg = TrackerConfig(energy="LO", metric=args.metric, max_iterations=args.iterations,
-                        first_frame_iterations=args.iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter)
     for noise in args.noises.split(","):
         for s in (["17"] if args.rope_motion == "pipe" else _sequences(args)):
             if args.rope_motion == "pipe":
                 folder = rope_from_pipe_sequence(args.hia_root, args.frames, args.work, noise, s)
-                out = args.work / f"tracked_rope_pipe_{noise}_it{args.iterations}{_prediction_suffix(args)}"
+                name = f"tracked_rope_pipe_{noise}_it{args.iterations}{_prediction_suffix(args)}"
             else:
                 folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
-                out = args.work / f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}{_prediction_suffix(args)}"
-            t0 = time.perf_counter()
-            track_sequences([folder], out, cfg, force=True)
-            secs = time.perf_counter() - t0
-            tracked = out / read_sequence_info(folder).name
-            hands = evaluate_sequence(tracked, folder / "gt", with_penetration=False)
-            gt, pred = read_poses(folder / "gt"), read_poses(tracked)
-            scene = Scene.from_names(gt.models, dtype=torch.float64)
-            with torch.no_grad():
-                joints = [scene.models[-1].joints_from(scene(torch.as_tensor(p.theta, dtype=torch.float64)).models[-1].G)
-                          for p in (gt, pred)]
-            per_frame = (joints[0] - joints[1]).norm(dim=-1).mean(1).numpy()
-            rows.append({"sequence": s, "noise": noise, "hands_mean_px": hands["mean_px"], "hands_mean_mm": hands["mean_mm"],
-                         "rope_joint_mm_mean": float(per_frame.mean()), "rope_joint_mm_per_frame": per_frame.tolist(),
-                         "seconds_per_frame": secs / len(per_frame)})
-            print({k: v for k, v in rows[-1].items() if k != "rope_joint_mm_per_frame"})
+                name = f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}{_prediction_suffix(args)}"
+            for energy in args.energies.split(","):
+                for labels in args.labels.split(","):
+                    cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
+                                        first_frame_iterations=args.iterations, prediction=args.prediction,
+                                        prediction_limiter=args.prediction_limiter, labels=labels)
+                    out = args.work / f"{name}_{energy.replace('+', '_')}_{labels}"
+                    t0 = time.perf_counter()
+                    track_sequences([folder], out, cfg, force=True)
+                    secs = time.perf_counter() - t0
+                    tracked = out / read_sequence_info(folder).name
+                    hands = evaluate_sequence(tracked, folder / "gt", with_penetration=False)
+                    gt, pred = read_poses(folder / "gt"), read_poses(tracked)
+                    scene = Scene.from_names(gt.models, dtype=torch.float64)
+                    with torch.no_grad():
+                        joints = [scene.models[-1].joints_from(
+                            scene(torch.as_tensor(p.theta, dtype=torch.float64)).models[-1].G) for p in (gt, pred)]
+                    per_frame = (joints[0] - joints[1]).norm(dim=-1).mean(1).numpy()
+                    rows.append({"sequence": s, "noise": noise, "energy": energy, "labels": labels,
+                                 "hands_mean_px": hands["mean_px"], "hands_mean_mm": hands["mean_mm"],
+                                 "rope_joint_mm_mean": float(per_frame.mean()),
+                                 "rope_frames_over_20mm": int((per_frame > 20).sum()),
+                                 "rope_worst_frame_mm": float(per_frame.max()),
+                                 "rope_joint_mm_per_frame": per_frame.tolist(),
+                                 "seconds_per_frame": secs / len(per_frame)})
+                    print({k: v for k, v in rows[-1].items() if k != "rope_joint_mm_per_frame"}, flush=True)
     return {"experiment": "two hands and the rope", "motion": args.rope_motion, "frames_per_sequence": args.frames,
             "bend": args.bend if args.rope_motion == "sine" else None,
             "iterations": args.iterations, "prediction": args.prediction,
@@ -429,7 +437,8 @@ def main(argv=None) -> int:
     ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])
     ap.add_argument("--work", type=Path, default=Path("out/exp"))
     ap.add_argument("--json", type=Path, required=True)
-    ap.add_argument("--energies", default="LO,LO+C", help="ablation: comma-separated energies")
+    ap.add_argument("--energies", default="LO,LO+C", help="ablation, rope: comma-separated energies")
+    ap.add_argument("--labels", default="proximity", help="rope: comma-separated data labellings (proximity, rendered)")
     ap.add_argument("--contact", action="store_true", help="only sequences with more than one model")
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
     ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")

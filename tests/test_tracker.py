@@ -12,8 +12,8 @@ import torch
 from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import read_poses
 from torchhand.optim.robust_loss import Cauchy, Huber
-from torchhand.tracking.energies import (DataToModel, ModelToData, Robust, Weighted,
-                                        default_data_to_model, default_priors, parse_energy)
+from torchhand.tracking.energies import (DataToModel, FreeSpace, ModelToData, Robust, Weighted,
+                                        default_data_to_model, default_free_space, default_priors, parse_energy)
 from torchhand.scoring.sequences import evaluate_sequence
 from torchhand.geometry.render import render
 from torchhand.model.scene import Scene
@@ -55,8 +55,9 @@ def _unwrap(term):
 
 @pytest.mark.parametrize("term", [ModelToData(metric="point-to-point"), ModelToData(metric="point-to-plane"),
                                   default_data_to_model(), DataToModel(), Robust(ModelToData(), Huber(2.0)),
-                                  *default_priors()],
-                         ids=["m2d-point", "m2d-plane", "d2m", "d2m-plain", "m2d-huber", "anatomy", "regularization"])
+                                  FreeSpace(), default_free_space(), *default_priors()],
+                         ids=["m2d-point", "m2d-plane", "d2m", "d2m-plain", "m2d-huber", "free", "free-default",
+                              "anatomy", "regularization"])
 def test_term_jacobian_matches_finite_differences(hand_frame, term):
     scene, theta, cam, depth = hand_frame
     tracker = Tracker(scene, TrackerConfig(), terms=[ModelToData(), term])
@@ -67,7 +68,8 @@ def test_term_jacobian_matches_finite_differences(hand_frame, term):
     state.correspondences = torch.tensor([100])
     found = term.prepare(state)
     if not term.prior:
-        assert int(found.correspondences[0]) > 20, "the frame must give correspondences"
+        pairs = found.diagnostics.get("pixels", found.correspondences)  # free space: pairs, not data correspondences
+        assert int(pairs[0]) > 20, "the frame must give correspondences"
     r, J = term.residuals(start, scene(start, validate=False), True)[:2]
     eps = 1e-6
     cols = []
@@ -377,7 +379,7 @@ def test_label_data_equals_the_whole_image_transform():
     import cv2
 
     from torchhand.tracking.preprocess import DepthFrame
-    from torchhand.tracking.tracker import label_data
+    from torchhand.tracking.labels import label_data
 
     rng = np.random.default_rng(3)
     ids = np.full((120, 160), -1, np.int64)

@@ -74,6 +74,12 @@ def _eval(args) -> int:
           f"2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
           f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
           f"AUC 0-50 mm {result['auc_0_50mm']:.3f}")
+    models = result.get("models", {})
+    if models:
+        name, worst = max(models.items(), key=lambda kv: kv[1]["mean_mm"])
+        print("models: " + ", ".join(f"{n} {m['mean_mm']:.1f} mm" for n, m in models.items())
+              + f"; worst model {name} ({worst['metric']}, {worst['mean_mm']:.1f} mm mean, worst frame "
+              f"{worst['worst_frame_mm']:.1f} mm); {result['lost_frames']} lost frames (a model above 20 mm)")
     if "penetration" in result:
         p = result["penetration"]
         print(f"penetration: {p['pairs_per_frame']} intersecting triangle pairs per frame, "

@@ -36,7 +36,8 @@ import torch
 
 from torchhand.core.check import check_tensor
 
-__all__ = ["PointIndex", "nearest_marked_pixel", "NEIGHBOR_BACKENDS", "default_neighbor_backend"]
+__all__ = ["PointIndex", "nearest_marked_pixel", "marked_pixel_transform", "NEIGHBOR_BACKENDS",
+           "default_neighbor_backend"]
 
 NEIGHBOR_BACKENDS = ("warp", "cpu", "torch")
 
@@ -212,6 +213,46 @@ def pixel_hash(row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
     row and column would pull every tied data-to-model pair the same way (along a rope's
     axis, say), a hash has no preferred direction and is the same on every device."""
     return ((row.long() * 40503) ^ (col.long() * 31337)) & 2147483647  # int32-safe below 32768 px, as in Warp
+
+
+def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[tuple] = None) -> tuple:
+    """For every pixel of a box, the nearest pixel marked with each group: a feature
+    transform (scipy's exact Euclidean distance transform with indices, on the CPU).
+
+    Use it where many queries read the same marks (every pixel of a model, at every
+    outer iteration of a frame); :func:`nearest_marked_pixel` answers a few queries on
+    the device without leaving it.
+
+    Args:
+        marks: (B, H, W) int64 group of each pixel in [0, num_groups), -1 unmarked.
+        box: (r0, r1, c0, c1) the pixels to answer for (None: the whole image); the
+            marked pixels outside it count too.
+    Returns:
+        (nearest (B, G, h, w, 2) int64 (row, col) in the image, -1 where the group has
+        no pixel; distance (B, G, h, w) float32 px, inf there), on marks' device.
+    """
+    import numpy as np
+    from scipy.ndimage import distance_transform_edt
+
+    B, H, W = marks.shape
+    r0, r1, c0, c1 = (0, H, 0, W) if box is None else box
+    m = marks.cpu().numpy()
+    nearest = np.full((B, num_groups, r1 - r0, c1 - c0, 2), -1, np.int64)
+    distance = np.full((B, num_groups, r1 - r0, c1 - c0), np.inf, np.float32)
+    for b in range(B):
+        for g in range(num_groups):
+            pix = np.argwhere(m[b] == g)
+            if len(pix) == 0:
+                continue
+            lo = np.minimum(pix.min(0), [r0, c0])  # the box holding the group and the answers
+            hi = np.maximum(pix.max(0) + 1, [r1, c1])
+            feature = np.ones(hi - lo, bool)
+            feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
+            dist, (ri, ci) = distance_transform_edt(feature, return_indices=True)
+            sr, sc = slice(r0 - lo[0], r1 - lo[0]), slice(c0 - lo[1], c1 - lo[1])
+            nearest[b, g, ..., 0], nearest[b, g, ..., 1] = ri[sr, sc] + lo[0], ci[sr, sc] + lo[1]
+            distance[b, g] = dist[sr, sc]
+    return torch.as_tensor(nearest, device=marks.device), torch.as_tensor(distance, device=marks.device)
 
 
 def _nearest_pixel_edt(marks, queries, groups, radius) -> torch.Tensor:

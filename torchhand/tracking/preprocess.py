@@ -55,7 +55,10 @@ class DepthFrame(NamedTuple):
     facing the camera; edges: (E, 2) int64 (row, col) of the depth-discontinuity
     pixels on the near side; edge_depth: (E,) mm, the 3x3 average depth at them;
     raw: (H, W) the input depth in mm as given (NaN and out-of-range values set to 0),
-    for terms that run their own detectors on it (salient points).
+    for terms that run their own detectors on it (salient points); covered: (H, W) bool,
+    ``mask`` with its holes up to ``hole_size`` closed: where the sensor saw something
+    or lost a few pixels (dropouts, the shadows beside occluding fingers), as opposed to
+    where it saw nothing (the free-space term's "nothing").
     """
 
     depth: torch.Tensor
@@ -65,6 +68,7 @@ class DepthFrame(NamedTuple):
     edges: torch.Tensor
     edge_depth: torch.Tensor
     raw: Optional[torch.Tensor] = None
+    covered: Optional[torch.Tensor] = None
 
 
 def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig = PreprocessConfig(),
@@ -131,12 +135,15 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     points = torch.zeros(H, W, 3, dtype=dtype, device=device)
     normals = torch.zeros(H, W, 3, dtype=dtype, device=device)
     full_depth[r0:r1, c0:c1] = dt
+    covered = np.zeros((H, W), bool)
+    covered[r0:r1, c0:c1] = closed.astype(bool)
     p, n = depth_to_points_and_normals(dt[None], K)
     points[r0:r1, c0:c1], normals[r0:r1, c0:c1] = p[0], n[0]
     return DepthFrame(full_depth, torch.as_tensor(valid_full, device=device), points, normals,
                       torch.as_tensor(rc + [r0, c0], dtype=torch.int64, device=device).reshape(-1, 2),
                       torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device),
-                      torch.as_tensor(np.where(np.isfinite(depth) & (depth > 0), depth, 0), device=device))
+                      torch.as_tensor(np.where(np.isfinite(depth) & (depth > 0), depth, 0), device=device),
+                      torch.as_tensor(covered, device=device))
 
 
 def _margin(config: PreprocessConfig) -> int:

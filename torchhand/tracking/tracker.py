@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator, List, NamedTuple, Optional, Sequence, Union
 
-import cv2
 import numpy as np
 import torch
 
@@ -28,9 +27,10 @@ from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.tracking.energies import EnergyTerm, TrackState, parse_energy
+from torchhand.tracking.labels import LABELINGS, label_by_proximity, label_data
 from torchhand.tracking.preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
 
-__all__ = ["TrackerConfig", "FrameResult", "SolveResult", "Tracker", "label_data", "predicted_start"]
+__all__ = ["TrackerConfig", "FrameResult", "SolveResult", "Tracker", "predicted_start"]
 
 #: a depth map in mm: (H, W) tensor or array, or None for a missing frame
 Depth = Union[torch.Tensor, np.ndarray, None]
@@ -54,8 +54,10 @@ class TrackerConfig:
     this multiple of the median of the previous frames is re-solved from ``recover_tries`` random
     perturbations of the previous pose (the best is kept if it is better); seed: of
     those perturbations in :func:`track_sequences`, so a run is repeatable;
-    label_radius: px, data pixels farther than this from any rendered model pixel are
-    left unlabelled; prediction: a frame's solve starts from the previous pose plus
+    labels: how data pixels are assigned to models (:mod:`torchhand.tracking.labels`):
+    ``"proximity"``, the model nearest in 3D within ``label_distance`` mm, or
+    ``"rendered"``, the nearest rendered model in the image within ``label_radius`` px;
+    prediction: a frame's solve starts from the previous pose plus
     ``prediction`` times the last step (:func:`predicted_start`, clamped to the joint
     limits): 0 starts from the previous pose as the thesis does, 1 is a
     constant-velocity prediction; prediction_limiter: per DoF, the smaller of the last
@@ -80,6 +82,8 @@ class TrackerConfig:
     recover_tries: int = 4
     perturbation: float = 0.15
     seed: int = 0
+    labels: str = "proximity"
+    label_distance: float = 30.0
     label_radius: float = 40.0
     prediction: float = 0.0
     prediction_limiter: bool = True
@@ -93,6 +97,10 @@ class TrackerConfig:
             raise ValueError(f"prediction must be a finite number >= 0, got {self.prediction!r}")
         if not isinstance(self.prediction_limiter, bool):
             raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")
+        if self.labels not in LABELINGS:
+            raise ValueError(f"labels must be one of {LABELINGS}, got {self.labels!r}")
+        if not self.label_distance > 0:
+            raise ValueError(f"label_distance must be > 0 (mm), got {self.label_distance!r}")
         if self.backend is not None and self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS} or None, got {self.backend!r}")
 
@@ -140,30 +148,6 @@ class SolveResult(NamedTuple):
     iterations: torch.Tensor
     energy: torch.Tensor
     correspondences: torch.Tensor
-
-
-def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torch.Tensor:
-    """Assign every valid data pixel the id of the rendered model at it, or of the
-    nearest rendered pixel within ``radius`` px (2D distance transform); -1 otherwise.
-
-    frame: preprocessed data; model_id: (H, W) rendered ids (-1 empty) -> (H, W) int64.
-    """
-    ids = model_id.cpu().numpy()
-    valid = frame.mask.cpu().numpy()
-    labels = np.full(ids.shape, -1, np.int64)
-    rendered = ids >= 0
-    rows, cols = np.nonzero(rendered.any(1))[0], np.nonzero(rendered.any(0))[0]
-    if len(rows):
-        # only pixels within `radius` of the rendered pixels' box can get a label
-        r = int(np.ceil(radius))
-        r0, r1 = max(rows[0] - r, 0), min(rows[-1] + 1 + r, ids.shape[0])
-        c0, c1 = max(cols[0] - r, 0), min(cols[-1] + 1 + r, ids.shape[1])
-        crop, hit = ids[r0:r1, c0:c1], rendered[r0:r1, c0:c1]
-        dist, lab = cv2.distanceTransformWithLabels(np.where(hit, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
-                                                    labelType=cv2.DIST_LABEL_PIXEL)
-        nearest = crop[hit][lab - 1]  # labels enumerate the zero (rendered) pixels row-major
-        labels[r0:r1, c0:c1] = np.where((dist <= radius) & valid[r0:r1, c0:c1], nearest, -1)
-    return torch.as_tensor(labels, device=model_id.device)
 
 
 def _same_camera(a: Camera, b: Camera) -> bool:
@@ -277,9 +261,13 @@ class Tracker:
         shared = all(_same_camera(c, cameras[0]) for c in cameras) if shared is None else shared
         posed = posed if posed is not None else self.scene(theta, validate=False)
         rend = self._render(posed.vertices.detach(), cameras, problems, shared, box)
-        if labels is None:  # once per frame, at its start pose (OpenCV on the CPU)
-            labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
-                                  for b, f in enumerate(frames)])
+        if labels is None:  # once per frame, at its start pose
+            if self.config.labels == "proximity":
+                labels = label_by_proximity(frames, cameras, posed.vertices, self.scene.vertex_model_id,
+                                            self.config.label_distance, self.config.neighbor_backend)
+            else:  # OpenCV on the CPU
+                labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
+                                      for b, f in enumerate(frames)])
         return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels, problems=problems,
                           frame_data=frame_data, box=box)
 
@@ -295,9 +283,9 @@ class Tracker:
               cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None) -> SolveResult:
         """Algorithm 1 for a batch: alternate correspondences and LM steps.
 
-        The data pixels are labelled with the model ids rendered at the start pose
-        and keep these labels for the frame (the models move a few mm within a frame,
-        the labels reach ``label_radius`` px around them); visibility, silhouettes
+        The data pixels are labelled at the start pose (``config.labels``) and keep
+        these labels for the frame (the models move a few mm within a frame);
+        visibility, silhouettes
         and correspondences are renewed in every iteration.
 
         A problem stops when its joints moved less than ``min_motion`` mm (default

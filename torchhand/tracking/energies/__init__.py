@@ -3,37 +3,46 @@ interface (:mod:`torchhand.tracking.energies.base`), weights and robust losses a
 wrappers (:mod:`torchhand.tracking.energies.wrappers`).
 
 ``parse_energy("LO+C")`` builds the terms named on the command line with the tracker's
-weights and losses: ``LO`` is model-to-data plus data-to-model, ``C`` adds collisions
-and ``S`` salient points (``LO+CS``: both); anatomy and regularisation are always added.
+weights and losses: ``LO`` is model-to-data plus data-to-model, ``C`` adds collisions,
+``S`` salient points and ``F`` free space (``LO+CS``: collisions and salient points,
+components in any order); anatomy and regularisation are always added.
 """
 
 from __future__ import annotations
 
 from typing import List, Optional
 
-from torchhand.tracking.energies import anatomy, collision, data_to_model, regularization
+from torchhand.tracking.energies import anatomy, collision, data_to_model, free_space, regularization
 from torchhand.tracking.energies.anatomy import Anatomy
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
 from torchhand.tracking.energies.collision import Collision
 from torchhand.tracking.energies.data_to_model import DataToModel
+from torchhand.tracking.energies.free_space import FreeSpace
 from torchhand.tracking.energies.model_to_data import ModelToData
 from torchhand.tracking.energies.regularization import Regularization
 from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
 __all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
-           "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model", "default_priors",
-           "ENERGY_COMPONENTS"]
+           "FreeSpace", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
+           "default_free_space", "default_priors", "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
 ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)",
-                     "S": "salient points (detected fingertips, Eq. 4.14-4.15)"}
+                     "S": "salient points (detected fingertips, Eq. 4.14-4.15)",
+                     "F": "free space (model surface where the sensor saw nothing or farther, pulled into its data)"}
 
 
 def default_data_to_model(**kwargs) -> EnergyTerm:
     """The tracker's data-to-model term: Cauchy loss with a misfit-following scale,
     weight 0.25 (:mod:`torchhand.tracking.energies.data_to_model`)."""
     return Weighted(Robust(DataToModel(**kwargs), data_to_model.DEFAULT_LOSS), data_to_model.DEFAULT_WEIGHT)
+
+
+def default_free_space(**kwargs) -> EnergyTerm:
+    """The tracker's free-space term: Cauchy loss, scale 5 mm, weight 0.25
+    (:mod:`torchhand.tracking.energies.free_space`)."""
+    return Weighted(Robust(FreeSpace(**kwargs), free_space.DEFAULT_LOSS), free_space.DEFAULT_WEIGHT)
 
 
 def default_priors() -> List[EnergyTerm]:
@@ -43,7 +52,7 @@ def default_priors() -> List[EnergyTerm]:
 
 
 def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[str] = None) -> List[EnergyTerm]:
-    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+CS``; ``backend``: of
+    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+F``, ``LO+CSF``...; ``backend``: of
     the data terms' neighbour searches (``"warp"`` or ``"torch"``; None: Warp when installed)."""
     parts = spec.replace(" ", "").split("+")
     if parts[0] != "LO":
@@ -59,4 +68,6 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
         terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
     if "S" in extra:
         terms.append(Salient())
+    if "F" in extra:
+        terms.append(default_free_space())
     return terms + default_priors()

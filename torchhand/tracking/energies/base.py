@@ -29,11 +29,12 @@ import torch
 from torchhand.core.check import skip_checks
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.render import RenderResult, visible_vertices
+from torchhand.model.kinematics import skew
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
-__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "scatter_columns", "no_residuals", "bone_inliers",
-           "prepared", "stack_rows", "stride_subsample"]
+__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "scatter_columns", "no_residuals", "bone_inliers",
+           "prepared", "stack_rows", "stride_subsample", "seen_vertices"]
 
 
 class Residuals(NamedTuple):
@@ -194,6 +195,54 @@ class EnergyTerm:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
+
+
+class VertexRayTerm(EnergyTerm):
+    """A term whose pairs are (model vertex, world ray): the residual ``V x d - m`` of
+    the vertex V and the ray's Pluecker line (d, m), whose norm is V's distance to the
+    ray (data-to-model, Eq. 4.8; free space). ``prepare`` sets ``self._scene`` and
+    ``self.per_model``: per model, (local vertex ids (B, n), d (B, n, 3), m (B, n, 3),
+    mask (B, n)); rows with mask 0 have d = m = 0 or are zeroed."""
+
+    def fold_row_weights(self, sqrt_w):
+        # V x d - m is linear in the line (d, m): scaling both by sqrt(w) weights the
+        # pair's squared residual, and its Jacobian, by w
+        start = 0
+        for k, (ids, d, m, mask) in enumerate(self.per_model):
+            sw = sqrt_w[:, start : start + ids.shape[1], None]
+            self.per_model[k] = (ids, d * sw, m * sw, mask)
+            start += ids.shape[1]
+        return True
+
+    def residuals(self, theta, posed, jacobian=True):
+        B, D = theta.shape
+        parts = []
+        b = torch.arange(B, device=theta.device)[:, None]
+        for k, (ids, d, m, mask) in enumerate(self.per_model):
+            out = posed.models[k]
+            V = out.vertices[b, ids]
+            r = (torch.cross(V, d, dim=-1) - m) * mask[..., None]
+            J = None
+            if jacobian:
+                model = self._scene.models[k]
+                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))
+                Jr = -(skew(d) @ Jv) * mask[..., None, None]  # d(V x d) = -[d]x dV
+                cols = self._scene.slices[self._scene.names[k]]
+                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
+            parts.append(Residuals(r.reshape(B, -1), J, 3, mask, torch.full_like(ids, k)))
+        return stack_rows(parts, theta, jacobian, 3, len(self.per_model))
+
+
+def seen_vertices(render: RenderResult, faces: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """The scene vertex seen at each pixel: the corner of the hit face with the largest
+    barycentric weight. render: (B, H, W) maps; pixels: (B, n, 2) int64 (row, col),
+    any value where the caller masks the result -> (B, n) int64."""
+    b = torch.arange(pixels.shape[0], device=pixels.device)[:, None]
+    r, c = pixels[..., 0].clamp(min=0), pixels[..., 1].clamp(min=0)
+    fid = render.face_id[b, r, c].clamp(min=0)
+    bary = render.barycentric[b, r, c]
+    w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)
+    return faces[fid, w.argmax(-1)]
 
 
 def scatter_columns(J_model: torch.Tensor, cols: slice, D: int) -> torch.Tensor:

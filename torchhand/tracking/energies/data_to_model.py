@@ -23,10 +23,9 @@ import torch
 
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
 from torchhand.geometry.neighbors import nearest_marked_pixel
-from torchhand.model.kinematics import skew
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, bone_inliers, prepared,
-                                              scatter_columns, stack_rows)
+from torchhand.tracking.energies.base import (Prepared, TrackState, VertexRayTerm, bone_inliers, prepared,
+                                              seen_vertices)
 
 __all__ = ["DataToModel", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -66,7 +65,7 @@ class _Edges(NamedTuple):
     radius: torch.Tensor
 
 
-class DataToModel(EnergyTerm):
+class DataToModel(VertexRayTerm):
     """E_data->model, unweighted and with the plain sum of squares (the tracker wraps
     it in :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`).
 
@@ -143,11 +142,7 @@ class DataToModel(EnergyTerm):
         px = nearest_marked_pixel(marks, rc.reshape(B, K * M, 2), groups, radius.reshape(B, K * M), K, self.backend)
         found = px[..., 0] >= 0
         b = torch.arange(B, device=dev)[:, None]
-        r_, c_ = px[..., 0].clamp(min=0), px[..., 1].clamp(min=0)
-        fid = rend.face_id[b, r_, c_].clamp(min=0)
-        bary = rend.barycentric[b, r_, c_].to(dt)
-        w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)
-        vid = scene.faces[fid, w.argmax(-1)]  # (B, K M) the scene vertex seen at the model pixel
+        vid = seen_vertices(rend, scene.faces, px)  # (B, K M) the scene vertex seen at the model pixel
         V = state.posed.vertices[b, vid]
         Xf, df, mf = X.reshape(B, K * M, 3), d.reshape(B, K * M, 3), m.reshape(B, K * M, 3)
         within = found & ((V - Xf).norm(dim=-1) <= self.max_distance)
@@ -167,31 +162,3 @@ class DataToModel(EnergyTerm):
             local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
             self.per_model.append((local, df[:, rows], mf[:, rows], keep[:, rows].to(dt)))
         return prepared(B, correspondences=count, candidates=candidates, unmatched=unmatched)
-
-    def fold_row_weights(self, sqrt_w):
-        # V x d - m is linear in the line (d, m): scaling both by sqrt(w) weights the
-        # pair's squared residual, and its Jacobian, by w
-        start = 0
-        for k, (ids, d, m, mask) in enumerate(self.per_model):
-            sw = sqrt_w[:, start : start + ids.shape[1], None]
-            self.per_model[k] = (ids, d * sw, m * sw, mask)
-            start += ids.shape[1]
-        return True
-
-    def residuals(self, theta, posed, jacobian=True):
-        B, D = theta.shape
-        parts = []
-        b = torch.arange(B, device=theta.device)[:, None]
-        for k, (ids, d, m, mask) in enumerate(self.per_model):
-            out = posed.models[k]
-            V = out.vertices[b, ids]
-            r = (torch.cross(V, d, dim=-1) - m) * mask[..., None]  # Eq. 4.8
-            J = None
-            if jacobian:
-                model = self._scene.models[k]
-                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))
-                Jr = -(skew(d) @ Jv) * mask[..., None, None]  # d(V x d) = -[d]x dV
-                cols = self._scene.slices[self._scene.names[k]]
-                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
-            parts.append(Residuals(r.reshape(B, -1), J, 3, mask, torch.full_like(ids, k)))
-        return stack_rows(parts, theta, jacobian, 3, len(self.per_model))

@@ -113,9 +113,10 @@ class ModelToData(EnergyTerm):
             else:
                 j = data.index.nearest(Vk, problems, torch.where(slot, torch.full_like(ids, k), -1), cut)
             found = j >= 0
-            X, nX = data.points[j.clamp(min=0)], data.normals[j.clamp(min=0)]
-            if len(data.points) == 0:
+            if data.index is None:  # no labelled data (e.g. every model far from it)
                 X, nX = torch.zeros_like(Vk), torch.zeros_like(Vk)
+            else:
+                X, nX = data.points[j.clamp(min=0)], data.normals[j.clamp(min=0)]
             d = torch.where(found, (Vk - X).norm(dim=-1), torch.full_like(Vk[..., 0], 2 * cut))
             keep = slot & found & (d <= cut) & ((nV * nX).sum(-1) >= self.cos_max)
             keep = keep & bone_inliers(d, model.vertex_bone[local], keep, model.num_bones, self.outlier_sigma)

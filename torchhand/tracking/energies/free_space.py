@@ -1,0 +1,189 @@
+"""F: model surface in free space is pulled back inside its data (not in the thesis).
+
+A rendered pixel of model k is *in free space* when the sensor saw nothing there, or
+saw something farther than the model by more than ``margin`` mm (with data in front,
+the model is occluded, which is no evidence against it). "Nothing" excludes the small
+holes of the data (``DepthFrame.covered``): a structured-light sensor loses the pixels
+in the shadow beside an occluding finger, and a held rope seen through such shadows
+was pushed along its axis, away from the hands, by 100 mm over 40 frames. The vertex seen at such a
+pixel is paired with the nearest data pixel q labelled k within ``radius`` px (an
+exact Euclidean feature transform of the data labels,
+:func:`torchhand.geometry.neighbors.marked_pixel_transform`, computed once per frame
+on the CPU, since the labels stay for the frame; each outer iteration then reads it on
+the device), and its residual is the image distance from the vertex's projection to q, in mm
+at the data's depth there: ``(pi(V) - q') z_q / f`` (2 rows), where q' is q moved
+``tolerance`` px towards the free pixel. The model is pulled back to within
+``tolerance`` px of its data silhouette along the image, whatever the depth there.
+Pixels within ``tolerance`` px of their data are left alone: noisy sensors erode thin
+silhouettes by a pixel or two (the Kinect noise model does), and pulling every
+boundary pixel of every model inward by that much slid a held rope along its axis by
+130 mm over 60 frames.
+
+Why not the distance to q's projection ray, as data-to-model writes its pairs: every
+ray meets the camera centre, so a vertex shortens its distance to any ray by moving
+towards the camera, and a rope end paired with rays swung 170 mm towards the camera in
+one step (data-to-model is kept from this by its 30 mm test on the 3D distance, which a
+pair in free space has no data depth for).
+
+Model-to-data (pairs within 10 mm) and data-to-model (data edges to the model's
+silhouette) exert no force on surface that left the data: a rope end hanging beyond a
+hand, a tube sliding along itself. The 2D silhouette term of Tagliasacchi et al. (2015,
+a distance transform of the sensor silhouette) and DART's free-space constraint (Schmidt
+et al. 2014: model points seen where the sensor saw farther) are the references; this is
+the former's pairing with the latter's test, in the 3D units of the other terms. The
+tracker wraps it in :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`
+(:func:`torchhand.tracking.energies.parse_energy`, ``F``).
+
+Every problem has ``max_pixels`` rows per model (a stride subsample of its free-space
+pixels in the solve's render box); no host synchronisation after the frame's transform.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from torchhand.geometry.neighbors import marked_pixel_transform
+from torchhand.optim.robust_loss import Cauchy
+from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, prepared,
+                                              scatter_columns, seen_vertices, stack_rows, stride_subsample)
+
+__all__ = ["FreeSpace", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
+
+#: The tracker's weight of the term (one free-space pixel counts as a quarter of a
+#: data pair, as a data-to-model pair does): docs/results.md, "Free space".
+DEFAULT_WEIGHT = 0.25
+
+#: Cauchy weights of each pair's ray distance, scale 5 mm: a pixel a few mm outside its
+#: data pulls fully, one whose nearest data is far (a model lost as a whole) does not
+#: dominate the frame.
+DEFAULT_LOSS = Cauchy(scale=5.0)
+
+
+class _Data(NamedTuple):
+    """The data side of a solve, on the render box (h, w pixels from (r0, c0)): depth
+    (B, h, w) mm, 0 where nothing was seen, -1 in the data's small holes; nearest (B, K, h, w, 2) int64 the nearest
+    data pixel labelled k (row, col in the image); distance (B, K, h, w) px to it."""
+
+    depth: torch.Tensor
+    nearest: torch.Tensor
+    distance: torch.Tensor
+    origin: tuple
+
+
+class FreeSpace(EnergyTerm):
+    """E_free: unweighted, with the plain sum of squares.
+
+    Args:
+        margin: mm, data farther than the model by more than this counts as free space.
+        radius: px, the farthest data a free-space pixel is paired with (beyond it the
+            pixel has no pair: a model lost as a whole is not dragged across the image).
+        tolerance: px, free-space pixels this near their data are not pulled.
+        max_pixels: free-space pixels used per model and problem (a stride subsample).
+    """
+
+    name = "free"
+
+    def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400):
+        if not tolerance >= 0:
+            raise ValueError(f"tolerance must be >= 0 (px), got {tolerance!r}")
+        if not margin >= 0:
+            raise ValueError(f"margin must be >= 0 (mm), got {margin!r}")
+        if not radius > 0:
+            raise ValueError(f"radius must be > 0 (px), got {radius!r}")
+        if not (isinstance(max_pixels, int) and max_pixels > 0):
+            raise ValueError(f"max_pixels must be a positive int, got {max_pixels!r}")
+        self.margin, self.radius, self.max_pixels = float(margin), float(radius), max_pixels
+        self.tolerance = float(tolerance)
+
+    def _build(self, state: TrackState) -> _Data:
+        dev = state.theta.device
+        H, W = state.frames[0].mask.shape
+        box = (0, H, 0, W) if state.box is None else state.box
+        r0, r1, c0, c1 = box
+        # depth where seen, 0 where nothing was seen, -1 in the data's small holes (unknown)
+        depth = torch.stack([torch.where(f.mask, f.depth, torch.where(f.mask if f.covered is None else f.covered,
+                                                                      -1.0, 0.0).to(f.depth))[r0:r1, c0:c1]
+                             for f in state.frames]).to(dev)
+        nearest, distance = marked_pixel_transform(state.data_labels, len(state.scene.models), box)
+        return _Data(depth.float(), nearest, distance, (r0, c0))
+
+    def prepare(self, state: TrackState) -> Prepared:
+        scene, B = state.scene, state.theta.shape[0]
+        self._scene = scene
+        dev, dt = state.theta.device, state.theta.dtype
+        data = state.data_side(self, self._build)
+        p = state.problem_index()
+        depth, nearest, distance = data.depth[p], data.nearest[p], data.distance[p]
+        r0, c0 = data.origin
+        h, w = depth.shape[1:]
+        rend = state.render
+        ids = rend.model_id[:, r0 : r0 + h, c0 : c0 + w]
+        z_model = rend.depth[:, r0 : r0 + h, c0 : c0 + w]
+        free = (ids >= 0) & ((depth == 0) | (depth > z_model + self.margin))  # (B, h, w)
+        K, M = len(scene.models), self.max_pixels
+        # up to M free-space pixels of each model, evenly spaced
+        flat, mid = free.reshape(B, -1), ids.reshape(B, -1)
+        pos, slot = zip(*(stride_subsample(flat & (mid == k), M) for k in range(K)))
+        pos, slot = torch.cat(pos, 1), torch.cat(slot, 1)  # (B, K M) positions in the box
+        model = torch.arange(K, device=dev).repeat_interleave(M)[None].expand(B, -1)
+        b = torch.arange(B, device=dev)[:, None]
+        pr, pc = pos // w, pos % w
+        q = nearest[b, model, pr, pc]  # (B, K M, 2) image (row, col)
+        dist = distance[b, model, pr, pc].to(dt)
+        rc = torch.stack([pr + r0, pc + c0], -1)
+        keep = slot & (dist <= self.radius) & (dist > self.tolerance)
+        gap = (rc - q).to(dt)  # (row, col) from the data pixel to the free one
+        target = q.to(dt) + gap * (self.tolerance / dist.clamp(min=1e-9))[..., None]  # q', tolerance px out
+        vid = seen_vertices(rend, scene.faces, rc)
+        b = torch.arange(B, device=dev)[:, None]
+        qr, qc = (q[..., 0] - r0).clamp(0, h - 1), (q[..., 1] - c0).clamp(0, w - 1)
+        z = torch.where(keep, depth[b, qr, qc].to(dt), torch.zeros_like(dist))  # the data depth at q
+        K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
+        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
+        # mm per px at the data's depth: the residual's scale, fixed for the outer iteration
+        scale = torch.where(keep, z / K_b[:, 0, 0, None], torch.zeros_like(z))
+        self._cameras = (K_b, T_b)
+        self.per_model = []
+        for k, name in enumerate(scene.names):
+            rows = slice(k * M, (k + 1) * M)
+            local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
+            self.per_model.append((local, target[:, rows].flip(-1), scale[:, rows], keep[:, rows].to(dt)))
+        return prepared(B, device=dev, pixels=keep.sum(1), free=free.reshape(B, -1).sum(1))
+
+    def fold_row_weights(self, sqrt_w):
+        # the residual is linear in the stored scale: scaling it weights the pair by w
+        start = 0
+        for k, (ids, q, scale, mask) in enumerate(self.per_model):
+            self.per_model[k] = (ids, q, scale * sqrt_w[:, start : start + ids.shape[1]], mask)
+            start += ids.shape[1]
+        return True
+
+    def residuals(self, theta, posed, jacobian=True):
+        B, D = theta.shape
+        K_b, T_b = self._cameras
+        R, t = T_b[:, None, :3, :3], T_b[:, None, :3, 3]
+        fx, fy = K_b[:, 0, 0, None], K_b[:, 1, 1, None]
+        cx, cy = K_b[:, 0, 2, None], K_b[:, 1, 2, None]
+        parts = []
+        b = torch.arange(B, device=theta.device)[:, None]
+        for k, (ids, q, scale, mask) in enumerate(self.per_model):
+            out = posed.models[k]
+            V = out.vertices[b, ids]  # (B, n, 3) world
+            Xc = (R @ V[..., None])[..., 0] + t
+            Z = Xc[..., 2].clamp(min=1.0)
+            u = torch.stack([fx * Xc[..., 0] / Z + cx, fy * Xc[..., 1] / Z + cy], -1)
+            r = (u - q) * scale[..., None]  # (B, n, 2) mm at the data depth
+            J = None
+            if jacobian:
+                model = self._scene.models[k]
+                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))  # (B, n, 3, D_k)
+                zeros = torch.zeros_like(Z)
+                Jp = torch.stack([torch.stack([fx / Z, zeros, -fx * Xc[..., 0] / Z ** 2], -1),
+                                  torch.stack([zeros, fy / Z, -fy * Xc[..., 1] / Z ** 2], -1)], -2)  # (B, n, 2, 3)
+                Jr = (Jp @ R) @ Jv * scale[..., None, None]
+                cols = self._scene.slices[self._scene.names[k]]
+                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
+            parts.append(Residuals(r.reshape(B, -1), J, 2, mask, torch.full_like(ids, k)))
+        return stack_rows(parts, theta, jacobian, 2, len(self.per_model))

@@ -1,0 +1,107 @@
+"""Which model each data pixel belongs to: the labels the data terms pair by.
+
+Model-to-data pairs a model's vertices only with data of its own label, data-to-model
+pairs a data edge only with its own model's silhouette. Two labellings:
+
+- :func:`label_by_proximity` (the tracker's default, ``TrackerConfig.labels =
+  "proximity"``): a data point belongs to the model whose posed surface is nearest in 3D,
+  within ``label_distance`` mm. A rope held between two hands is its own wherever it is
+  nearer to the rope than to a hand, even where its pixels border the hands' images.
+- :func:`label_data` (``"rendered"``): the id of the rendered model at the pixel, or of
+  the nearest rendered pixel within a radius in the image (2D). Data of an object whose
+  model slid off it goes to whatever model is rendered nearest in the image: the hands
+  claimed the arch of a rope between them this way (docs/results.md, "Two hands and the
+  rope").
+
+The thesis does not say how data is assigned to models; the rendered ids are the
+visibility and stay so whatever the labelling.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from torchhand.geometry.camera import Camera
+from torchhand.geometry.neighbors import PointIndex
+from torchhand.tracking.preprocess import DepthFrame
+
+__all__ = ["LABELINGS", "label_data", "label_by_proximity"]
+
+#: the names of the labellings (``TrackerConfig.labels``)
+LABELINGS = ("proximity", "rendered")
+
+
+def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torch.Tensor:
+    """Assign every valid data pixel the id of the rendered model at it, or of the
+    nearest rendered pixel within ``radius`` px (2D distance transform); -1 otherwise.
+
+    frame: preprocessed data; model_id: (H, W) rendered ids (-1 empty) -> (H, W) int64.
+    """
+    ids = model_id.cpu().numpy()
+    valid = frame.mask.cpu().numpy()
+    labels = np.full(ids.shape, -1, np.int64)
+    rendered = ids >= 0
+    rows, cols = np.nonzero(rendered.any(1))[0], np.nonzero(rendered.any(0))[0]
+    if len(rows):
+        # only pixels within `radius` of the rendered pixels' box can get a label
+        r = int(np.ceil(radius))
+        r0, r1 = max(rows[0] - r, 0), min(rows[-1] + 1 + r, ids.shape[0])
+        c0, c1 = max(cols[0] - r, 0), min(cols[-1] + 1 + r, ids.shape[1])
+        crop, hit = ids[r0:r1, c0:c1], rendered[r0:r1, c0:c1]
+        dist, lab = cv2.distanceTransformWithLabels(np.where(hit, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        nearest = crop[hit][lab - 1]  # labels enumerate the zero (rendered) pixels row-major
+        labels[r0:r1, c0:c1] = np.where((dist <= radius) & valid[r0:r1, c0:c1], nearest, -1)
+    return torch.as_tensor(labels, device=model_id.device)
+
+
+def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], vertices: torch.Tensor,
+                       vertex_model: torch.Tensor, distance: float, backend: Optional[str] = None) -> torch.Tensor:
+    """Label every valid data pixel with the model of the nearest posed vertex in 3D
+    within ``distance`` mm; -1 where no model is that near.
+
+    Args:
+        frames: B preprocessed frames (points in the camera frame).
+        cameras: their B cameras.
+        vertices: (B, V, 3) posed scene vertices (world).
+        vertex_model: (V,) int64 model of each vertex.
+        distance: the cut-off, mm.
+        backend: of the neighbour search (:class:`~torchhand.geometry.neighbors.PointIndex`).
+    Returns:
+        (B, H, W) int64 labels on the frames' device.
+
+    The vertices stand for the surface: the thesis meshes have a vertex every 2-5 mm,
+    so the nearest vertex's model is the nearest surface's except within a few mm of
+    where two models touch. One batched query for all problems, no host sync but the
+    frames' pixel counts.
+    """
+    B, V = vertices.shape[:2]
+    dev, dt = vertices.device, vertices.dtype
+    index = PointIndex(vertices.detach().reshape(-1, 3), torch.arange(B, device=dev).repeat_interleave(V),
+                       torch.zeros(B * V, dtype=torch.int64, device=dev), B, 1, distance, backend)
+    H, W = frames[0].mask.shape
+    labels = torch.full((B, H, W), -1, dtype=torch.int64, device=dev)
+    pts: List[torch.Tensor] = []
+    sel = []
+    for frame, camera in zip(frames, cameras):
+        T_wc = camera.T_wc.to(dev, dt)
+        s = torch.nonzero(frame.mask.reshape(-1).to(dev))[:, 0]
+        sel.append(s)
+        pts.append(frame.points.reshape(-1, 3).to(dev, dt)[s] @ T_wc[:3, :3].T + T_wc[:3, 3])
+    n = max((len(p) for p in pts), default=0)
+    if n == 0:
+        return labels
+    queries = vertices.new_zeros(B, n, 3)
+    groups = torch.full((B, n), -1, dtype=torch.int64, device=dev)
+    for b, p in enumerate(pts):
+        queries[b, :len(p)], groups[b, :len(p)] = p, 0
+    nearest = index.nearest(queries, torch.arange(B, device=dev), groups, distance)  # (B, n) into B*V
+    model = torch.where(nearest >= 0, vertex_model.to(dev)[(nearest % V).clamp(min=0)], -1)
+    flat = labels.view(B, -1)
+    for b, s in enumerate(sel):
+        flat[b, s] = model[b, :len(s)]
+    return labels
