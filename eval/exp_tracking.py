@@ -116,13 +116,14 @@ def _prediction_suffix(args) -> str:
     return f"_pred{args.prediction:g}" + ("" if args.prediction_limiter else "_plain")
 
 
-def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "") -> dict:
+def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "", labels: str = "proximity") -> dict:
     """Track the rendered sequences with one energy (or the terms of ``make_terms``,
-    ``tag`` naming the run) and score them."""
+    ``tag`` naming the run) and data labelling, and score them (every model)."""
     cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter)
-    out = args.work / f"tracked_{tag or energy.replace('+', '_')}{_prediction_suffix(args)}"
+                        prediction_limiter=args.prediction_limiter, labels=labels)
+    tag = (tag or energy.replace("+", "_")) + ("" if labels == "proximity" else f"_{labels}")
+    out = args.work / f"tracked_{tag}{_prediction_suffix(args)}"
     t0 = time.perf_counter()
     summaries = track_sequences(list(folders.values()), out, cfg, force=True, make_terms=make_terms)
     elapsed = time.perf_counter() - t0
@@ -132,21 +133,28 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "") 
         worst = max(r["per_frame"]["mm"])
         results.append({"sequence": s, "frames": r["frames"], "mean_px": r["mean_px"], "median_px": r["median_px"],
                         "mean_mm": r["mean_mm"], "median_mm": r["median_mm"], "worst_frame_mm": worst,
-                        "lost": worst > 20.0, "penetration": r.get("penetration")})
-        print(tag or energy, results[-1])
+                        "lost": worst > 20.0, "penetration": r.get("penetration"),
+                        "models": {n: {k: m[k] for k in ("metric", "mean_mm", "worst_frame_mm", "frames_over_20mm")}
+                                   for n, m in r["models"].items()},
+                        "lost_frames": r["lost_frames"]})
+        print(tag, {k: v for k, v in results[-1].items() if k != "penetration"}, flush=True)
     pooled = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
                         for s, f in folders.items()])
-    return {"energy": energy, "tag": tag or energy, "prediction": args.prediction,
+    return {"energy": energy, "labels": labels, "tag": tag, "prediction": args.prediction,
             "prediction_limiter": args.prediction_limiter, "sequences": results,
             "overall": {k: pooled[k] for k in ("frames", "mean_px", "median_px", "mean_mm", "median_mm")},
             "track_seconds": elapsed, "tracker": summaries}
 
 
 def run_lo(args) -> dict:
-    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work)
-    res = track_and_score(args, folders, "LO")
-    return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
-            "iterations": args.iterations, **{k: v for k, v in res.items() if k != "energy"}}
+    folders = render_sequences(args.hia_root, _sequences(args), args.frames, args.work, window=args.window)
+    runs = [track_and_score(args, folders, e, labels=lab) for e in (args.energies or "LO").split(",")
+            for lab in args.labels.split(",")]
+    if len(runs) == 1:
+        return {"experiment": "LO on kinect renders", "frames_per_sequence": args.frames, "metric": args.metric,
+                "iterations": args.iterations, **{k: v for k, v in runs[0].items() if k != "energy"}}
+    return {"experiment": "energies and labellings on kinect renders", "frames_per_sequence": args.frames,
+            "metric": args.metric, "iterations": args.iterations, "runs": runs}
 
 
 def rope_sequence(hia_root: Path, sequence: str, frames: int, work: Path, noise: str, bend: float):
@@ -276,7 +284,7 @@ def run_rope(args) -> dict:
             else:
                 folder = rope_sequence(args.hia_root, s, args.frames, args.work, noise, args.bend)
                 name = f"tracked_rope_{noise}_b{args.bend:g}_it{args.iterations}{_prediction_suffix(args)}"
-            for energy in args.energies.split(","):
+            for energy in (args.energies or "LO").split(","):
                 for labels in args.labels.split(","):
                     cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
                                         first_frame_iterations=args.iterations, prediction=args.prediction,
@@ -327,11 +335,12 @@ def run_ablation(args) -> dict:
             r = evaluate_sequence(f / "gt", f / "gt")
             gt_penetration[s] = r.get("penetration")
     runs = []
-    for e in args.energies.split(","):
+    for e in (args.energies or "LO,LO+C").split(","):
         gc = args.collision_weight if "C" in e[2:] else None
         cs = args.salient_min_score if "S" in e[2:] else None
+        labels = args.labels.split(",")[0]
         if gc is None and cs is None:
-            runs.append(track_and_score(args, folders, e))
+            runs.append(track_and_score(args, folders, e, labels=labels))
             continue
 
         def terms(e=e, gc=gc, cs=cs):
@@ -343,10 +352,41 @@ def run_ablation(args) -> dict:
                     t.min_score = cs
             return ts
         tag = e.replace("+", "_") + (f"_gc{gc:g}" if gc is not None else "") + (f"_cthr{cs:g}" if cs is not None else "")
-        runs.append(track_and_score(args, folders, e, terms, tag=tag))
+        runs.append(track_and_score(args, folders, e, terms, tag=tag, labels=labels))
+    if args.physics:  # the thesis' plausibility measure of every run, and of the truth
+        runs_out = {r["tag"]: args.work / f"tracked_{r['tag']}{_prediction_suffix(args)}" for r in runs}
+        for r in runs:
+            r["physics_displacement_mm"] = physics_displacement(runs_out[r["tag"]], folders)
+        gt_displacement = physics_displacement(None, folders)
+    else:
+        gt_displacement = None
     return {"experiment": "energy ablation on kinect renders", "frames_per_sequence": args.frames,
             "metric": args.metric, "iterations": args.iterations, "collision_weight": args.collision_weight,
-            "salient_min_score": args.salient_min_score, "gt_penetration": gt_penetration, "runs": runs}
+            "salient_min_score": args.salient_min_score, "gt_penetration": gt_penetration,
+            "gt_physics_displacement_mm": gt_displacement, "runs": runs}
+
+
+def physics_displacement(tracked, folders) -> dict:
+    """Per sequence with a rigid object, the mean distance its centroid falls in the
+    thesis' simulation (35 steps of 0.1 s, the hands static) from each frame's pose:
+    ``tracked`` output folder, or the ground truth when None."""
+    from torchhand.tracking.simulation import GraspSimulation
+
+    out = {}
+    for s, folder in folders.items():
+        poses = read_poses(folder / "gt" if tracked is None else tracked / f"hia_{s}")
+        scene = Scene.from_names(poses.models, dtype=torch.float64)
+        sim = GraspSimulation(scene)
+        if not sim.objects:
+            continue
+        moved = []
+        for k in range(len(poses.theta)):
+            with torch.no_grad():
+                posed = scene(torch.as_tensor(poses.theta[k : k + 1]))
+            d = sim.displacement({m: o.vertices[0].numpy() for m, o in enumerate(posed.models)})
+            moved.append(float(np.mean(list(d.values()))))
+        out[s] = float(np.mean(moved))
+    return out
 
 
 def _depth_key(depth) -> str:
@@ -437,10 +477,14 @@ def main(argv=None) -> int:
     ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])
     ap.add_argument("--work", type=Path, default=Path("out/exp"))
     ap.add_argument("--json", type=Path, required=True)
-    ap.add_argument("--energies", default="LO,LO+C", help="ablation, rope: comma-separated energies")
-    ap.add_argument("--labels", default="proximity", help="rope: comma-separated data labellings (proximity, rendered)")
+    ap.add_argument("--energies", default=None,
+                    help="lo, ablation, rope: comma-separated energies (default: LO; ablation LO,LO+C)")
+    ap.add_argument("--labels", default="proximity",
+                    help="lo, rope: comma-separated data labellings (proximity, rendered)")
     ap.add_argument("--contact", action="store_true", help="only sequences with more than one model")
     ap.add_argument("--no-penetration", dest="penetration", action="store_false")
+    ap.add_argument("--physics", action="store_true",
+                    help="ablation: the thesis' physics plausibility measure (object displacement, pybullet)")
     ap.add_argument("--rates", default="0,0.3,0.6,1", help="detector-quality: detection rates")
     ap.add_argument("--weights", default="1,0.25", help="d2m-weight: comma-separated data-to-model weights")
     ap.add_argument("--collision-weight", type=float, default=None,

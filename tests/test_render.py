@@ -19,7 +19,7 @@ try:
     import warp  # noqa: F401
 
     HAVE_WARP = True
-except ImportError:  # pragma: no cover - the extra is part of the test install
+except ImportError:  # pragma: no cover - a dependency
     HAVE_WARP = False
 
 AVAILABLE = [b for b in BACKENDS if HAVE_WARP or not b.startswith("warp")]
@@ -334,7 +334,7 @@ def test_render_bad_geometry_is_refused(sphere, backend):
         render(vertices, faces, [cam, Camera.from_intrinsics(500, 500, 160, 120, 320, 240)], backend=backend)
 
 
-def test_missing_warp_names_the_extra(sphere, monkeypatch):
+def test_missing_warp_names_the_package(sphere, monkeypatch):
     """Without Warp the warp backends say what to install, and open3d still renders."""
     import builtins
     import sys
@@ -354,7 +354,7 @@ def test_missing_warp_names_the_extra(sphere, monkeypatch):
     try:
         vertices, faces = sphere
         assert raycast.default_backend() == "open3d"
-        with pytest.raises(ImportError, match=r"pip install torchhand\[warp\]"):
+        with pytest.raises(ImportError, match=r"pip install warp-lang"):
             render(vertices, faces, kinect_camera(), backend="warp")
         r = render(vertices, faces, kinect_camera())  # the default falls back to open3d
         assert int((r.depth > 0).sum()) > 1000

@@ -106,7 +106,8 @@ def _track(args) -> int:
     parse_energy(args.energy)  # reject unknown energies before reading any data
     cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.first_iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend)
+                        prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend,
+                        labels=args.labels)
     summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force)
     failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:
@@ -176,11 +177,16 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=_Formatter)
     p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
     p.add_argument("--out", type=Path, required=True, help="output folder; each sequence gets OUT/<name>/")
-    p.add_argument("--energy", default="LO",
-                   help="energy terms: LO (model-to-data + data-to-model), LO+C (collisions), LO+S (salient "
-                        "points), LO+CS")
+    p.add_argument("--energy", default="LO+F",
+                   help="energy terms: LO (model-to-data + data-to-model) plus any of C (collisions), S (salient "
+                        "points), F (free space), P (physics, needs pybullet), e.g. LO+CS or LO+CSP")
     p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
                    help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
+    from torchhand.tracking.labels import LABELINGS
+
+    p.add_argument("--labels", default="proximity", choices=LABELINGS,
+                   help="which model a data pixel belongs to: the model nearest in 3D, or the nearest rendered "
+                        "model in the image (docs/results.md)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
     p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
     p.add_argument("--prediction", type=float, default=0.0,
@@ -210,7 +216,7 @@ def main(argv=None) -> int:
         if str(device).startswith("cuda") and not torch.cuda.is_available():
             raise ValueError(f"--device {device}: no CUDA device is available (use --device cpu)")
         return args.func(args)
-    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError) as err:
+    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError, ImportError) as err:
         print(f"torchhand {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -1,7 +1,7 @@
 """NVIDIA Warp kernels of the geometry core: one kernel source for CPU and CUDA.
 
-Imported only when a Warp backend is used (``warp-lang`` is the ``torchhand[warp]``
-extra); :func:`require_warp` gives the message to install it. Tensors are exchanged with
+Imported only when a Warp backend is used (``warp-lang`` is a dependency of torchhand;
+where it is missing or cannot load, :func:`require_warp` says how to install it). Tensors are exchanged with
 torch zero-copy (``wp.from_torch``), never through numpy, on the tensors' own device.
 
 - :func:`rasterize`: the same hits for pinhole views by z-buffer rasterisation of the
@@ -32,8 +32,8 @@ __all__ = ["require_warp", "wp_device", "rasterize", "cast_rays", "nearest_in_gr
 #: an empty z-buffer entry (above every depth-and-face key)
 EMPTY_KEY = 2 ** 63 - 1
 
-WARP_MISSING = ("NVIDIA Warp is not installed: install the extra with `pip install torchhand[warp]` (or "
-                "`pip install warp-lang`), or choose backend='open3d'")
+WARP_MISSING = ("NVIDIA Warp is not installed: `pip install warp-lang` (a dependency of torchhand), "
+                "or choose backend='open3d'")
 
 
 @functools.lru_cache(maxsize=1)
@@ -50,7 +50,7 @@ def _warp():
 
 
 def require_warp():
-    """The ``warp`` module, initialised quietly; ImportError naming the extra when missing."""
+    """The ``warp`` module, initialised quietly; ImportError naming the package when missing."""
     return _warp()
 
 

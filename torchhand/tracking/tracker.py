@@ -41,7 +41,9 @@ ENERGY_HISTORY = 30
 
 @dataclass
 class TrackerConfig:
-    """energy: terms (``LO``); metric: m2d distance; inner_iterations: LM steps per
+    """energy: terms (``LO+F``: model-to-data, data-to-model and free space, the best
+    combination measured over the shared sequences, the windows and the rope, see
+    docs/results.md "Objects, free space and physics"); metric: m2d distance; inner_iterations: LM steps per
     correspondence update (1 = the thesis' alternation); max_iterations: per frame (the
     thesis' i_thr); first_frame_iterations: for frame 0 (50 in the thesis);
     min_joint_motion: mm, convergence when the joints of every model move less than
@@ -55,8 +57,9 @@ class TrackerConfig:
     perturbations of the previous pose (the best is kept if it is better); seed: of
     those perturbations in :func:`track_sequences`, so a run is repeatable;
     labels: how data pixels are assigned to models (:mod:`torchhand.tracking.labels`):
-    ``"proximity"``, the model nearest in 3D within ``label_distance`` mm, or
-    ``"rendered"``, the nearest rendered model in the image within ``label_radius`` px;
+    ``"proximity"`` (the default), the model nearest in 3D within ``label_distance`` mm,
+    or ``"rendered"``, the nearest rendered model in the image within ``label_radius``
+    px (it hands background data beside a model to the model, which hides free space);
     prediction: a frame's solve starts from the previous pose plus
     ``prediction`` times the last step (:func:`predicted_start`, clamped to the joint
     limits): 0 starts from the previous pose as the thesis does, 1 is a
@@ -71,7 +74,7 @@ class TrackerConfig:
     cover (the models move a few mm within a frame: 48 px are about 40 mm at 450 mm; a
     model that leaves the box loses the pixels outside it for that frame)."""
 
-    energy: str = "LO"
+    energy: str = "LO+F"
     metric: str = "point-to-plane"
     inner_iterations: int = 1
     max_iterations: int = 50

@@ -4,7 +4,7 @@ wrappers (:mod:`torchhand.tracking.energies.wrappers`).
 
 ``parse_energy("LO+C")`` builds the terms named on the command line with the tracker's
 weights and losses: ``LO`` is model-to-data plus data-to-model, ``C`` adds collisions,
-``S`` salient points and ``F`` free space (``LO+CS``: collisions and salient points,
+``S`` salient points, ``F`` free space and ``P`` physics (``LO+CS``: collisions and salient points,
 components in any order); anatomy and regularisation are always added.
 """
 
@@ -12,25 +12,27 @@ from __future__ import annotations
 
 from typing import List, Optional
 
-from torchhand.tracking.energies import anatomy, collision, data_to_model, free_space, regularization
+from torchhand.tracking.energies import anatomy, collision, data_to_model, free_space, physics, regularization
 from torchhand.tracking.energies.anatomy import Anatomy
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
 from torchhand.tracking.energies.collision import Collision
 from torchhand.tracking.energies.data_to_model import DataToModel
 from torchhand.tracking.energies.free_space import FreeSpace
 from torchhand.tracking.energies.model_to_data import ModelToData
+from torchhand.tracking.energies.physics import Physics
 from torchhand.tracking.energies.regularization import Regularization
 from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
 __all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
-           "FreeSpace", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
+           "FreeSpace", "Physics", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
            "default_free_space", "default_priors", "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
 ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)",
                      "S": "salient points (detected fingertips, Eq. 4.14-4.15)",
-                     "F": "free space (model surface where the sensor saw nothing or farther, pulled into its data)"}
+                     "F": "free space (model surface where the sensor saw nothing or farther, pulled into its data)",
+                     "P": "physics (Bullet stability of held rigid objects, Eq. 4.16; needs pybullet)"}
 
 
 def default_data_to_model(**kwargs) -> EnergyTerm:
@@ -70,4 +72,6 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
         terms.append(Salient())
     if "F" in extra:
         terms.append(default_free_space())
+    if "P" in extra:
+        terms.append(Weighted(Physics(), physics.DEFAULT_WEIGHT))
     return terms + default_priors()

@@ -1,0 +1,101 @@
+"""The physics term P (thesis Eq. 4.16) and its Bullet simulation."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+pytest.importorskip("pybullet")
+
+from torchhand.model.scene import Scene  # noqa: E402
+from torchhand.tracking.energies import Physics, parse_energy  # noqa: E402
+from torchhand.tracking.simulation import GraspSimulation, contact_bones, part_vertices  # noqa: E402
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def hand_ball():
+    scene = Scene.from_names(["hand_right", "ball"], dtype=F64)
+    hand, ball = scene.models
+    theta = torch.zeros(1, scene.num_dofs, dtype=F64)
+    h, b = scene.slices["hand_right"], scene.slices["ball"]
+    theta[0, h.start:h.start + 3] = torch.tensor([0.0, 0.0, 450.0], dtype=F64) - hand.vertices_rest.mean(0)
+    theta[0, b.start:b.start + 3] = torch.tensor([0.0, 0.0, 450.0], dtype=F64) - ball.vertices_rest.mean(0)
+    return scene, theta
+
+
+def test_parts_and_contact_zones_come_from_the_model_files(hand_ball):
+    scene, _ = hand_ball
+    hand = scene.models[0]
+    parts = part_vertices(hand)
+    assert sum(len(p) for p in parts) == hand.num_vertices  # every vertex in one part
+    bones = contact_bones(hand)  # the ZONES file's top zone: the phalanges
+    assert len(bones) == 14 and 0 not in bones
+    assert all(hand.bone_names[j].split("_")[-1] in ("0", "1", "2") for j in bones)
+
+
+def test_an_unsupported_object_falls_and_a_far_hand_cannot_hold_it(hand_ball):
+    """The ball 300 mm beside the hand: it falls (far more than 3 mm in 3.5 s) and no
+    finger part is within 10 mm, so no support is found."""
+    scene, theta = hand_ball
+    away = theta.clone()
+    away[0, scene.slices["ball"].start] += 300.0
+    with torch.no_grad():
+        out = scene(away)
+    verts = {k: o.vertices[0].numpy() for k, o in enumerate(out.models)}
+    sim = GraspSimulation(scene)
+    assert sim.displacement(verts)[1] > 1000.0
+    support = sim.best_support(verts)[1]
+    assert not support.stable and support.parts == []
+
+
+def test_physics_jacobian_matches_finite_differences(hand_ball):
+    scene, theta = hand_ball
+    term = Physics()
+    term._scene = scene
+    vh = torch.tensor([[100, 2000, 5000]])
+    vo = torch.tensor([[3, 50, 400]])
+    term.blocks = [(0, 1, vh, vo, torch.ones(1, 3, dtype=F64))]
+    start = theta.clone()
+    start[0, 6:] += 0.05
+    r, J = term.residuals(start, scene(start), True)[:2]
+    eps = 1e-6
+    cols = []
+    for d in range(scene.num_dofs):
+        e = torch.zeros_like(start)
+        e[0, d] = eps
+        cols.append((term.residuals(start + e, scene(start + e), False).r
+                     - term.residuals(start - e, scene(start - e), False).r) / (2 * eps))
+    J_fd = torch.stack(cols, -1)
+    assert (J - J_fd).abs().max() / J_fd.abs().max() < 1e-6
+    # Eq. 4.16: the residual is V_i - X_i, hand vertex minus object vertex
+    out = scene(start)
+    assert torch.allclose(r.view(1, 3, 3), out.models[0].vertices[0, vh[0]] - out.models[1].vertices[0, vo[0]])
+
+
+def test_a_scene_without_a_rigid_object_says_so_once(hand_ball):
+    from torchhand.geometry.camera import kinect_camera
+    from torchhand.geometry.render import render
+    from torchhand.tracking.tracker import Tracker, TrackerConfig
+
+    scene = Scene.from_names(["hand_right"], dtype=F64)
+    theta = hand_ball[1][:, : scene.num_dofs]
+    cam = kinect_camera(dtype=F64)
+    with torch.no_grad():
+        depth = render(scene(theta).vertices, scene.faces, cam).depth[0]
+    tracker = Tracker(scene, TrackerConfig(energy="LO+P", max_iterations=3, first_frame_iterations=3))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(2):
+            res = tracker.track_frame([depth], [cam], theta, first=True)
+            assert torch.isfinite(res.theta).all()
+    said = [w for w in caught if "physics term does nothing" in str(w.message)]
+    assert len(said) == 1
+
+
+def test_parse_energy_adds_the_weighted_physics_term():
+    terms = parse_energy("LO+CSP")
+    assert any("Physics" in repr(t) and "10" in repr(t) for t in terms)
