@@ -18,6 +18,9 @@ Measurements, side by side in one run:
   ``warp`` uses Warp kernels for both, ``open3d`` open3d's ray casting with scipy's
   KD-tree and distance transform); ``track_speedup_vs_open3d`` per scene is the ratio of
   their seconds per frame after frame 0.
+- ``energies``: for both scenes at ``--iterations``, the same frames tracked with each
+  energy of ``--energies``; ``time_vs_first`` is each one's seconds per frame after
+  frame 0 over the first's (the default LO+F against the thesis' LO).
 Accuracy (mean keypoint error) is reported next to each timing. ``--device cuda`` runs
 the Warp backends on the GPU (open3d stays on the CPU).
 """
@@ -68,6 +71,8 @@ def main(argv=None) -> None:
     ap.add_argument("--backends", default="warp,open3d", help="backends compared at --compare-cap ('' skips it)")
     ap.add_argument("--compare-cap", type=int, default=2, help="iterations per frame of the backend comparison")
     ap.add_argument("--device", default="cpu", help="torch device of the tracking (cpu or cuda)")
+    ap.add_argument("--energies", default="LO,LO+F", help="energies compared at --iterations ('' skips it)")
+    ap.add_argument("--only-energies", action="store_true", help="measure the energies comparison only")
     ap.add_argument("--prediction", type=float, default=0.0, help="TrackerConfig.prediction (1: constant-velocity start)")
     ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                     help="extrapolate the last step as it is (TrackerConfig.prediction_limiter=False)")
@@ -86,6 +91,15 @@ def main(argv=None) -> None:
         result["caps"] = {}
         for key, seq in (("one_hand", "09"), ("two_hands_object", "16")):
             root = render(args.hia_root, seq, 0, args.frames, tmp / key)
+            energies = [e for e in args.energies.split(",") if e.strip()]
+            if energies:
+                comp = result.setdefault("energies", {}).setdefault(key, {})
+                for e in energies:
+                    comp[e] = scored_run(root, tmp / f"{key}_{e}", replace(cfg, energy=e), args.device)
+                first = comp[energies[0]]["seconds_per_frame_after_first"]
+                comp["time_vs_first"] = {e: comp[e]["seconds_per_frame_after_first"] / first for e in energies}
+            if args.only_energies:
+                continue
             result[key] = {"sequence": seq, **scored_run(root, tmp / f"{key}_out", cfg, args.device)}
             sweep = [{"cap": c, **scored_run(root, tmp / f"{key}_cap{c}", replace(cfg, max_iterations=c), args.device)}
                      for c in caps]
@@ -101,6 +115,9 @@ def main(argv=None) -> None:
                 if "open3d" in comp and "warp" in comp:
                     comp["track_speedup_vs_open3d"] = (comp["open3d"]["seconds_per_frame_after_first"]
                                                        / comp["warp"]["seconds_per_frame_after_first"])
+        if args.only_energies:
+            write_json(args.json, result)
+            return
         windows = [render(args.hia_root, "12", 80 * k, args.frames // 2, tmp / f"w{k}") for k in range(args.batch)]
         seq_secs = sum(timed_track([w], tmp / f"seq_out{k}", cfg, args.device)[1] for k, w in enumerate(windows))
         bat_secs = timed_track(windows, tmp / "batch_out", cfg, args.device)[1]

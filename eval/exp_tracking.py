@@ -123,7 +123,9 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "", 
                         first_frame_iterations=args.iterations, prediction=args.prediction,
                         prediction_limiter=args.prediction_limiter, labels=labels)
     tag = (tag or energy.replace("+", "_")) + ("" if labels == "proximity" else f"_{labels}")
-    out = args.work / f"tracked_{tag}{_prediction_suffix(args)}"
+    # the folder names the rendered set too: runs of other windows never share it
+    window = "_contact" if getattr(args, "window", "start") == "contact" else ""
+    out = args.work / f"tracked_{tag}{_prediction_suffix(args)}_f{args.frames}{window}"
     t0 = time.perf_counter()
     summaries = track_sequences(list(folders.values()), out, cfg, force=True, make_terms=make_terms)
     elapsed = time.perf_counter() - t0
@@ -354,7 +356,9 @@ def run_ablation(args) -> dict:
         tag = e.replace("+", "_") + (f"_gc{gc:g}" if gc is not None else "") + (f"_cthr{cs:g}" if cs is not None else "")
         runs.append(track_and_score(args, folders, e, terms, tag=tag, labels=labels))
     if args.physics:  # the thesis' plausibility measure of every run, and of the truth
-        runs_out = {r["tag"]: args.work / f"tracked_{r['tag']}{_prediction_suffix(args)}" for r in runs}
+        window = "_contact" if args.window == "contact" else ""
+        runs_out = {r["tag"]: args.work / f"tracked_{r['tag']}{_prediction_suffix(args)}_f{args.frames}{window}"
+                    for r in runs}
         for r in runs:
             r["physics_displacement_mm"] = physics_displacement(runs_out[r["tag"]], folders)
         gt_displacement = physics_displacement(None, folders)
