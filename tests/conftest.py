@@ -9,6 +9,8 @@
 * ``tmp_thesis_model``: a tiny, valid thesis model (a 3-bone chain) written to
   ``tmp_path``, so that bad-input tests can corrupt copies of its files.
 * ``model64``: a session cache of the shipped models in float64 (do not mutate them).
+* ``scene_at``: ``scene_at(names, centres)`` -> (float64 Scene, (1, D) theta) with each
+  model's rest shape moved so that its centroid lies at its centre (mm, camera frame).
 """
 
 from __future__ import annotations
@@ -33,6 +35,21 @@ def pytest_configure(config):
 
 HIA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "hands_in_action"
 SHIPPED_MODELS = ("hand_right", "hand_left", "ball", "cube", "pipe", "rope")
+
+
+@pytest.fixture(scope="session")
+def scene_at():
+    from torchhand.model.scene import Scene
+
+    def make(names, centres):
+        scene = Scene.from_names(list(names), dtype=torch.float64)
+        theta = torch.zeros(1, scene.num_dofs, dtype=torch.float64)
+        for name, model, centre in zip(scene.names, scene.models, centres):
+            s = scene.slices[name]
+            theta[0, s.start:s.start + 3] = torch.tensor(centre, dtype=torch.float64) - model.vertices_rest.mean(0)
+        return scene, theta
+
+    return make
 
 
 # ------------------------------------------------------------------ data root

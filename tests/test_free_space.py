@@ -7,7 +7,6 @@ import torch
 
 from torchhand.geometry.camera import kinect_camera
 from torchhand.geometry.render import render
-from torchhand.model.scene import Scene
 from torchhand.tracking.energies import FreeSpace, ModelToData, parse_energy
 from torchhand.tracking.labels import label_by_proximity
 from torchhand.tracking.preprocess import preprocess_depth
@@ -17,14 +16,9 @@ F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
-def hand_and_ball():
-    """A right hand 450 mm in front of the camera with a ball 60 mm to its side, clean depth."""
-    scene = Scene.from_names(["hand_right", "ball"], dtype=F64)
-    hand, ball = scene.models
-    theta = torch.zeros(1, scene.num_dofs, dtype=F64)
-    h, b = scene.slices["hand_right"], scene.slices["ball"]
-    theta[0, h.start:h.start + 3] = torch.tensor([-40.0, 0.0, 450.0], dtype=F64) - hand.vertices_rest.mean(0)
-    theta[0, b.start:b.start + 3] = torch.tensor([70.0, 0.0, 460.0], dtype=F64) - ball.vertices_rest.mean(0)
+def hand_and_ball(scene_at):
+    """A right hand 450 mm in front of the camera with a ball 110 mm to its side, clean depth."""
+    scene, theta = scene_at(["hand_right", "ball"], [(-40.0, 0.0, 450.0), (70.0, 0.0, 460.0)])
     cam = kinect_camera(dtype=F64)
     with torch.no_grad():
         depth = render(scene(theta).vertices, scene.faces, cam).depth[0]

@@ -17,14 +17,9 @@ F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
-def hand_ball():
-    scene = Scene.from_names(["hand_right", "ball"], dtype=F64)
-    hand, ball = scene.models
-    theta = torch.zeros(1, scene.num_dofs, dtype=F64)
-    h, b = scene.slices["hand_right"], scene.slices["ball"]
-    theta[0, h.start:h.start + 3] = torch.tensor([0.0, 0.0, 450.0], dtype=F64) - hand.vertices_rest.mean(0)
-    theta[0, b.start:b.start + 3] = torch.tensor([0.0, 0.0, 450.0], dtype=F64) - ball.vertices_rest.mean(0)
-    return scene, theta
+def hand_ball(scene_at):
+    """A right hand and the ball, both centred 450 mm in front of the camera."""
+    return scene_at(["hand_right", "ball"], [(0.0, 0.0, 450.0), (0.0, 0.0, 450.0)])
 
 
 def test_parts_and_contact_zones_come_from_the_model_files(hand_ball):
@@ -97,5 +92,44 @@ def test_a_scene_without_a_rigid_object_says_so_once(hand_ball):
 
 
 def test_parse_energy_adds_the_weighted_physics_term():
-    terms = parse_energy("LO+CSP")
-    assert any("Physics" in repr(t) and "10" in repr(t) for t in terms)
+    from torchhand.tracking.energies import Weighted
+    from torchhand.tracking.energies.physics import DEFAULT_WEIGHT
+
+    terms = [t for t in parse_energy("LO+CSP") if isinstance(t, Weighted) and isinstance(t.term, Physics)]
+    assert len(terms) == 1 and terms[0].weight == DEFAULT_WEIGHT == 10.0
+    assert not any(isinstance(getattr(t, "term", t), Physics) for t in parse_energy("LO+CS"))
+
+
+def test_a_held_cube_gets_supporting_fingers_and_the_term_pulls_them_on(hia_root):
+    """Frame 50 of "Moving a cube" (sequence 20) as the thesis' motion poses it: the
+    cube falls from the hand (no table is modelled); moving two finger parts onto it holds
+    it to within the 3 mm of the stability test, and the term pairs those parts' nearest
+    vertices with the cube's, whose distances it then shrinks."""
+    from torchhand.data.synth import thesis_motion
+    from torchhand.geometry.camera import kinect_camera
+    from torchhand.tracking.preprocess import preprocess_depth
+    from torchhand.tracking.tracker import Tracker, TrackerConfig
+    from torchhand.geometry.render import render
+
+    frames = thesis_motion(hia_root, "20", slice(50, 51))
+    scene = Scene.from_names(frames.scene.names, dtype=F64)
+    theta = frames.theta.double()
+    with torch.no_grad():
+        posed = scene(theta)
+    sim = GraspSimulation(scene)
+    support = sim.best_support({k: o.vertices[0].numpy() for k, o in enumerate(posed.models)})[1]
+    assert not support.stable and support.displacement > 1000.0
+    assert 2 <= len(support.parts) <= 4 and support.supported < 3.0
+    assert all(k == 0 and j in contact_bones(scene.models[0]) for k, j in support.parts)
+
+    cam = kinect_camera(dtype=F64)
+    with torch.no_grad():
+        depth = render(posed.vertices, scene.faces, cam).depth[0]
+    tracker = Tracker(scene, TrackerConfig(energy="LO"))
+    state = tracker._state(theta, theta, [preprocess_depth(depth, cam, dtype=F64)], [cam])
+    term = Physics()
+    found = term.prepare(state)
+    assert int(found.diagnostics["unstable"][0]) == 1
+    assert int(found.diagnostics["contact_parts"][0]) == len(support.parts)
+    r = term.residuals(theta, posed, False).r.view(-1, 3)
+    assert r.shape[0] == len(support.parts) and (r.norm(dim=-1) < 12.0).all()  # parts within 10 mm (+ a vertex)

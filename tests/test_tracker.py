@@ -399,14 +399,10 @@ def test_label_data_equals_the_whole_image_transform():
 
 
 @pytest.fixture(scope="module")
-def hand_and_rope():
+def hand_and_rope(scene_at):
     """The articulated rope (36 bones, 76 DoF) bent gently below a hand, clean depth."""
-    scene = Scene.from_names(["hand_right", "rope"], dtype=F64)
-    hand, rope = scene.models
-    theta = torch.zeros(1, scene.num_dofs, dtype=F64)
-    h, r = scene.slices["hand_right"], scene.slices["rope"]
-    theta[0, h.start:h.start + 3] = torch.tensor([0.0, -40.0, 500.0], dtype=F64) - hand.vertices_rest.mean(0)
-    theta[0, r.start:r.start + 3] = torch.tensor([0.0, 60.0, 620.0], dtype=F64) - rope.vertices_rest.mean(0)
+    scene, theta = scene_at(["hand_right", "rope"], [(0.0, -40.0, 500.0), (0.0, 60.0, 620.0)])
+    r = scene.slices["rope"]
     bend = torch.sin(torch.linspace(0, 3.0, r.stop - r.start - 6, dtype=F64))
     theta[0, r.start + 6:r.stop] = 0.05 * bend
     theta = scene.clamp(theta)

@@ -232,7 +232,6 @@ def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[t
         no pixel; distance (B, G, h, w) float32 px, inf there), on marks' device.
     """
     import numpy as np
-    from scipy.ndimage import distance_transform_edt
 
     B, H, W = marks.shape
     r0, r1, c0, c1 = (0, H, 0, W) if box is None else box
@@ -245,21 +244,28 @@ def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[t
             if len(pix) == 0:
                 continue
             lo = np.minimum(pix.min(0), [r0, c0])  # the box holding the group and the answers
-            hi = np.maximum(pix.max(0) + 1, [r1, c1])
-            feature = np.ones(hi - lo, bool)
-            feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
-            dist, (ri, ci) = distance_transform_edt(feature, return_indices=True)
+            dist, near = _feature_transform(pix, lo, np.maximum(pix.max(0) + 1, [r1, c1]))
             sr, sc = slice(r0 - lo[0], r1 - lo[0]), slice(c0 - lo[1], c1 - lo[1])
-            nearest[b, g, ..., 0], nearest[b, g, ..., 1] = ri[sr, sc] + lo[0], ci[sr, sc] + lo[1]
-            distance[b, g] = dist[sr, sc]
+            nearest[b, g], distance[b, g] = near[sr, sc], dist[sr, sc]
     return torch.as_tensor(nearest, device=marks.device), torch.as_tensor(distance, device=marks.device)
+
+
+def _feature_transform(pix, lo, hi) -> tuple:
+    """scipy's exact Euclidean distance transform with indices of the marked pixels ``pix``
+    (n, 2) on the box [lo, hi): (distance (h, w), nearest (h, w, 2) image (row, col))."""
+    import numpy as np
+    from scipy.ndimage import distance_transform_edt
+
+    feature = np.ones(hi - lo, bool)
+    feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
+    dist, (ri, ci) = distance_transform_edt(feature, return_indices=True)
+    return dist, np.stack([ri + lo[0], ci + lo[1]], -1)
 
 
 def _nearest_pixel_edt(marks, queries, groups, radius) -> torch.Tensor:
     """The ``"cpu"`` backend: scipy's exact Euclidean distance transform with indices, on
     the box holding a group's pixels and its queries."""
     import numpy as np
-    from scipy.ndimage import distance_transform_edt
 
     B = marks.shape[0]
     m, q, g, rad = marks.cpu().numpy(), queries.cpu().numpy(), groups.cpu().numpy(), radius.cpu().numpy()
@@ -271,12 +277,8 @@ def _nearest_pixel_edt(marks, queries, groups, radius) -> torch.Tensor:
             if len(pix) == 0:
                 continue
             lo = np.minimum(pix.min(0), q[b, qi].min(0))
-            hi = np.maximum(pix.max(0), q[b, qi].max(0)) + 1
-            feature = np.ones(hi - lo, bool)
-            feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
-            _, (ri, ci) = distance_transform_edt(feature, return_indices=True)
-            rr, cc = q[b, qi, 0] - lo[0], q[b, qi, 1] - lo[1]
-            near = np.stack([ri[rr, cc], ci[rr, cc]], -1) + lo
+            _, nearest = _feature_transform(pix, lo, np.maximum(pix.max(0), q[b, qi].max(0)) + 1)
+            near = nearest[q[b, qi, 0] - lo[0], q[b, qi, 1] - lo[1]]
             ok = ((near - q[b, qi]) ** 2).sum(-1) <= rad[b, qi] ** 2
             out[b, qi] = np.where(ok[:, None], near, -1)
     return torch.as_tensor(out, device=marks.device)

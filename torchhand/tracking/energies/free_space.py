@@ -137,7 +137,6 @@ class FreeSpace(EnergyTerm):
         gap = (rc - q).to(dt)  # (row, col) from the data pixel to the free one
         target = q.to(dt) + gap * (self.tolerance / dist.clamp(min=1e-9))[..., None]  # q', tolerance px out
         vid = seen_vertices(rend, scene.faces, rc)
-        b = torch.arange(B, device=dev)[:, None]
         qr, qc = (q[..., 0] - r0).clamp(0, h - 1), (q[..., 1] - c0).clamp(0, w - 1)
         z = torch.where(keep, depth[b, qr, qc].to(dt), torch.zeros_like(dist))  # the data depth at q
         K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
