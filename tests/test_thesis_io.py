@@ -375,6 +375,7 @@ def test_real_right_hand_assets_match_shipped_model(real_right_hand, model64):
     shipped = model64("hand_right").assets
     assert assets.bone_names == shipped.bone_names
     np.testing.assert_array_equal(assets.vertices, shipped.vertices)
-    np.testing.assert_array_equal(assets.rest_transforms, shipped.rest_transforms)
+    # the rotations are re-orthonormalised in float64: numpy releases differ in the last bit
+    np.testing.assert_allclose(assets.rest_transforms, shipped.rest_transforms, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(assets.slot_used, shipped.slot_used)
     assert len(assets.dof_names) == 37

@@ -108,18 +108,67 @@ def _track(args) -> int:
                         first_frame_iterations=args.first_iterations, prediction=args.prediction,
                         prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend,
                         labels=args.labels)
-    summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force)
+    segment = _segment_config(args, "none") if args.segment else None
+    summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force,
+                                segment=segment, write_render=args.write_render)
     failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:
         if s["status"] == "ok":
             print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
-                  f"{s['flagged_frames']} flagged -> {s['out']}")
+                  f"{s['flagged_frames']} flagged, fit: silhouette IoU {s['mean_iou']:.2f}, median depth residual "
+                  f"{s['median_depth_residual_mm']:.1f} mm -> {s['out']}")
         else:
             print(f"torchhand track: error: {s['sequence']}: {s['error']}; nothing written", file=sys.stderr)
     if failed:
         print(f"torchhand track: {len(failed)} of {len(summaries)} sequences failed", file=sys.stderr)
         return 1
     return 0
+
+
+def _segment_config(args, default_mode: str):
+    from torchhand.tracking.segmentation import SegmentConfig
+
+    return SegmentConfig(mode=args.segment or default_mode, hands=args.hands, near=args.near, far=args.far,
+                         remove_plane=args.remove_plane)
+
+
+def _import(args) -> int:
+    from torchhand.data.importing import import_depth_folder, read_intrinsics
+
+    given = [args.fx, args.fy, args.cx, args.cy]
+    if args.intrinsics is not None:
+        if any(v is not None for v in given):
+            raise ValueError("give either --intrinsics FILE or --fx/--fy/--cx/--cy, not both")
+        intr = read_intrinsics(args.intrinsics)
+    else:
+        if any(v is None for v in given):
+            raise ValueError("the camera intrinsics are needed: --fx, --fy, --cx, --cy (pixels) or --intrinsics FILE")
+        intr = dict(zip(("fx", "fy", "cx", "cy"), given))
+    unit = args.depth_unit_mm if args.depth_unit_mm is not None else intr.get("depth_unit_mm")
+    if unit is None:
+        raise ValueError("--depth-unit-mm is needed (millimetres per depth unit: 1 for Kinect, 0.125 for the "
+                         "RealSense SR305)")
+    seg = _segment_config(args, "auto")
+    models = args.models.split(",")
+    info = import_depth_folder(args.src, args.out, intr, float(unit), models, rgb=args.rgb, fps=args.fps,
+                               segmentation=None if seg.mode == "none" else seg.to_dict(), force=args.force)
+    print(f"imported {info.frames} frames ({info.cameras[0].width}x{info.cameras[0].height}, "
+          f"{info.depth_unit_mm:g} mm per unit) of {', '.join(info.models)} to {args.out} "
+          f"(segmentation: {seg.mode})")
+    return 0
+
+
+def _segment_options(p: argparse.ArgumentParser, default: str | None) -> None:
+    from torchhand.tracking.segmentation import SEGMENT_MODES
+
+    p.add_argument("--segment", default=default, choices=SEGMENT_MODES,
+                   help="hand segmentation: auto (the nearest hand-sized blobs, cut at the wrist), range (the depth "
+                        "range only), none (all valid depth is hands and objects)"
+                   + ("" if default else "; default: what the sequence folder says (set by import), else none"))
+    p.add_argument("--near", type=float, default=200.0, help="nearest depth kept, mm")
+    p.add_argument("--far", type=float, default=1500.0, help="farthest depth kept, mm")
+    p.add_argument("--remove-plane", action="store_true", help="remove the dominant plane (a table), RANSAC")
+    p.add_argument("--hands", type=int, default=1, choices=[1, 2], help="hands in the scene (auto segmentation)")
 
 
 def _backend_option(p: argparse.ArgumentParser) -> None:
@@ -202,7 +251,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write labelled overlay PNGs and an MP4 per sequence (with the ground-truth skeletons "
                         "where the sequence has gt/)")
     p.add_argument("--force", action="store_true", help="replace existing output folders")
+    p.add_argument("--write-render", action="store_true",
+                   help="also write each frame's rendered model depth (OUT/<sequence>/render/NNNNNN.png, 16-bit mm)")
+    _segment_options(p, None)
     p.set_defaults(func=_track)
+
+    p = sub.add_parser("import", help="turn a folder of 16-bit depth PNGs (a user's recording) into a sequence folder",
+                       formatter_class=_Formatter)
+    p.add_argument("src", type=Path, help="folder of single-channel 16-bit depth PNGs (natural file-name order)")
+    p.add_argument("--out", type=Path, required=True, help="sequence folder to write (must be new or empty)")
+    p.add_argument("--fx", type=float, help="focal length x, px")
+    p.add_argument("--fy", type=float, help="focal length y, px")
+    p.add_argument("--cx", type=float, help="principal point x, px (pixel centres at integers)")
+    p.add_argument("--cy", type=float, help="principal point y, px")
+    p.add_argument("--intrinsics", type=Path, help="JSON with fx, fy, cx, cy (and optionally depth_unit_mm)")
+    p.add_argument("--depth-unit-mm", type=float, help="millimetres per depth unit (SR305: 0.125, Kinect: 1)")
+    p.add_argument("--models", default="hand_right", help="the scene: shipped model names or .npz paths")
+    p.add_argument("--rgb", help="glob of colour images, one per depth frame (natural order)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate of the recording")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    _segment_options(p, "auto")
+    p.set_defaults(func=_import)
     return ap
 
 

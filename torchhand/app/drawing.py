@@ -12,7 +12,7 @@ import numpy as np
 from torchhand.io.assets import FINGER_NAMES, HAND_KEYPOINT_NAMES
 
 __all__ = ["HAND_SKELETON", "GT_COLOR", "OBJECT_COLOR", "depth_range", "depth_to_color", "draw_skeleton", "draw_chain",
-           "draw_hull", "draw_colorbar", "draw_legend", "write_video", "plot_curves"]
+           "draw_hull", "draw_mask_outline", "draw_colorbar", "draw_legend", "write_video", "plot_curves"]
 
 #: Bones of the 21-keypoint hand skeleton as index pairs into HAND_KEYPOINT_NAMES.
 HAND_SKELETON: Tuple[Tuple[int, int], ...] = tuple(
@@ -94,6 +94,13 @@ def draw_hull(image: np.ndarray, points_px: np.ndarray, color: tuple = OBJECT_CO
     pts, ok = _points(points_px)
     if ok.sum() >= 3:
         cv2.polylines(image, [cv2.convexHull(pts[ok].astype(np.int32))], True, color, 2, cv2.LINE_AA)
+    return image
+
+
+def draw_mask_outline(image: np.ndarray, mask: np.ndarray, color: tuple, thickness: int = 1) -> np.ndarray:
+    """Draw the outline of a (H, W) bool mask (a segmentation) onto a BGR image in place."""
+    contours, _ = cv2.findContours(np.asarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(image, contours, -1, color, thickness, cv2.LINE_AA)
     return image
 
 

@@ -65,6 +65,9 @@ class SequenceInfo:
         in the order of their slices in theta.
     frames: number of frames; fps: frame rate; depth_unit_mm: millimetres per unit of
         the stored 16-bit depth (1 for our files).
+    segmentation: optional hand-segmentation settings for real scenes
+        (:class:`torchhand.tracking.segmentation.SegmentConfig` as a dict), written by
+        ``torchhand import``; None: the data is the hands and objects alone.
     """
 
     name: str
@@ -75,11 +78,15 @@ class SequenceInfo:
     depth_unit_mm: float = 1.0
     has_rgb: bool = False
     source: Dict = field(default_factory=dict)
+    segmentation: Optional[Dict] = None
 
     def to_dict(self) -> Dict:
-        return {"format": FORMAT, "name": self.name, "frames": self.frames, "fps": self.fps,
-                "depth_unit_mm": self.depth_unit_mm, "has_rgb": self.has_rgb, "models": self.models,
-                "cameras": [c.to_dict() for c in self.cameras], "source": self.source}
+        d = {"format": FORMAT, "name": self.name, "frames": self.frames, "fps": self.fps,
+             "depth_unit_mm": self.depth_unit_mm, "has_rgb": self.has_rgb, "models": self.models,
+             "cameras": [c.to_dict() for c in self.cameras], "source": self.source}
+        if self.segmentation is not None:
+            d["segmentation"] = self.segmentation
+        return d
 
 
 def frame_name(k: int) -> str:
@@ -117,7 +124,8 @@ def read_sequence_info(root) -> SequenceInfo:
     except (ValueError, TypeError) as err:
         raise SequenceError(f"{path}: bad camera entry ({err})") from None
     return SequenceInfo(d["name"], cams, list(d["models"]), int(d["frames"]), float(d.get("fps", 30.0)),
-                        float(d.get("depth_unit_mm", 1.0)), bool(d.get("has_rgb", False)), d.get("source", {}))
+                        float(d.get("depth_unit_mm", 1.0)), bool(d.get("has_rgb", False)), d.get("source", {}),
+                        d.get("segmentation"))
 
 
 def read_init_pose(root) -> np.ndarray:

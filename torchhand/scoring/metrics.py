@@ -13,10 +13,29 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 __all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "max_depth", "model_pair_counts",
-           "PCK_THRESHOLDS_MM"]
+           "PCK_THRESHOLDS_MM", "fit_quality"]
 
 #: thresholds of the PCK curve, 0..50 mm in 1 mm steps
 PCK_THRESHOLDS_MM = np.arange(0.0, 50.0 + 1e-9, 1.0)
+
+
+def fit_quality(model_depth: np.ndarray, data_depth: np.ndarray) -> tuple:
+    """How well a fitted model explains depth data without ground truth.
+
+    model_depth: (H, W) the rendered fitted models' depth in mm (0 = empty); data_depth:
+    (H, W) the data the tracker saw (segmented, 0 = none). Returns (silhouette IoU of
+    the two masks, median |model - data| mm where both have depth); (nan, nan) when both
+    are empty, median nan when they do not overlap.
+    """
+    m, d = np.asarray(model_depth) > 0, np.asarray(data_depth) > 0
+    union = int((m | d).sum())
+    if union == 0:
+        return float("nan"), float("nan")
+    both = m & d
+    if not both.any():
+        return 0.0, float("nan")
+    diff = np.asarray(model_depth, np.float64)[both] - np.asarray(data_depth, np.float64)[both]
+    return float(both.sum()) / union, float(np.median(np.abs(diff)))
 
 
 def keypoint_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

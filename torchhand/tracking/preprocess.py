@@ -18,7 +18,7 @@ import torch
 
 from torchhand.geometry.camera import Camera, depth_to_points_and_normals
 
-__all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError"]
+__all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError", "remove_plane"]
 
 
 class EmptyFrameError(ValueError):
@@ -93,7 +93,7 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
             raise ValueError(f"mask must have shape {d.shape}, got {mask.shape}")
         d = np.where(mask, d, 0).astype(np.float32)
     if config.remove_plane:
-        d = _remove_plane(d, camera, config.plane_distance)
+        d = remove_plane(d, camera, config.plane_distance)
     valid_full = d > 0
     if not valid_full.any():
         raise EmptyFrameError(f"no valid depth between {config.near} and {config.far} mm")
@@ -160,7 +160,7 @@ def _crop_box(valid: np.ndarray, margin: int) -> tuple:
             max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W))
 
 
-def _remove_plane(d: np.ndarray, camera: Camera, distance: float) -> np.ndarray:
+def remove_plane(d: np.ndarray, camera: Camera, distance: float) -> np.ndarray:
     """Zero the pixels of the dominant plane (RANSAC, open3d) when it covers > 20 %."""
     import open3d as o3d
 

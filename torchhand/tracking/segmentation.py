@@ -1,0 +1,283 @@
+"""Hand segmentation for real scenes: which depth pixels are the hands.
+
+A real recording holds the body, the arm and maybe a table, not floating hands. Per
+frame (:func:`segment_hands`):
+
+1. keep the working range ``[near, far]`` mm and, with ``remove_plane``, drop the
+   dominant plane (RANSAC, as :func:`~torchhand.tracking.preprocess.preprocess_depth`);
+2. split the valid pixels into depth-connected blobs: neighbours belong together when
+   their depths differ by less than ``jump`` mm (a hand in front of the body is cut
+   from it by the depth step at its outline);
+3. ``mode="auto"``: the hands are the ``hands`` nearest blobs (by their 5th percentile
+   depth) whose area is that of a hand (``min_area_mm2`` .. ``max_area_mm2``, measured
+   in the blob's own depth, so the choice does not depend on the distance); a blob
+   within ``depth_band`` mm of its nearest point is kept, the rest of it (the body
+   behind a hand that touches it) is dropped. ``mode="range"``: every valid pixel in
+   the range is hand, nothing is cut (floating renders, or a user's own ``--near/--far``);
+4. cut at the wrist: the palm centre is the blob point deepest inside the blob (the
+   maximum of its distance transform, in mm); the forearm is the part of the blob
+   beyond ``reach_mm`` of the palm centre that reaches farthest (a forearm is longer
+   than any finger); the data beyond a plane at ``wrist_cut_mm`` from the palm
+   centre along the forearm's direction is dropped. The shipped hands end 69 mm from
+   their palm centre (32 mm of forearm beyond the wrist), the default cut. No part
+   reaching beyond ``reach_mm`` means no forearm in view: nothing is cut.
+
+With two hands the blobs are told apart by the image column of their palm centres
+(the right hand on the image's left for a camera facing the person); the initialisation
+then tries both assignments (:mod:`torchhand.tracking.initialization`).
+
+Thresholds are in mm of the scene, not pixels, so they hold at any distance; the
+defaults suit hands 0.3-1.5 m from a depth camera and are documented in docs/real.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Dict, List, NamedTuple, Optional
+
+import cv2
+import numpy as np
+
+from torchhand.geometry.camera import Camera
+
+__all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands", "SEGMENT_MODES"]
+
+#: the segmentation modes: none (all valid data), range (the depth range only), auto
+SEGMENT_MODES = ("none", "range", "auto")
+
+
+class SegmentationError(ValueError):
+    """A frame has no hand-sized blob in range, or more blobs than hands asked for."""
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """See the module docstring. ``strict``: two hand-sized blobs in front when one hand
+    was asked for is an error (the CLI's default; the tracker takes the nearest)."""
+
+    mode: str = "auto"
+    hands: int = 1
+    near: float = 200.0
+    far: float = 1500.0
+    remove_plane: bool = False
+    plane_distance: float = 8.0
+    jump: float = 20.0
+    depth_band: float = 250.0
+    min_area_mm2: float = 3000.0
+    max_area_mm2: float = 60000.0
+    reach_mm: float = 140.0
+    wrist_cut_mm: float = 69.0
+    strict: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in SEGMENT_MODES:
+            raise ValueError(f"segmentation mode must be one of {SEGMENT_MODES}, got {self.mode!r}")
+        if self.hands not in (1, 2):
+            raise ValueError(f"hands must be 1 or 2, got {self.hands!r}")
+        if not 0 <= self.near < self.far:
+            raise ValueError(f"need 0 <= near < far, got near={self.near}, far={self.far}")
+
+    def to_dict(self) -> Dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Dict) -> "SegmentConfig":
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown segmentation settings {unknown}; known: {sorted(known)}")
+        return cls(**d)
+
+
+class Segmentation(NamedTuple):
+    """mask: (H, W) bool, the hands' pixels; blobs: one (H, W) bool mask per hand,
+    ordered by image column of the palm centre (left to right); palms: (n, 3) camera-
+    frame palm centres (mm); forearm: (n, 3) unit directions from the palm centre
+    towards the forearm (zeros where none was seen); cut: (H, W) bool, the pixels
+    dropped by the wrist cut (for the overlays)."""
+
+    mask: np.ndarray
+    blobs: List[np.ndarray]
+    palms: np.ndarray
+    forearm: np.ndarray
+    cut: np.ndarray
+
+
+def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = SegmentConfig(),
+                  frame: Optional[str] = None) -> Segmentation:
+    """Segment the hands of one depth map (H, W) in mm (0 = no measurement).
+
+    ``frame`` names the frame in error messages. Raises :class:`SegmentationError` when
+    no hand-sized blob is in range, or (``strict``) when more blobs than hands stand in
+    front.
+    """
+    where = f"{frame}: " if frame else ""
+    d = np.asarray(depth, np.float32)
+    if d.shape != (camera.height, camera.width):
+        raise ValueError(f"{where}depth has shape {d.shape}, the camera is {camera.height}x{camera.width}")
+    valid = np.isfinite(d) & (d >= config.near) & (d <= config.far)
+    d = np.where(valid, d, 0).astype(np.float32)
+    if config.remove_plane and valid.any():
+        from torchhand.tracking.preprocess import remove_plane
+
+        d = remove_plane(d, camera, config.plane_distance)
+        valid = d > 0
+    H, W = d.shape
+    empty = np.zeros((H, W), bool)
+    if not valid.any():
+        raise SegmentationError(f"{where}no depth between {config.near:g} and {config.far:g} mm")
+    fx, fy = camera.fx, camera.fy
+    if config.mode in ("none", "range"):
+        blobs = [valid]
+    else:
+        blobs = _hand_blobs(d, valid, fx, fy, config, where)
+    points = _points(d, camera)
+    out, palms, arms, cut = [], [], [], empty.copy()
+    for blob in blobs:
+        if config.mode == "auto":
+            palm, arm, keep = _wrist_cut(blob, d, points, fx, config)
+        else:  # the data as it is: a palm centre for the seeds, nothing cut
+            palm, arm, keep = _palm_centre(blob, d, points, fx)[0], np.zeros(3), blob
+        cut |= blob & ~keep
+        out.append(keep)
+        palms.append(palm)
+        arms.append(arm)
+    order = np.argsort([_column(p, camera) for p in palms], kind="stable")
+    out = [out[k] for k in order]
+    mask = np.any(out, 0) if out else empty
+    return Segmentation(mask, out, np.array([palms[k] for k in order]).reshape(-1, 3),
+                        np.array([arms[k] for k in order]).reshape(-1, 3), cut)
+
+
+def _column(p: np.ndarray, camera: Camera) -> float:
+    return float(camera.fx * p[0] / max(p[2], 1e-6) + camera.cx)
+
+
+def _points(d: np.ndarray, camera: Camera) -> np.ndarray:
+    v, u = np.mgrid[0 : d.shape[0], 0 : d.shape[1]].astype(np.float32)
+    return np.stack([(u - camera.cx) * d / camera.fx, (v - camera.cy) * d / camera.fy, d], -1)
+
+
+def _hand_blobs(d: np.ndarray, valid: np.ndarray, fx: float, fy: float, config: SegmentConfig,
+                where: str) -> List[np.ndarray]:
+    """The ``config.hands`` nearest hand-sized depth-connected blobs."""
+    big = np.where(valid, d, 1e6).astype(np.float32)
+    step = np.zeros_like(valid)
+    # a pixel next to a depth step larger than `jump` separates blobs (4-neighbourhood)
+    dv = np.abs(np.diff(big, axis=0)) > config.jump
+    dh = np.abs(np.diff(big, axis=1)) > config.jump
+    # mark the farther side of each step, so the near blob keeps its outline
+    step[1:] |= dv & (big[1:] > big[:-1])
+    step[:-1] |= dv & (big[:-1] > big[1:])
+    step[:, 1:] |= dh & (big[:, 1:] > big[:, :-1])
+    step[:, :-1] |= dh & (big[:, :-1] > big[:, 1:])
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~step).astype(np.uint8), connectivity=4)
+    candidates = []
+    for k in range(1, n):
+        if stats[k, cv2.CC_STAT_AREA] < 20:
+            continue
+        blob = labels == k
+        z0 = float(np.percentile(d[blob], 1))
+        blob = _hand_sized(blob & (d <= z0 + config.depth_band), d, fx, fy, config, z0)
+        if blob is None:
+            continue
+        candidates.append((z0, blob))
+    if not candidates:
+        raise SegmentationError(
+            f"{where}no hand-sized blob ({config.min_area_mm2:g}-{config.max_area_mm2:g} mm^2) between "
+            f"{config.near:g} and {config.far:g} mm (give --near/--far around the hands, or --segment range)")
+    candidates.sort(key=lambda c: c[0])
+    if len(candidates) < config.hands:
+        raise SegmentationError(f"{where}{config.hands} hands asked for, {len(candidates)} hand-sized blob found")
+    if config.strict and config.hands == 1 and len(candidates) > 1 and candidates[1][0] < candidates[0][0] + 100:
+        raise SegmentationError(
+            f"{where}two hand-sized blobs within 100 mm of each other in depth (at {candidates[0][0]:.0f} and "
+            f"{candidates[1][0]:.0f} mm) but one hand was asked for (pass --hands 2, or narrow --near/--far)")
+    return [_attach_fragments(blob, z0, labels, stats, d, fx, fy, config) for z0, blob in candidates[: config.hands]]
+
+
+def _attach_fragments(blob: np.ndarray, z0: float, labels: np.ndarray, stats: np.ndarray, d: np.ndarray,
+                      fx: float, fy: float, config: SegmentConfig) -> np.ndarray:
+    """Add back the small pieces that the depth steps cut off a hand: a finger in front of
+    the palm, a sensor speck at the outline. A piece joins when it touches the blob, is
+    smaller than a hand and lies within the blob's depth band."""
+    for _ in range(2):
+        ring = cv2.dilate(blob.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~blob
+        touching = np.unique(labels[ring & (labels > 0)])
+        grown = blob.copy()
+        for k in touching:
+            piece = (labels == k) & ~blob
+            z = d[piece]
+            if (z.size and float(np.sum((z / fx) * (z / fy))) < config.min_area_mm2
+                    and np.percentile(z, 50) <= z0 + config.depth_band):
+                grown |= piece
+        if grown.sum() == blob.sum():
+            break
+        blob = grown
+    return blob
+
+
+def _area(blob: np.ndarray, d: np.ndarray, fx: float, fy: float) -> float:
+    """mm^2 of a blob: each pixel covers (z/fx) x (z/fy)."""
+    z = d[blob]
+    return float(np.sum((z / fx) * (z / fy)))
+
+
+def _hand_sized(blob: np.ndarray, d: np.ndarray, fx: float, fy: float, config: SegmentConfig,
+                z0: float) -> Optional[np.ndarray]:
+    """The blob if hand-sized; if larger (the body, or a hand touching it through the
+    arm), its near part: the connected part of the pixels within a band behind the
+    nearest point (its nearest part of hand size), the band narrowed until that part is
+    no larger than a hand; None if too small."""
+    area = _area(blob, d, fx, fy)
+    if area < config.min_area_mm2:
+        return None
+    if area <= config.max_area_mm2:
+        return blob
+    for band in (0.8, 0.6, 0.5, 0.4, 0.3):
+        near = blob & (d <= z0 + band * config.depth_band)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(near.astype(np.uint8), connectivity=4)
+        parts = [labels == k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= 20]
+        parts = [(float(np.percentile(d[p], 5)), p) for p in parts if _area(p, d, fx, fy) >= config.min_area_mm2]
+        if not parts:
+            return None
+        part = min(parts, key=lambda c: c[0])[1]  # the nearest hand-sized part
+        if _area(part, d, fx, fy) <= config.max_area_mm2:
+            return part
+    return None
+
+
+def _palm_centre(blob: np.ndarray, d: np.ndarray, points: np.ndarray, fx: float):
+    """The blob point deepest inside it (distance transform in mm) and its pixel."""
+    dist = cv2.distanceTransform(blob.astype(np.uint8), cv2.DIST_L2, 5) * np.where(blob, d, 0) / fx  # mm
+    r, c = np.unravel_index(int(np.argmax(dist)), dist.shape)
+    return points[r, c].astype(np.float64), (r, c)
+
+
+def _wrist_cut(blob: np.ndarray, d: np.ndarray, points: np.ndarray, fx: float, config: SegmentConfig):
+    """(palm centre (3,), forearm direction (3,) or zeros, the kept pixels)."""
+    palm, (r, c) = _palm_centre(blob, d, points, fx)
+    pts = points[blob].astype(np.float64)
+    radial = np.linalg.norm(pts - palm, axis=1)
+    outer = np.zeros_like(blob)
+    outer[blob] = radial > config.reach_mm
+    arm = np.zeros(3)
+    if outer.any():
+        n, labels = cv2.connectedComponents(outer.astype(np.uint8), connectivity=8)
+        far = [radial[(labels[blob] == k)].max() for k in range(1, n)]
+        k = 1 + int(np.argmax(far))
+        # the forearm's direction: its points just beyond the reach
+        part = labels[blob] == k
+        near_part = part & (radial < config.reach_mm + 60)
+        sel = pts[near_part if near_part.any() else part]
+        a = sel.mean(0) - palm
+        arm = a / max(np.linalg.norm(a), 1e-9)
+    keep = blob.copy()
+    if arm.any():
+        keep[blob] = (pts - palm) @ arm <= config.wrist_cut_mm
+        # the cut may leave islands (a finger bent back across the plane stays; far
+        # scraps of the forearm go): keep the component holding the palm centre
+        n, labels = cv2.connectedComponents(keep.astype(np.uint8), connectivity=8)
+        if labels[r, c] > 0:
+            keep = labels == labels[r, c]
+    return palm, arm, keep
