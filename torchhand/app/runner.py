@@ -27,10 +27,11 @@ from torchhand.model.motion import theta_to_motion
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.energies import EnergyTerm
+from torchhand.tracking.initialization import InitResult, initialize_hands
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
-__all__ = ["track_sequences"]
+__all__ = ["track_sequences", "automatic_init"]
 
 
 def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(), device: str = "cpu",
@@ -89,19 +90,27 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     for models, members in groups.items():
         scene = Scene.from_names(list(models), device=device)
         tracker = Tracker(scene, config, make_terms() if make_terms is not None else None)
-        init = torch.as_tensor(np.stack([_init_pose(roots[k], scene, models) for k in members]),
-                               dtype=torch.float32, device=device)
         cams = [infos[k].cameras[0].to(device) for k in members]
+        segs = [_segment_of(infos[k], segment) for k in members]
+        starts, init_notes = [], []
+        for i, k in enumerate(members):
+            th, note = _init_pose(roots[k], infos[k], scene, models, tracker, cams[i], segs[i], device)
+            starts.append(th)
+            init_notes.append(note)
+            if note:
+                tqdm.write(f"{names[k]}: {note}")
+        init = torch.as_tensor(np.stack(starts), dtype=torch.float32, device=device)
         n_frames = max(infos[k].frames for k in members)
         read_errors: List[List[str]] = []
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
         results: List[FrameResult] = []
-        segs = [_segment_of(infos[k], segment) for k in members]
         frames = _depth_frames([roots[k] for k in members], [infos[k] for k in members], n_frames, read_errors, segs)
         for f, res in enumerate(tracker.track(frames, cams, init)):
             for i, err in enumerate(read_errors[f]):
                 if err:
                     res.notes[i] = f"{err}; previous pose kept"
+                elif f == 0 and init_notes[i]:
+                    res.notes[i] = init_notes[i]
             for i, note in enumerate(res.notes):
                 if note:
                     tqdm.write(f"{names[members[i]]} frame {f}: {note}")
@@ -119,12 +128,29 @@ def _failed(name: str, error: str) -> dict:
             "seconds_per_frame": float("nan"), "flagged_frames": 0}
 
 
-def _init_pose(root: Path, scene: Scene, models: tuple) -> np.ndarray:
-    th = read_init_pose(root)
-    if th.shape != (scene.num_dofs,):
-        raise ValueError(f"{root / 'init_pose.json'}: theta has {th.size} values, the scene "
-                         f"{list(models)} has {scene.num_dofs} DoF")
-    return th
+def _init_pose(root: Path, info: SequenceInfo, scene: Scene, models: tuple, tracker: Tracker, cam,
+               segment: Optional[SegmentConfig], device) -> tuple:
+    """(theta of frame 0, note): ``init_pose.json`` when the folder has it, else the
+    automatic initialisation on frame 0 (:mod:`torchhand.tracking.initialization`)."""
+    if (root / "init_pose.json").is_file():
+        th = read_init_pose(root)
+        if th.shape != (scene.num_dofs,):
+            raise ValueError(f"{root / 'init_pose.json'}: theta has {th.size} values, the scene "
+                             f"{list(models)} has {scene.num_dofs} DoF")
+        return th, ""
+    res = automatic_init(root, info, scene, tracker, cam, segment)
+    return res.theta.cpu().double().numpy(), (f"no init_pose.json: initialised automatically (depth discrepancy "
+                                             f"{res.cost:.2f}, {res.seconds:.1f} s)")
+
+
+def automatic_init(root: Path, info: SequenceInfo, scene: Scene, tracker: Tracker, cam,
+                   segment: Optional[SegmentConfig]) -> InitResult:
+    """The automatic initialisation of a sequence's frame 0 (its segmentation, or the
+    automatic one with as many hands as the scene has)."""
+    if segment is None:
+        segment = SegmentConfig(hands=max(1, sum(m.kind == "hand" for m in scene.models)))
+    depth, seg = _read_frame(root, info, 0, segment)
+    return initialize_hands(tracker, depth, cam, seg)
 
 
 def _segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[SegmentConfig]:

@@ -1,0 +1,217 @@
+"""Automatic initialisation of the hands' pose: a global search, then the tracker's LM.
+
+Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
+``torchhand init``. Per hand blob of the segmentation (:mod:`torchhand.tracking.segmentation`):
+
+1. seeds: the model's palm centre on the blob's palm centre (12 mm behind the seen
+   surface), the hand's length axis on the blob's first principal axis (pointing away
+   from the forearm where one was seen, both signs otherwise), its palm normal on the
+   blob's third axis (both signs), fingers at the rest pose;
+2. particle swarm optimisation (:func:`~torchhand.optim.pso.particle_swarm`, 64
+   particles x 40 generations by default, as FORTH's tracker and HOPE64) around the
+   seeds over FORTH's depth-discrepancy objective: the rendered depth of each particle
+   against the segmented data at a low resolution (the blob's box at ``resolution`` px),
+   ``mean over the union of both silhouettes of min(|d_model - d_data|, clamp) / clamp``
+   (a pixel in one silhouette only costs 1). All particles are rendered as one batch;
+3. the best ``refine`` distinct particles are refined by the tracker's own objective
+   (Algorithm 1 with the first-frame budget, one batch) and the one with the lowest
+   discrepancy at full resolution is kept.
+
+The thesis initialises from a given pose; FORTH's objective is used for the search
+because it needs no correspondences, so a particle far from the data still has a
+meaningful cost. Only hands are initialised: a scene with objects needs init_pose.json.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import numpy as np
+import torch
+
+from torchhand.core.check import skip_checks
+from torchhand.geometry.camera import Camera
+from torchhand.model.kinematics import so3_log
+from torchhand.optim.pso import particle_swarm
+from torchhand.tracking.segmentation import Segmentation
+
+__all__ = ["InitConfig", "InitResult", "initialize_hands"]
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    particles: int = 64
+    generations: int = 40
+    resolution: int = 64
+    clamp_mm: float = 40.0
+    rotation_spread: float = 0.35
+    translation_spread: float = 15.0
+    finger_spread: float = 0.25
+    refine: int = 4
+    seed: int = 0
+
+
+class InitResult(NamedTuple):
+    """theta: (D,) the pose found; cost: its depth discrepancy at full resolution (0 best,
+    1 no overlap); search_cost: the swarm's best cost; seconds: wall time."""
+
+    theta: torch.Tensor
+    cost: float
+    search_cost: float
+    seconds: float
+
+
+def _hand_frame(model) -> tuple:
+    """(palm centre (3,), length axis (3,), palm normal (3,)) of the rest pose, world."""
+    with torch.no_grad():
+        k = model(model.zero_pose(1) if hasattr(model, "zero_pose") else torch.zeros(1, model.num_dofs)).keypoints[0]
+    k = k.double()
+    wrist, mid, index, little = k[0], k[9], k[5], k[17]
+    centre = (wrist + mid) / 2
+    axis = (mid - wrist) / torch.linalg.norm(mid - wrist)
+    side = index - little
+    normal = torch.linalg.cross(axis, side)
+    normal = normal / torch.linalg.norm(normal)
+    return centre, axis, normal
+
+
+def _crop_camera(camera: Camera, box: tuple, resolution: int) -> tuple:
+    """A camera seeing the pixel box (r0, r1, c0, c1) at ``resolution`` px on its long side,
+    and the full-resolution pixel of each of its pixels."""
+    r0, r1, c0, c1 = box
+    s = resolution / max(r1 - r0, c1 - c0)
+    h, w = max(int(round((r1 - r0) * s)), 1), max(int(round((c1 - c0) * s)), 1)
+    fx, fy = camera.fx * s, camera.fy * s
+    cx, cy = (camera.cx - c0 + 0.5) * s - 0.5, (camera.cy - r0 + 0.5) * s - 0.5
+    small = Camera.from_intrinsics(fx, fy, cx, cy, w, h, T_cw=camera.T_cw, dtype=camera.dtype, device=camera.device)
+    rows = np.clip(np.round((np.arange(h) + 0.5) / s - 0.5).astype(int) + r0, 0, camera.height - 1)
+    cols = np.clip(np.round((np.arange(w) + 0.5) / s - 0.5).astype(int) + c0, 0, camera.width - 1)
+    return small, rows, cols
+
+
+def _discrepancy(model_depth: torch.Tensor, data: torch.Tensor, clamp: float) -> torch.Tensor:
+    """(N, h, w) rendered depth vs (h, w) data -> (N,) FORTH's clamped depth discrepancy."""
+    m, d = model_depth > 0, (data > 0)[None]
+    both = m & d
+    cost = torch.where(both, ((model_depth - data).abs() / clamp).clamp(max=1.0), (m | d).to(model_depth.dtype))
+    union = (m | d).sum((1, 2)).clamp(min=1)
+    return cost.sum((1, 2)) / union
+
+
+def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
+                     config: InitConfig = InitConfig(), around: Optional[torch.Tensor] = None) -> InitResult:
+    """Find the pose of the scene's hands in one segmented depth frame.
+
+    Args:
+        tracker: a :class:`~torchhand.tracking.tracker.Tracker` of the scene (its
+            renderer, objective and LM refine the search).
+        depth: (H, W) mm, the frame (the segmentation is applied here).
+        camera: its camera.
+        segmentation: the frame's hands (one blob per hand model, left to right).
+        around: (D,) a pose to search around as well (re-initialisation).
+    """
+    import time
+
+    t0 = time.perf_counter()
+    scene = tracker.scene
+    kinds = [m.kind for m in scene.models]
+    if any(k != "hand" for k in kinds):
+        raise ValueError(f"the automatic initialisation places hands only; the scene {list(scene.names)} has "
+                         "objects: give init_pose.json")
+    if len(segmentation.blobs) != len(scene.models):
+        raise ValueError(f"{len(scene.models)} hands in the scene, {len(segmentation.blobs)} segmented")
+    dev, dt = camera.device, torch.float32
+    gen = torch.Generator().manual_seed(config.seed)
+    data_full = np.where(segmentation.mask, depth, 0).astype(np.float32)
+    P, D = config.particles, scene.num_dofs
+    # the two hands: the right hand is on the image's left for a camera facing the person
+    order = np.argsort([0 if m.side == "right" else 1 for m in scene.models], kind="stable")
+    seeds = []
+    hyp = []
+    for mi, (name, model) in enumerate(zip(scene.names, scene.models)):
+        blob = segmentation.blobs[int(np.where(order == mi)[0][0])] if len(order) > 1 else segmentation.blobs[0]
+        v, u = np.nonzero(blob)
+        z = data_full[v, u]
+        pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], 1)
+        k = int(np.where(order == mi)[0][0]) if len(order) > 1 else 0
+        palm = segmentation.palms[k] + 12.0 * segmentation.palms[k] / np.linalg.norm(segmentation.palms[k])
+        c = pts - pts.mean(0)
+        _, _, vt = np.linalg.svd(c, full_matrices=False)
+        a1, a3 = vt[0], vt[2]
+        arm = segmentation.forearm[k]
+        signs_axis = [(-1.0 if a1 @ arm > 0 else 1.0)] if np.any(arm) else [1.0, -1.0]
+        centre, axis, normal = (x.numpy() for x in _hand_frame(model))
+        T_wc = camera.T_wc.double().cpu().numpy()
+        palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
+        options = []
+        for sa in signs_axis:
+            for sn in (1.0, -1.0):
+                A = sa * (T_wc[:3, :3] @ a1)
+                N = sn * (T_wc[:3, :3] @ a3)
+                N = N - (N @ A) * A
+                N /= np.linalg.norm(N)
+                tgt = np.stack([A, N, np.cross(A, N)], 1)
+                src = np.stack([axis, normal, np.cross(axis, normal)], 1)
+                R = tgt @ src.T
+                rot = so3_log(torch.as_tensor(R, dtype=torch.float64)[None])[0]
+                rc = model.rest_transforms[0][:3, 3].double().cpu()
+                Rt = torch.as_tensor(R)
+                t = torch.as_tensor(palm_w) - rc - Rt @ (torch.as_tensor(centre) - rc)
+                th = torch.zeros(model.num_dofs, dtype=torch.float64)
+                th[:3], th[3:6] = t, rot
+                options.append(th)
+        hyp.append(options)
+        seeds.append(model)
+    # particles: spread around every combination of the hands' seed hypotheses
+    combos = [[]]
+    for options in hyp:
+        combos = [c + [o] for c in combos for o in options]
+    bases = [torch.cat(c) for c in combos]
+    if around is not None:
+        bases.append(around.detach().double().cpu())
+    x = torch.zeros(P, D, dtype=torch.float64)
+    lo, hi = scene.lower.double().cpu(), scene.upper.double().cpu()
+    spread = torch.full((D,), config.finger_spread, dtype=torch.float64)
+    for sl in scene.slices.values():
+        spread[sl.start : sl.start + 3] = config.translation_spread
+        spread[sl.start + 3 : sl.start + 6] = config.rotation_spread
+    for p in range(P):
+        base = bases[p % len(bases)]
+        noise = torch.randn(D, generator=gen, dtype=torch.float64) * spread if p >= len(bases) else 0
+        x[p] = base + noise
+    x = torch.maximum(torch.minimum(x, hi), lo)
+    # the search at low resolution, in the blob's box
+    rows, cols = np.nonzero(segmentation.mask)
+    pad = int(0.3 * max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
+    box = (max(rows.min() - pad, 0), min(rows.max() + 1 + pad, camera.height),
+           max(cols.min() - pad, 0), min(cols.max() + 1 + pad, camera.width))
+    small, rr, cc = _crop_camera(camera, box, config.resolution)
+    data_small = torch.as_tensor(data_full[np.ix_(rr, cc)], device=dev)
+
+    def cost(pos: torch.Tensor, cam=small, data=data_small) -> torch.Tensor:
+        th = scene.clamp(pos[0].to(dev, dt))
+        with torch.no_grad(), skip_checks():
+            verts = scene(th, validate=False).vertices
+            rend = tracker.renderer(verts, cam, normals=False)
+        return _discrepancy(rend.depth, data, config.clamp_mm)[None].double().cpu()
+
+    vmax = spread * 0.5
+    res = particle_swarm(cost, x[None], lo, hi, config.generations, velocity_scale=vmax, generator=gen)
+    # refine the best distinct particles with the tracker's objective
+    own, oc = res.particles[0], res.particle_cost[0]
+    pick = []
+    for i in torch.argsort(oc).tolist():
+        if all(torch.linalg.norm(own[i, :3] - own[j, :3]) > 5 or (own[i] - own[j]).abs().max() > 0.3 for j in pick):
+            pick.append(i)
+        if len(pick) == config.refine:
+            break
+    starts = own[pick].to(dev, dt)
+    n = len(pick)
+    refined = tracker.track_frame([data_full] * n, [camera] * n, scene.clamp(starts), first=True).theta
+    full_box = (0, camera.height, 0, camera.width)
+    fcam, fr, fc = _crop_camera(camera, full_box, max(camera.height, camera.width))
+    final = cost(refined[None].double(), fcam, torch.as_tensor(data_full, device=dev))[0]
+    k = int(torch.argmin(final))
+    tracker.reset()
+    return InitResult(refined[k].detach(), float(final[k]), float(res.cost[0]), time.perf_counter() - t0)
