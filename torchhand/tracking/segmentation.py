@@ -23,8 +23,8 @@ frame (:func:`segment_hands`):
    reaching beyond ``reach_mm`` means no forearm in view: nothing is cut.
 
 With two hands the blobs are told apart by the image column of their palm centres
-(the right hand on the image's left for a camera facing the person); the initialisation
-then tries both assignments (:mod:`torchhand.tracking.initialization`).
+(the right hand on the image's left for a camera facing the person, which is how the
+initialisation assigns them: :mod:`torchhand.tracking.initialization`).
 
 Thresholds are in mm of the scene, not pixels, so they hold at any distance; the
 defaults suit hands 0.3-1.5 m from a depth camera and are documented in docs/real.md.
