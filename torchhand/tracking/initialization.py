@@ -65,7 +65,7 @@ class InitResult(NamedTuple):
 def _hand_frame(model) -> tuple:
     """(palm centre (3,), length axis (3,), palm normal (3,)) of the rest pose, world."""
     with torch.no_grad():
-        k = model(model.zero_pose(1) if hasattr(model, "zero_pose") else torch.zeros(1, model.num_dofs)).keypoints[0]
+        k = model(model.zero_pose(1)).keypoints[0]
     k = k.double()
     wrist, mid, index, little = k[0], k[9], k[5], k[17]
     centre = (wrist + mid) / 2
@@ -127,14 +127,12 @@ def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: S
     P, D = config.particles, scene.num_dofs
     # the two hands: the right hand is on the image's left for a camera facing the person
     order = np.argsort([0 if m.side == "right" else 1 for m in scene.models], kind="stable")
-    seeds = []
     hyp = []
     for mi, (name, model) in enumerate(zip(scene.names, scene.models)):
-        blob = segmentation.blobs[int(np.where(order == mi)[0][0])] if len(order) > 1 else segmentation.blobs[0]
-        v, u = np.nonzero(blob)
+        k = int(np.where(order == mi)[0][0])  # the blob of this hand
+        v, u = np.nonzero(segmentation.blobs[k])
         z = data_full[v, u]
         pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], 1)
-        k = int(np.where(order == mi)[0][0]) if len(order) > 1 else 0
         palm = segmentation.palms[k] + 12.0 * segmentation.palms[k] / np.linalg.norm(segmentation.palms[k])
         c = pts - pts.mean(0)
         _, _, vt = np.linalg.svd(c, full_matrices=False)
@@ -144,6 +142,7 @@ def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: S
         centre, axis, normal = (x.numpy() for x in _hand_frame(model))
         T_wc = camera.T_wc.double().cpu().numpy()
         palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
+        rc = model.rest_transforms[0][:3, 3].double().cpu()
         options = []
         for sa in signs_axis:
             for sn in (1.0, -1.0):
@@ -155,14 +154,12 @@ def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: S
                 src = np.stack([axis, normal, np.cross(axis, normal)], 1)
                 R = tgt @ src.T
                 rot = so3_log(torch.as_tensor(R, dtype=torch.float64)[None])[0]
-                rc = model.rest_transforms[0][:3, 3].double().cpu()
                 Rt = torch.as_tensor(R)
                 t = torch.as_tensor(palm_w) - rc - Rt @ (torch.as_tensor(centre) - rc)
                 th = torch.zeros(model.num_dofs, dtype=torch.float64)
                 th[:3], th[3:6] = t, rot
                 options.append(th)
         hyp.append(options)
-        seeds.append(model)
     # particles: spread around every combination of the hands' seed hypotheses
     combos = [[]]
     for options in hyp:
