@@ -25,7 +25,7 @@ from torchhand.data.importing import natural_key
 from torchhand.geometry.camera import Camera
 from torchhand.model.scene import Scene
 from torchhand.scoring.metrics import fit_quality
-from torchhand.tracking.initialization import InitConfig, initialize_hands
+from torchhand.tracking.initialization import InitConfig, Initializer
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import Tracker, TrackerConfig
 
@@ -41,6 +41,7 @@ def main() -> None:
     cam = Camera.from_intrinsics(476.007, 476.007, 313.683, 242.755, 640, 480)
     scene = Scene.from_names(["hand_right"])
     tracker = Tracker(scene, TrackerConfig())
+    init = Initializer(tracker, InitConfig(args.particles, args.generations))
     files = sorted(args.sr305.glob("*/*.png"), key=lambda p: (p.parent.name, natural_key(p.name)))
     if not files:
         raise SystemExit(f"{args.sr305}: no frames")
@@ -55,11 +56,11 @@ def main() -> None:
         except SegmentationError as err:
             rows.append({"frame": name, "error": str(err)})
             continue
-        res = initialize_hands(tracker, depth, cam, seg, InitConfig(args.particles, args.generations))
+        res = init(depth, cam, seg)
         with torch.no_grad():
             posed = scene(res.theta[None])
             model = tracker.renderer(posed.vertices, cam, normals=False).depth[0].numpy()
-        data = np.where(seg.mask, depth, 0)
+        data = seg.apply(depth)
         iou, med = fit_quality(model, data)
         rows.append({"frame": name, "iou": iou, "depth_residual_mm": med, "seconds": res.seconds,
                      "search_cost": res.search_cost, "cost": res.cost})

@@ -159,40 +159,11 @@ def _import(args) -> int:
 
 
 def _init(args) -> int:
-    from torchhand.app.drawing import depth_to_color, draw_mask_outline, draw_skeleton
-    from torchhand.app.runner import _read_frame, _segment_of, automatic_init
-    from torchhand.data.layout import read_sequence_info
-    from torchhand.model.scene import Scene
-    from torchhand.tracking.tracker import Tracker, TrackerConfig
+    from torchhand.app.runner import initialize_sequence
 
-    import cv2
-    import torch
-
-    target = args.seq / "init_pose.json"
-    if target.exists() and not args.force:
-        raise FileExistsError(f"{target} exists; pass --force to replace it")
-    info = read_sequence_info(args.seq)
-    scene = Scene.from_names(info.models)
-    tracker = Tracker(scene, TrackerConfig())
-    segment = _segment_of(info, _segment_config(args, "auto") if args.segment else None)
-    cam = info.cameras[0]
-    res = automatic_init(args.seq, info, scene, tracker, cam, segment)
-    target.write_text(json.dumps({"theta": [float(x) for x in res.theta.cpu().double().numpy()]}))
-    depth, seg = _read_frame(args.seq, info, 0, segment)
-    with torch.no_grad():
-        posed = scene(res.theta[None])
-        model = tracker.renderer(posed.vertices, cam, normals=False).depth[0].cpu().numpy()
-    from torchhand.scoring.metrics import fit_quality
-
-    iou, med = fit_quality(model, depth)
-    img = depth_to_color(depth)
-    draw_mask_outline(img, model > 0, (0, 0, 255))
-    if seg is not None:
-        draw_mask_outline(img, seg.mask, (0, 220, 0))
-    draw_skeleton(img, cam.project(posed.keypoints)[0].cpu().numpy())
-    cv2.imwrite(str(args.seq / "init_overlay.png"), img)
-    print(f"wrote {target} and {args.seq / 'init_overlay.png'}: silhouette IoU {iou:.2f}, median depth residual "
-          f"{med:.1f} mm ({res.seconds:.1f} s)")
+    res = initialize_sequence(args.seq, force=args.force, segment=_segment_config(args, "auto") if args.segment else None)
+    print(f"wrote {res['init_pose']} and {res['overlay']}: silhouette IoU {res['iou']:.2f}, median depth residual "
+          f"{res['depth_residual_mm']:.1f} mm ({res['seconds']:.1f} s)")
     return 0
 
 

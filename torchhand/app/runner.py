@@ -27,17 +27,23 @@ from torchhand.model.motion import theta_to_motion
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.energies import EnergyTerm
-from torchhand.tracking.initialization import InitResult, initialize_hands
-from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
+from torchhand.tracking.initialization import InitConfig, Initializer, InitResult
+from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
-__all__ = ["track_sequences", "automatic_init"]
+__all__ = ["track_sequences", "automatic_init", "initialize_sequence", "REINIT_IOU"]
+
+#: A frame whose fitted hands overlap their data with a silhouette IoU below this is
+#: re-initialised (0.5: a tracked hand scores 0.8-0.95 on renders and 0.7-0.9 on the real
+#: frames; a hand that was lost, or that came back into view elsewhere, scores below 0.3).
+REINIT_IOU = 0.5
 
 
 def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(), device: str = "cpu",
                     viz: bool = False, force: bool = False, progress: bool = True,
                     make_terms: Optional[Callable[[], List[EnergyTerm]]] = None,
-                    segment: Optional[SegmentConfig] = None, write_render: bool = False) -> List[dict]:
+                    segment: Optional[SegmentConfig] = None, write_render: bool = False,
+                    reinit_iou: float = REINIT_IOU, init_config: InitConfig = InitConfig()) -> List[dict]:
     """Track sequence folders and write their results.
 
     Sequences with the same models are solved as one batch, frame by frame; the
@@ -59,6 +65,15 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     ``write_render`` the rendered model depth of each frame is written to
     ``render/NNNNNN.png`` (16-bit mm) so the fit can be checked independently.
 
+    Re-initialisation: a frame (after the first) whose silhouette IoU is below
+    ``reinit_iou`` (0 disables it) gets the automatic initialisation's global search
+    (:class:`~torchhand.tracking.initialization.Initializer`, seeded from the frame's
+    segmented blobs and around the pose just tracked, as Ballan et al. re-initialise
+    by sampling around the previous pose when the fit is bad); its pose replaces the
+    tracked one when it fits the frame better, the tracking goes on from it, and the
+    frame is flagged (``reinitialized`` and a note in ``track_log.json``, the count in
+    the summary). Scenes with objects are not re-initialised (the search places hands).
+
     A sequence whose first depth frame cannot be read (missing, not 16-bit, values
     that look like metres), or of which no frame could be tracked, fails: nothing is
     written for it and its summary says why; the others are tracked.
@@ -66,7 +81,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     Returns:
         one dict per sequence, in the order of ``roots``: ``sequence``, ``status``
         ("ok" or "failed"), ``error`` (failed), ``frames``, ``out``,
-        ``seconds_per_frame``, ``flagged_frames``.
+        ``seconds_per_frame``, ``flagged_frames``, ``reinitialized_frames``, ``mean_iou``,
+        ``median_depth_residual_mm``.
     """
     roots = [Path(r) for r in roots]
     infos = [read_sequence_info(r) for r in roots]
@@ -92,20 +108,24 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         tracker = Tracker(scene, config, make_terms() if make_terms is not None else None)
         cams = [infos[k].cameras[0].to(device) for k in members]
         segs = [_segment_of(infos[k], segment) for k in members]
+        hands_only = all(m.kind == "hand" for m in scene.models)
+        initializer = Initializer(tracker, init_config) if hands_only else None
         starts, init_notes = [], []
         for i, k in enumerate(members):
-            th, note = _init_pose(roots[k], infos[k], scene, models, tracker, cams[i], segs[i], device)
+            th, note = _init_pose(roots[k], infos[k], scene, models, initializer, cams[i], segs[i])
             starts.append(th)
             init_notes.append(note)
             if note:
                 tqdm.write(f"{names[k]}: {note}")
         init = torch.as_tensor(np.stack(starts), dtype=torch.float32, device=device)
         n_frames = max(infos[k].frames for k in members)
-        read_errors: List[List[str]] = []
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
         results: List[FrameResult] = []
-        frames = _depth_frames([roots[k] for k in members], [infos[k] for k in members], n_frames, read_errors, segs)
-        for f, res in enumerate(tracker.track(frames, cams, init)):
+        frames = _Frames([roots[k] for k in members], [infos[k] for k in members], n_frames, segs, keep_masks=viz)
+        refit = _Refit(tracker, scene, cams, frames, initializer if reinit_iou > 0 else None, reinit_iou,
+                       [_segment_for_search(segs[i], scene) for i in range(len(members))])
+        read_errors = frames.errors
+        for f, res in enumerate(tracker.track(frames, cams, init, revise=refit)):
             for i, err in enumerate(read_errors[f]):
                 if err:
                     res.notes[i] = f"{err}; previous pose kept"
@@ -119,17 +139,18 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         bar.close()
         for i, k in enumerate(members):
             summaries[k] = _write_sequence(targets[k], roots[k], infos[k], names[k], scene, cams[i], results, i,
-                                           len(members), config, viz, force, segs[i], tracker.renderer, write_render)
+                                           len(members), config, viz, force, frames, refit, tracker.renderer,
+                                           write_render)
     return [summaries[k] for k in range(len(roots))]
 
 
 def _failed(name: str, error: str) -> dict:
     return {"sequence": name, "status": "failed", "error": error, "frames": 0, "out": None,
-            "seconds_per_frame": float("nan"), "flagged_frames": 0}
+            "seconds_per_frame": float("nan"), "flagged_frames": 0, "reinitialized_frames": 0}
 
 
-def _init_pose(root: Path, info: SequenceInfo, scene: Scene, models: tuple, tracker: Tracker, cam,
-               segment: Optional[SegmentConfig], device) -> tuple:
+def _init_pose(root: Path, info: SequenceInfo, scene: Scene, models: tuple, initializer: Optional[Initializer],
+               cam, segment: Optional[SegmentConfig]) -> tuple:
     """(theta of frame 0, note): ``init_pose.json`` when the folder has it, else the
     automatic initialisation on frame 0 (:mod:`torchhand.tracking.initialization`)."""
     if (root / "init_pose.json").is_file():
@@ -138,19 +159,64 @@ def _init_pose(root: Path, info: SequenceInfo, scene: Scene, models: tuple, trac
             raise ValueError(f"{root / 'init_pose.json'}: theta has {th.size} values, the scene "
                              f"{list(models)} has {scene.num_dofs} DoF")
         return th, ""
-    res = automatic_init(root, info, scene, tracker, cam, segment)
+    if initializer is None:
+        raise ValueError(f"{root}: no init_pose.json, and the automatic initialisation places hands only (the scene "
+                         f"{list(models)} has objects): write init_pose.json")
+    res = automatic_init(root, info, initializer, cam, segment)
     return res.theta.cpu().double().numpy(), (f"no init_pose.json: initialised automatically (depth discrepancy "
                                              f"{res.cost:.2f}, {res.seconds:.1f} s)")
 
 
-def automatic_init(root: Path, info: SequenceInfo, scene: Scene, tracker: Tracker, cam,
+def automatic_init(root: Path, info: SequenceInfo, initializer: Initializer, cam,
                    segment: Optional[SegmentConfig]) -> InitResult:
     """The automatic initialisation of a sequence's frame 0 (its segmentation, or the
     automatic one with as many hands as the scene has)."""
-    if segment is None:
-        segment = SegmentConfig(hands=max(1, sum(m.kind == "hand" for m in scene.models)))
-    depth, seg = _read_frame(root, info, 0, segment)
-    return initialize_hands(tracker, depth, cam, seg)
+    segment = _segment_for_search(segment, initializer.tracker.scene)
+    depth = read_depth(camera_dir(root, 0) / "depth" / frame_name(0), info.depth_unit_mm)
+    seg = segment_hands(depth, info.cameras[0], segment, frame=str(camera_dir(root, 0) / "depth" / frame_name(0)))
+    return initializer(depth, cam, seg)
+
+
+def initialize_sequence(root, force: bool = False, segment: Optional[SegmentConfig] = None,
+                        config: InitConfig = InitConfig()) -> dict:
+    """``torchhand init``: the automatic initialisation of a sequence folder's frame 0,
+    written to ``init_pose.json`` with ``init_overlay.png`` (data outline green, the
+    fitted model's red, its skeleton) to check it. An existing ``init_pose.json`` is
+    kept unless ``force``. Returns the paths, the fit quality and the time."""
+    root = Path(root)
+    target, overlay = root / "init_pose.json", root / "init_overlay.png"
+    if target.exists() and not force:
+        raise FileExistsError(f"{target} exists; pass --force to replace it")
+    info = read_sequence_info(root)
+    scene = Scene.from_names(info.models)
+    tracker = Tracker(scene, TrackerConfig())
+    if any(m.kind != "hand" for m in scene.models):
+        raise ValueError(f"{root}: the automatic initialisation places hands only; the scene {info.models} has "
+                         "objects: write init_pose.json")
+    segment = _segment_of(info, segment)
+    cam = info.cameras[0]
+    res = automatic_init(root, info, Initializer(tracker, config), cam, segment)
+    depth, seg = _read_frame(root, info, 0, _segment_for_search(segment, scene))
+    with torch.no_grad():
+        posed = scene(res.theta[None])
+        model = tracker.renderer(posed.vertices, cam, normals=False).depth[0].cpu().numpy()
+    iou, med = fit_quality(model, depth)
+    img = depth_to_color(np.nan_to_num(depth))
+    draw_mask_outline(img, model > 0, (0, 0, 255))
+    draw_mask_outline(img, seg.mask, (0, 220, 0))
+    draw_skeleton(img, cam.project(posed.keypoints)[0].cpu().numpy())
+    target.write_text(json.dumps({"theta": [float(x) for x in res.theta.cpu().double().numpy()]}))
+    cv2.imwrite(str(overlay), img)
+    return {"init_pose": str(target), "overlay": str(overlay), "iou": iou, "depth_residual_mm": med,
+            "seconds": res.seconds, "cost": res.cost}
+
+
+def _segment_for_search(segment: Optional[SegmentConfig], scene: Scene) -> SegmentConfig:
+    """The segmentation that seeds a search: the sequence's, else the automatic one with
+    as many hands as the scene has."""
+    if segment is not None:
+        return segment
+    return SegmentConfig(hands=max(1, sum(m.kind == "hand" for m in scene.models)))
 
 
 def _segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[SegmentConfig]:
@@ -172,32 +238,108 @@ def _read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Segmen
     if segment is None:
         return depth, None
     seg = segment_hands(depth, info.cameras[0], segment, frame=str(path))
-    return np.where(seg.mask, depth, 0).astype(np.float32), seg
+    return seg.apply(depth), seg
 
 
-def _depth_frames(roots: List[Path], infos: List[SequenceInfo], n_frames: int, errors: List[List[str]],
-                  segments: List[Optional[SegmentConfig]]) -> Iterator[List[Optional[np.ndarray]]]:
-    """Per frame, the depth map of every sequence (None past its end, where unreadable or
-    where the segmentation found no hand; the reason is appended to ``errors``, one list
-    per frame)."""
-    for f in range(n_frames):
-        depths, why = [], []
-        for root, info, seg in zip(roots, infos, segments):
-            depth, err = None, ""
-            if f < info.frames:
+class _Frames:
+    """The frames of a batch of sequences, each read and segmented once: iterating yields
+    per frame the depth map of every sequence as the tracker sees it (None past its end,
+    where unreadable or where the segmentation found no hand; the reason goes to
+    ``errors``, one list per frame); ``depths`` and ``segmentations`` hold the current
+    frame's; with ``keep_masks`` every frame's segmentation masks are kept (packed) for
+    the overlays."""
+
+    def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
+                 segments: List[Optional[SegmentConfig]], keep_masks: bool = False):
+        self.roots, self.infos, self.n_frames, self.segments = roots, infos, n_frames, segments
+        self.keep_masks = keep_masks
+        self.errors: List[List[str]] = []
+        self.depths: List[Optional[np.ndarray]] = []
+        self.segmentations: List[Optional[Segmentation]] = []
+        self.masks: List[List[Optional[tuple]]] = [[] for _ in roots]  # per sequence, per frame
+
+    def __iter__(self) -> Iterator[List[Optional[np.ndarray]]]:
+        for f in range(self.n_frames):
+            depths, segs, why = [], [], []
+            for i, (root, info, seg) in enumerate(zip(self.roots, self.infos, self.segments)):
+                depth, s, err = None, None, ""
+                if f < info.frames:
+                    try:
+                        depth, s = _read_frame(root, info, f, seg)
+                    except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
+                        err = str(e)
+                    if self.keep_masks:
+                        self.masks[i].append(None if s is None else (np.packbits(s.mask), np.packbits(s.cut)))
+                depths.append(depth)
+                segs.append(s)
+                why.append(err)
+            self.errors.append(why)
+            self.depths, self.segmentations = depths, segs
+            yield depths
+
+    def masks_of(self, i: int, f: int, shape: tuple) -> Optional[tuple]:
+        """(hands' mask, forearm cut) of sequence ``i``'s frame ``f``, or None."""
+        packed = self.masks[i][f] if f < len(self.masks[i]) else None
+        if packed is None:
+            return None
+        n = shape[0] * shape[1]
+        return tuple(np.unpackbits(p, count=n).reshape(shape).astype(bool) for p in packed)
+
+
+class _Refit:
+    """After each frame: every sequence's fit quality (``quality[f][i]``: silhouette IoU,
+    median depth residual) and, below ``reinit_iou``, its re-initialisation
+    (``reinitialized[f][i]``); see :func:`track_sequences`."""
+
+    def __init__(self, tracker: Tracker, scene: Scene, cams: list, frames: _Frames,
+                 initializer: Optional[Initializer], reinit_iou: float, search: List[SegmentConfig]):
+        self.tracker, self.scene, self.cams, self.frames = tracker, scene, cams, frames
+        self.initializer, self.reinit_iou, self.search = initializer, reinit_iou, search
+        pre = tracker.config.preprocess
+        self.near, self.far = pre.near, pre.far
+        self.quality: List[List[tuple]] = []
+        self.reinitialized: List[List[bool]] = []
+
+    def fit(self, theta: torch.Tensor, i: int, data: np.ndarray) -> tuple:
+        with torch.no_grad():
+            verts = self.scene(theta[None]).vertices
+            model = self.tracker.renderer(verts, self.cams[i], normals=False).depth[0].cpu().numpy()
+        return fit_quality(model, data)
+
+    def __call__(self, f: int, res: FrameResult) -> FrameResult:
+        theta, notes = res.theta.clone(), list(res.notes)
+        quality, flags = [], []
+        for i, depth in enumerate(self.frames.depths):
+            if depth is None or not bool(res.valid[i]):
+                quality.append((float("nan"), float("nan")))
+                flags.append(False)
+                continue
+            data = np.where(np.isnan(depth) | ((depth >= self.near) & (depth <= self.far)), depth, 0)
+            q, flag = self.fit(theta[i], i, data), False
+            if self.initializer is not None and f > 0 and q[0] < self.reinit_iou:
+                seg = self.frames.segmentations[i]
                 try:
-                    depth, _ = _read_frame(root, info, f, seg)
-                except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
-                    err = str(e)
-            depths.append(depth)
-            why.append(err)
-        errors.append(why)
-        yield depths
+                    if seg is None:
+                        seg = segment_hands(depth, self.cams[i], self.search[i])
+                    new = self.initializer(depth, self.cams[i], seg, around=theta[i])
+                except (SegmentationError, ValueError) as err:
+                    notes[i] = f"silhouette IoU {q[0]:.2f}; no re-initialisation: {err}"
+                else:
+                    q2 = self.fit(new.theta.to(theta), i, data)
+                    if q2[0] > q[0]:
+                        notes[i] = (f"re-initialised: silhouette IoU {q[0]:.2f} -> {q2[0]:.2f} "
+                                    f"({new.seconds:.1f} s)")
+                        theta[i], q, flag = new.theta.to(theta), q2, True
+            quality.append(q)
+            flags.append(flag)
+        self.quality.append(quality)
+        self.reinitialized.append(flags)
+        return res._replace(theta=theta, notes=notes)
 
 
 def _write_sequence(target: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
-                    batch: int, config: TrackerConfig, viz: bool, force: bool,
-                    segment: Optional[SegmentConfig] = None, renderer=None, write_render: bool = False) -> dict:
+                    batch: int, config: TrackerConfig, viz: bool, force: bool, frames: _Frames, refit: _Refit,
+                    renderer=None, write_render: bool = False) -> dict:
     """Write one sequence's outputs from the batch's frame results (problem ``i``)."""
     N = info.frames
     valid = np.array([r.valid[i].item() for r in results[:N]], bool)
@@ -220,21 +362,25 @@ def _write_sequence(target: Path, root: Path, info: SequenceInfo, name: str, sce
         rest = {b: model.rest_transforms[j].cpu().double().numpy()[None] for j, b in enumerate(model.bone_names)}
         mot = {b: np.concatenate([rest[b], m], 0) for b, m in mot.items()}
         write_motion(target / "motion" / f"{thesis_name.get(model_name, model_name)}.MOTION", mot)
-    quality = _fit_quality(target, root, info, posed, cam, segment, renderer, config, write_render)
+    if write_render:
+        _write_renders(target, posed, cam, renderer, N)
+    quality = [refit.quality[f][i] for f in range(N)]
+    reinit = [refit.reinitialized[f][i] for f in range(N)]
     log = [{"frame": f, "seconds": r.seconds, "iterations": int(r.iterations[i]),
             "energy": None if not np.isfinite(float(r.energy[i])) else float(r.energy[i]),
             "valid": bool(r.valid[i]), "recovered": bool(r.recovered[i]),
             "correspondences": int(r.correspondences[i]), "iou": _finite(quality[f][0]),
-            "depth_residual_mm": _finite(quality[f][1]), "notes": r.notes[i]} for f, r in enumerate(results[:N])]
+            "depth_residual_mm": _finite(quality[f][1]), "reinitialized": reinit[f], "notes": r.notes[i]}
+           for f, r in enumerate(results[:N])]
     (target / "track_log.json").write_text(json.dumps({"sequence": name, "source": str(root),
                                                        "energy": config.energy, "frames": log}))
     if viz:
-        _write_overlays(target, root, info, scene, posed, cam, segment)
+        _write_overlays(target, root, info, scene, posed, cam, frames, i)
     ious = [q[0] for q in quality if np.isfinite(q[0])]
     res = [q[1] for q in quality if np.isfinite(q[1])]
     return {"sequence": name, "status": "ok", "frames": N, "out": str(target),
             "seconds_per_frame": float(np.mean([r.seconds for r in results[:N]])) / batch,
-            "flagged_frames": int((~valid).sum()), "mean_iou": float(np.mean(ious)) if ious else float("nan"),
+            "flagged_frames": int((~valid).sum()), "reinitialized_frames": int(sum(reinit)), "mean_iou": float(np.mean(ious)) if ious else float("nan"),
             "median_depth_residual_mm": float(np.median(res)) if res else float("nan")}
 
 
@@ -242,31 +388,17 @@ def _finite(x: float) -> Optional[float]:
     return float(x) if np.isfinite(x) else None
 
 
-def _fit_quality(target: Path, root: Path, info: SequenceInfo, posed: SceneOutput, cam,
-                 segment: Optional[SegmentConfig], renderer, config: TrackerConfig, write_render: bool) -> list:
-    """Per frame (IoU, median depth residual mm) of the fitted models against the data the
-    tracker saw (segmented, in the working range); renders written with ``write_render``."""
-    if write_render:
-        (target / "render").mkdir()
-    out = []
-    pre = config.preprocess
+def _write_renders(target: Path, posed: SceneOutput, cam, renderer, frames: int) -> None:
+    """The rendered depth of the fitted models, ``render/NNNNNN.png`` (16-bit mm, 0 = none)."""
+    (target / "render").mkdir()
     with torch.no_grad():
-        for f in range(info.frames):
-            model = renderer(posed.vertices[f : f + 1], cam, normals=False).depth[0].cpu().numpy()
-            if write_render:
-                write_depth(target / "render" / frame_name(f), model)
-            try:
-                data, _ = _read_frame(root, info, f, segment)
-            except (SequenceError, SegmentationError):
-                out.append((float("nan"), float("nan")))
-                continue
-            data = np.where((data >= pre.near) & (data <= pre.far), data, 0)
-            out.append(fit_quality(model, data))
-    return out
+        for f in range(frames):
+            write_depth(target / "render" / frame_name(f),
+                        renderer(posed.vertices[f : f + 1], cam, normals=False).depth[0].cpu().numpy())
 
 
 def _write_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, posed: SceneOutput, cam,
-                    segment: Optional[SegmentConfig] = None) -> None:
+                    frames: _Frames, i: int) -> None:
     """Overlays for a person: the input depth in false colour with one mm range for the
     whole sequence (and its colour bar), the frame number, the tracked models (hand
     skeletons, object outlines) and, where ``root/gt`` exists, the ground-truth
@@ -280,13 +412,7 @@ def _write_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, 
             depths.append(read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm))
         except SequenceError:
             depths.append(np.zeros((cam.height, cam.width), np.float32))
-        seg = None
-        if segment is not None:
-            try:
-                seg = segment_hands(depths[-1], info.cameras[0], segment)
-            except SegmentationError:
-                pass
-        segs.append(seg)
+        segs.append(frames.masks_of(i, f, depths[-1].shape))
     near, far = depth_range(depths)
     kinds = [m.kind for m in scene.models]
     legend = [(f"{n}: tracked", None if kind == "hand" else OBJECT_COLOR) for n, kind in zip(scene.names, kinds)]
@@ -296,8 +422,8 @@ def _write_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, 
         for f, depth in enumerate(depths):
             img = depth_to_color(depth, near, far)
             if segs[f] is not None:
-                draw_mask_outline(img, segs[f].mask, (0, 220, 0))
-                draw_mask_outline(img, segs[f].cut, (0, 0, 220))
+                draw_mask_outline(img, segs[f][0], (0, 220, 0))
+                draw_mask_outline(img, segs[f][1], (0, 0, 220))
             for k, (model, out) in enumerate(zip(scene.models, posed.models)):
                 if kinds[k] == "hand":
                     draw_skeleton(img, cam.project(out.keypoints[f : f + 1])[0].cpu().numpy())

@@ -23,11 +23,13 @@ def fit_quality(model_depth: np.ndarray, data_depth: np.ndarray) -> tuple:
     """How well a fitted model explains depth data without ground truth.
 
     model_depth: (H, W) the rendered fitted models' depth in mm (0 = empty); data_depth:
-    (H, W) the data the tracker saw (segmented, 0 = none). Returns (silhouette IoU of
-    the two masks, median |model - data| mm where both have depth); (nan, nan) when both
-    are empty, median nan when they do not overlap.
+    (H, W) the data the tracker saw (segmented, 0 = none, NaN = unknown: model pixels
+    there, such as a wrist over the forearm cut away, are left out). Returns
+    (silhouette IoU of the two masks, median |model - data| mm where both have depth);
+    (nan, nan) when both are empty, median nan when they do not overlap.
     """
-    m, d = np.asarray(model_depth) > 0, np.asarray(data_depth) > 0
+    data_depth = np.asarray(data_depth)
+    m, d = (np.asarray(model_depth) > 0) & ~np.isnan(data_depth), data_depth > 0
     union = int((m | d).sum())
     if union == 0:
         return float("nan"), float("nan")

@@ -14,8 +14,15 @@ Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
    ``mean over the union of both silhouettes of min(|d_model - d_data|, clamp) / clamp``
    (a pixel in one silhouette only costs 1). All particles are rendered as one batch;
 3. the best ``refine`` distinct particles are refined by the tracker's own objective
-   (Algorithm 1 with the first-frame budget, one batch) and the one with the lowest
-   discrepancy at full resolution is kept.
+   (Algorithm 1, ``refine_iterations`` iterations, one batch) and the one with the
+   lowest discrepancy at full resolution is kept.
+
+The particles are rendered with a coarse proxy of each hand (:func:`~torchhand.model.
+proxy.coarse_model`, ``proxy_faces`` triangles: the same skeleton on a decimated mesh),
+which at the search's resolution renders the same depth for a tenth of the work; the
+refinement and the final choice use the full models. An :class:`Initializer` builds the
+proxies once, for the frames of a whole run (re-initialisation); ``initialize_hands``
+is the one-frame shortcut.
 
 The thesis initialises from a given pose; FORTH's objective is used for the search
 because it needs no correspondences, so a particle far from the data still has a
@@ -24,6 +31,7 @@ meaningful cost. Only hands are initialised: a scene with objects needs init_pos
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import NamedTuple, Optional
 
@@ -32,11 +40,16 @@ import torch
 
 from torchhand.core.check import skip_checks
 from torchhand.geometry.camera import Camera
+from torchhand.geometry.mesh import is_closed_outward
+from torchhand.geometry.render import Renderer
 from torchhand.model.kinematics import so3_log
+from torchhand.model.proxy import coarse_model
+from torchhand.model.scene import Scene
 from torchhand.optim.pso import particle_swarm
+from torchhand.tracking.preprocess import preprocess_depth
 from torchhand.tracking.segmentation import Segmentation
 
-__all__ = ["InitConfig", "InitResult", "initialize_hands"]
+__all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands"]
 
 
 @dataclass(frozen=True)
@@ -49,7 +62,15 @@ class InitConfig:
     translation_spread: float = 15.0
     finger_spread: float = 0.25
     refine: int = 4
+    refine_iterations: int = 15
+    proxy_faces: int = 2000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("particles", "generations", "resolution", "refine", "refine_iterations", "proxy_faces"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"InitConfig.{name} must be an integer >= 1, got {v!r}")
 
 
 class InitResult(NamedTuple):
@@ -91,124 +112,146 @@ def _crop_camera(camera: Camera, box: tuple, resolution: int) -> tuple:
 
 
 def _discrepancy(model_depth: torch.Tensor, data: torch.Tensor, clamp: float) -> torch.Tensor:
-    """(N, h, w) rendered depth vs (h, w) data -> (N,) FORTH's clamped depth discrepancy."""
-    m, d = model_depth > 0, (data > 0)[None]
+    """(N, h, w) rendered depth vs (h, w) data (NaN: unknown, left out) -> (N,) FORTH's
+    clamped depth discrepancy."""
+    m, d = (model_depth > 0) & ~torch.isnan(data)[None], (data > 0)[None]
     both = m & d
     cost = torch.where(both, ((model_depth - data).abs() / clamp).clamp(max=1.0), (m | d).to(model_depth.dtype))
     union = (m | d).sum((1, 2)).clamp(min=1)
     return cost.sum((1, 2)) / union
 
 
-def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
-                     config: InitConfig = InitConfig(), around: Optional[torch.Tensor] = None) -> InitResult:
-    """Find the pose of the scene's hands in one segmented depth frame.
+class Initializer:
+    """The automatic initialisation of a tracker's hands, for any number of frames.
 
     Args:
         tracker: a :class:`~torchhand.tracking.tracker.Tracker` of the scene (its
-            renderer, objective and LM refine the search).
-        depth: (H, W) mm, the frame (the segmentation is applied here).
-        camera: its camera.
-        segmentation: the frame's hands (one blob per hand model, left to right).
-        around: (D,) a pose to search around as well (re-initialisation).
+            renderer, objective and LM refine the search); its energy history is not
+            touched, so a run can re-initialise mid-sequence.
+        config: :class:`InitConfig`.
     """
-    import time
 
-    t0 = time.perf_counter()
-    scene = tracker.scene
-    kinds = [m.kind for m in scene.models]
-    if any(k != "hand" for k in kinds):
-        raise ValueError(f"the automatic initialisation places hands only; the scene {list(scene.names)} has "
-                         "objects: give init_pose.json")
-    if len(segmentation.blobs) != len(scene.models):
-        raise ValueError(f"{len(scene.models)} hands in the scene, {len(segmentation.blobs)} segmented")
-    dev, dt = camera.device, torch.float32
-    gen = torch.Generator().manual_seed(config.seed)
-    data_full = np.where(segmentation.mask, depth, 0).astype(np.float32)
-    P, D = config.particles, scene.num_dofs
-    # the two hands: the right hand is on the image's left for a camera facing the person
-    order = np.argsort([0 if m.side == "right" else 1 for m in scene.models], kind="stable")
-    hyp = []
-    for mi, (name, model) in enumerate(zip(scene.names, scene.models)):
-        k = int(np.where(order == mi)[0][0])  # the blob of this hand
-        v, u = np.nonzero(segmentation.blobs[k])
-        z = data_full[v, u]
-        pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], 1)
-        palm = segmentation.palms[k] + 12.0 * segmentation.palms[k] / np.linalg.norm(segmentation.palms[k])
-        c = pts - pts.mean(0)
-        _, _, vt = np.linalg.svd(c, full_matrices=False)
-        a1, a3 = vt[0], vt[2]
-        arm = segmentation.forearm[k]
-        signs_axis = [(-1.0 if a1 @ arm > 0 else 1.0)] if np.any(arm) else [1.0, -1.0]
-        centre, axis, normal = (x.numpy() for x in _hand_frame(model))
-        T_wc = camera.T_wc.double().cpu().numpy()
-        palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
-        rc = model.rest_transforms[0][:3, 3].double().cpu()
-        options = []
-        for sa in signs_axis:
-            for sn in (1.0, -1.0):
-                A = sa * (T_wc[:3, :3] @ a1)
-                N = sn * (T_wc[:3, :3] @ a3)
-                N = N - (N @ A) * A
-                N /= np.linalg.norm(N)
-                tgt = np.stack([A, N, np.cross(A, N)], 1)
-                src = np.stack([axis, normal, np.cross(axis, normal)], 1)
-                R = tgt @ src.T
-                rot = so3_log(torch.as_tensor(R, dtype=torch.float64)[None])[0]
-                Rt = torch.as_tensor(R)
-                t = torch.as_tensor(palm_w) - rc - Rt @ (torch.as_tensor(centre) - rc)
-                th = torch.zeros(model.num_dofs, dtype=torch.float64)
-                th[:3], th[3:6] = t, rot
-                options.append(th)
-        hyp.append(options)
-    # particles: spread around every combination of the hands' seed hypotheses
-    combos = [[]]
-    for options in hyp:
-        combos = [c + [o] for c in combos for o in options]
-    bases = [torch.cat(c) for c in combos]
-    if around is not None:
-        bases.append(around.detach().double().cpu())
-    x = torch.zeros(P, D, dtype=torch.float64)
-    lo, hi = scene.lower.double().cpu(), scene.upper.double().cpu()
-    spread = torch.full((D,), config.finger_spread, dtype=torch.float64)
-    for sl in scene.slices.values():
-        spread[sl.start : sl.start + 3] = config.translation_spread
-        spread[sl.start + 3 : sl.start + 6] = config.rotation_spread
-    for p in range(P):
-        base = bases[p % len(bases)]
-        noise = torch.randn(D, generator=gen, dtype=torch.float64) * spread if p >= len(bases) else 0
-        x[p] = base + noise
-    x = torch.maximum(torch.minimum(x, hi), lo)
-    # the search at low resolution, in the blob's box
-    rows, cols = np.nonzero(segmentation.mask)
-    pad = int(0.3 * max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
-    box = (max(rows.min() - pad, 0), min(rows.max() + 1 + pad, camera.height),
-           max(cols.min() - pad, 0), min(cols.max() + 1 + pad, camera.width))
-    small, rr, cc = _crop_camera(camera, box, config.resolution)
-    data_small = torch.as_tensor(data_full[np.ix_(rr, cc)], device=dev)
+    def __init__(self, tracker, config: InitConfig = InitConfig()):
+        scene = tracker.scene
+        if any(m.kind != "hand" for m in scene.models):
+            raise ValueError(f"the automatic initialisation places hands only; the scene {list(scene.names)} has "
+                             "objects: give init_pose.json")
+        self.tracker, self.config = tracker, config
+        self.coarse = Scene([coarse_model(m, config.proxy_faces) for m in scene.models], names=list(scene.names))
+        cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in self.coarse.models)
+        self.renderer = Renderer(self.coarse.faces, self.coarse.face_model_id, self.coarse.face_bone_id,
+                                 backend=tracker.config.render_backend, cull_back_faces=cull)
 
-    def cost(pos: torch.Tensor, cam=small, data=data_small) -> torch.Tensor:
-        th = scene.clamp(pos[0].to(dev, dt))
-        with torch.no_grad(), skip_checks():
-            verts = scene(th, validate=False).vertices
-            rend = tracker.renderer(verts, cam, normals=False)
-        return _discrepancy(rend.depth, data, config.clamp_mm)[None].double().cpu()
+    def __call__(self, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
+                 around: Optional[torch.Tensor] = None) -> InitResult:
+        """Find the pose of the scene's hands in one segmented depth frame.
 
-    vmax = spread * 0.5
-    res = particle_swarm(cost, x[None], lo, hi, config.generations, velocity_scale=vmax, generator=gen)
-    # refine the best distinct particles with the tracker's objective
-    own, oc = res.particles[0], res.particle_cost[0]
-    pick = []
-    for i in torch.argsort(oc).tolist():
-        if all(torch.linalg.norm(own[i, :3] - own[j, :3]) > 5 or (own[i] - own[j]).abs().max() > 0.3 for j in pick):
-            pick.append(i)
-        if len(pick) == config.refine:
-            break
-    starts = own[pick].to(dev, dt)
-    n = len(pick)
-    refined = tracker.track_frame([data_full] * n, [camera] * n, scene.clamp(starts), first=True).theta
-    full_box = (0, camera.height, 0, camera.width)
-    fcam, fr, fc = _crop_camera(camera, full_box, max(camera.height, camera.width))
-    final = cost(refined[None].double(), fcam, torch.as_tensor(data_full, device=dev))[0]
-    k = int(torch.argmin(final))
-    tracker.reset()
-    return InitResult(refined[k].detach(), float(final[k]), float(res.cost[0]), time.perf_counter() - t0)
+        Args:
+            depth: (H, W) mm, the frame (the segmentation is applied here).
+            camera: its camera.
+            segmentation: the frame's hands (one blob per hand model, left to right).
+            around: (D,) a pose to search around as well (re-initialisation).
+        """
+        t0 = time.perf_counter()
+        tracker, config = self.tracker, self.config
+        scene = tracker.scene
+        if len(segmentation.blobs) != len(scene.models):
+            raise ValueError(f"{len(scene.models)} hands in the scene, {len(segmentation.blobs)} segmented")
+        dev, dt = camera.device, torch.float32
+        gen = torch.Generator().manual_seed(config.seed)
+        data_full = segmentation.apply(depth)
+        P, D = config.particles, scene.num_dofs
+        # the two hands: the right hand is on the image's left for a camera facing the person
+        order = np.argsort([0 if m.side == "right" else 1 for m in scene.models], kind="stable")
+        hyp = []
+        for mi, (name, model) in enumerate(zip(scene.names, scene.models)):
+            k = int(np.where(order == mi)[0][0])  # the blob of this hand
+            v, u = np.nonzero(segmentation.blobs[k])
+            z = data_full[v, u]
+            pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], 1)
+            palm = segmentation.palms[k] + 12.0 * segmentation.palms[k] / np.linalg.norm(segmentation.palms[k])
+            c = pts - pts.mean(0)
+            _, _, vt = np.linalg.svd(c, full_matrices=False)
+            a1, a3 = vt[0], vt[2]
+            arm = segmentation.forearm[k]
+            signs_axis = [(-1.0 if a1 @ arm > 0 else 1.0)] if np.any(arm) else [1.0, -1.0]
+            centre, axis, normal = (x.numpy() for x in _hand_frame(model))
+            T_wc = camera.T_wc.double().cpu().numpy()
+            palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
+            rc = model.rest_transforms[0][:3, 3].double().cpu()
+            options = []
+            for sa in signs_axis:
+                for sn in (1.0, -1.0):
+                    A = sa * (T_wc[:3, :3] @ a1)
+                    N = sn * (T_wc[:3, :3] @ a3)
+                    N = N - (N @ A) * A
+                    N /= np.linalg.norm(N)
+                    tgt = np.stack([A, N, np.cross(A, N)], 1)
+                    src = np.stack([axis, normal, np.cross(axis, normal)], 1)
+                    R = tgt @ src.T
+                    rot = so3_log(torch.as_tensor(R, dtype=torch.float64)[None])[0]
+                    Rt = torch.as_tensor(R)
+                    t = torch.as_tensor(palm_w) - rc - Rt @ (torch.as_tensor(centre) - rc)
+                    th = torch.zeros(model.num_dofs, dtype=torch.float64)
+                    th[:3], th[3:6] = t, rot
+                    options.append(th)
+            hyp.append(options)
+        # particles: spread around every combination of the hands' seed hypotheses
+        combos = [[]]
+        for options in hyp:
+            combos = [c + [o] for c in combos for o in options]
+        bases = [torch.cat(c) for c in combos]
+        if around is not None:
+            bases.append(around.detach().double().cpu())
+        x = torch.zeros(P, D, dtype=torch.float64)
+        lo, hi = scene.lower.double().cpu(), scene.upper.double().cpu()
+        spread = torch.full((D,), config.finger_spread, dtype=torch.float64)
+        for sl in scene.slices.values():
+            spread[sl.start : sl.start + 3] = config.translation_spread
+            spread[sl.start + 3 : sl.start + 6] = config.rotation_spread
+        for p in range(P):
+            base = bases[p % len(bases)]
+            noise = torch.randn(D, generator=gen, dtype=torch.float64) * spread if p >= len(bases) else 0
+            x[p] = base + noise
+        x = torch.maximum(torch.minimum(x, hi), lo)
+        # the search at low resolution, in the blob's box
+        rows, cols = np.nonzero(segmentation.mask)
+        pad = int(0.3 * max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
+        box = (max(rows.min() - pad, 0), min(rows.max() + 1 + pad, camera.height),
+               max(cols.min() - pad, 0), min(cols.max() + 1 + pad, camera.width))
+        small, rr, cc = _crop_camera(camera, box, config.resolution)
+        data_small = torch.as_tensor(data_full[np.ix_(rr, cc)], device=dev)
+
+        def cost(pos: torch.Tensor, cam=small, data=data_small, models=self.coarse, renderer=self.renderer
+                 ) -> torch.Tensor:
+            th = scene.clamp(pos[0].to(dev, dt))
+            with torch.no_grad(), skip_checks():
+                verts = models(th, validate=False).vertices
+                rend = renderer(verts, cam, normals=False)
+            return _discrepancy(rend.depth, data, config.clamp_mm)[None].double().cpu()
+
+        vmax = spread * 0.5
+        res = particle_swarm(cost, x[None], lo, hi, config.generations, velocity_scale=vmax, generator=gen)
+        # refine the best distinct particles with the tracker's objective
+        own, oc = res.particles[0], res.particle_cost[0]
+        pick = []
+        for i in torch.argsort(oc).tolist():
+            if all(torch.linalg.norm(own[i, :3] - own[j, :3]) > 5 or (own[i] - own[j]).abs().max() > 0.3 for j in pick):
+                pick.append(i)
+            if len(pick) == config.refine:
+                break
+        starts = scene.clamp(own[pick].to(dev, dt))
+        n = len(pick)
+        frame = preprocess_depth(data_full, camera, tracker.config.preprocess, device=dev, dtype=dt)
+        refined = tracker.solve(starts, starts, [frame] * n, [camera] * n, config.refine_iterations, 0.0).theta
+        final = cost(refined[None].double(), camera, torch.as_tensor(data_full, device=dev), scene,
+                     tracker.renderer)[0]
+        k = int(torch.argmin(final))
+        return InitResult(refined[k].detach(), float(final[k]), float(res.cost[0]), time.perf_counter() - t0)
+
+
+def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
+                     config: InitConfig = InitConfig(), around: Optional[torch.Tensor] = None) -> InitResult:
+    """One frame's :class:`Initializer` (builds the proxies each call: for many frames,
+    keep an :class:`Initializer`)."""
+    return Initializer(tracker, config)(depth, camera, segmentation, around)

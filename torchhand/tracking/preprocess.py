@@ -58,7 +58,9 @@ class DepthFrame(NamedTuple):
     for terms that run their own detectors on it (salient points); covered: (H, W) bool,
     ``mask`` with its holes up to ``hole_size`` closed: where the sensor saw something
     or lost a few pixels (dropouts, the shadows beside occluding fingers), as opposed to
-    where it saw nothing (the free-space term's "nothing").
+    where it saw nothing (the free-space term's "nothing"), and the pixels given as NaN
+    (unknown: a segmentation cut them away, :meth:`~torchhand.tracking.segmentation.
+    Segmentation.apply`).
     """
 
     depth: torch.Tensor
@@ -76,7 +78,8 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     """Preprocess one depth map.
 
     Args:
-        depth: (H, W) float depth in mm (0 = invalid), an array or a tensor on any device.
+        depth: (H, W) float depth in mm (0 = nothing seen, NaN = unknown: no data, but
+            no evidence of free space either), an array or a tensor on any device.
         camera: its camera (intrinsics used for back-projection).
         mask: optional (H, W) bool, True where the hands/objects may be.
     Raises:
@@ -137,6 +140,7 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     full_depth[r0:r1, c0:c1] = dt
     covered = np.zeros((H, W), bool)
     covered[r0:r1, c0:c1] = closed.astype(bool)
+    covered |= np.isnan(depth)
     p, n = depth_to_points_and_normals(dt[None], K)
     points[r0:r1, c0:c1], normals[r0:r1, c0:c1] = p[0], n[0]
     return DepthFrame(full_depth, torch.as_tensor(valid_full, device=device), points, normals,

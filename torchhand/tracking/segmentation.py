@@ -94,13 +94,23 @@ class Segmentation(NamedTuple):
     ordered by image column of the palm centre (left to right); palms: (n, 3) camera-
     frame palm centres (mm); forearm: (n, 3) unit directions from the palm centre
     towards the forearm (zeros where none was seen); cut: (H, W) bool, the pixels
-    dropped by the wrist cut (for the overlays)."""
+    dropped by the wrist cut."""
 
     mask: np.ndarray
     blobs: List[np.ndarray]
     palms: np.ndarray
     forearm: np.ndarray
     cut: np.ndarray
+
+    def apply(self, depth: np.ndarray) -> np.ndarray:
+        """The depth the tracker sees: the hands' pixels, 0 elsewhere, and NaN on the
+        forearm cut away at the wrist. NaN means *unknown*: the sensor saw something
+        there that is not the hand, so a model's wrist reaching over it is no evidence
+        against the fit (the free-space term, the fit quality and the initialisation's
+        search leave those pixels out), whereas 0 means nothing to explain."""
+        out = np.where(self.mask, depth, 0).astype(np.float32)
+        out[self.cut & ~self.mask] = np.nan
+        return out
 
 
 def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = SegmentConfig(),

@@ -14,7 +14,7 @@ import collections
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, List, NamedTuple, Optional, Sequence, Union
+from typing import Callable, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -418,8 +418,8 @@ class Tracker:
         self._energy_history.append(energy)
         return FrameResult(theta, valid, iters, energy, recovered, counts, notes, time.perf_counter() - t0)
 
-    def track(self, depths: Iterable[Sequence[Depth]], cameras: Sequence[Camera], init: torch.Tensor
-              ) -> Iterator[FrameResult]:
+    def track(self, depths: Iterable[Sequence[Depth]], cameras: Sequence[Camera], init: torch.Tensor,
+              revise: Optional[Callable[[int, FrameResult], FrameResult]] = None) -> Iterator[FrameResult]:
         """Track B sequences frame by frame from their initial poses.
 
         Args:
@@ -428,6 +428,9 @@ class Tracker:
             cameras: B cameras.
             init: (B, D) initial poses (the first frame refines them with the
                 first-frame budget).
+            revise: called with (frame index, result) after each frame; what it returns
+                is yielded and the next frame starts from its ``theta`` (the runner's
+                re-initialisation of badly fitting frames).
         Yields:
             one :class:`FrameResult` per frame. The starts follow
             ``config.prediction``; the recovery perturbations are drawn from a
@@ -441,6 +444,8 @@ class Tracker:
         for f, frame in enumerate(depths):
             start = predicted_start(list(history), cfg.prediction, cfg.prediction_limiter)
             res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start)
+            if revise is not None:
+                res = revise(f, res)
             theta = res.theta
             history.append((theta, res.valid.to(theta.device)))
             yield res
