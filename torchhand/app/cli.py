@@ -63,8 +63,24 @@ def _synth(args) -> int:
 
 
 def _eval(args) -> int:
-    from torchhand.scoring.sequences import evaluate_many
+    from torchhand.scoring.sequences import evaluate_many, fit_report
 
+    if args.gt is None:  # no ground truth: how well the fitted models explain the data
+        result = fit_report(args.pred)
+        for r in result["sequences"]:
+            print(f"{r['sequence']}: {r['frames']} frames, silhouette IoU mean {r['mean_iou']:.2f} (min "
+                  f"{r['min_iou']:.2f} at frame {r['worst_frame']}), median depth residual "
+                  f"{r['median_depth_residual_mm']:.1f} mm, {r['frames_below_iou']} frames below IoU "
+                  f"{result['iou_threshold']}, {r['reinitialized_frames']} re-initialised")
+        print(f"fit quality (no ground truth) over {result['frames']} frames: silhouette IoU mean "
+              f"{result['mean_iou']:.2f} (min {result['min_iou']:.2f}), median depth residual "
+              f"{result['median_depth_residual_mm']:.1f} mm, {result['frames_below_iou']} frames below IoU "
+              f"{result['iou_threshold']}")
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(result, indent=2))
+            print(f"wrote {args.json}")
+        return 0
     if len(args.pred) != len(args.gt):
         raise ValueError(f"give one --gt folder per prediction: {len(args.pred)} predictions, {len(args.gt)} --gt")
     result = evaluate_many(list(zip(args.pred, args.gt)), workers=args.workers,
@@ -110,12 +126,13 @@ def _track(args) -> int:
                         labels=args.labels)
     segment = _segment_config(args, "none") if args.segment else None
     summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force,
-                                segment=segment, write_render=args.write_render)
+                                segment=segment, write_render=args.write_render, reinit_iou=args.reinit_iou,
+                                models=args.models.split(",") if args.models else None)
     failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:
         if s["status"] == "ok":
             print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
-                  f"{s['flagged_frames']} flagged, fit: silhouette IoU {s['mean_iou']:.2f}, median depth residual "
+                  f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: silhouette IoU {s['mean_iou']:.2f}, median depth residual "
                   f"{s['median_depth_residual_mm']:.1f} mm -> {s['out']}")
         else:
             print(f"torchhand track: error: {s['sequence']}: {s['error']}; nothing written", file=sys.stderr)
@@ -164,6 +181,18 @@ def _init(args) -> int:
     res = initialize_sequence(args.seq, force=args.force, segment=_segment_config(args, "auto") if args.segment else None)
     print(f"wrote {res['init_pose']} and {res['overlay']}: silhouette IoU {res['iou']:.2f}, median depth residual "
           f"{res['depth_residual_mm']:.1f} mm ({res['seconds']:.1f} s)")
+    return 0
+
+
+def _calibrate(args) -> int:
+    from torchhand.app.runner import calibrate_sequence
+
+    segment = _segment_config(args, "auto") if args.segment else None
+    rep = calibrate_sequence(args.seq, args.model, args.out, frames=args.frames, force=args.force, segment=segment)
+    fingers = ", ".join(f"{f} {v:.3f}" for f, v in rep["fingers"].items())
+    print(f"wrote {rep['model']} and {rep['report']}: scale {rep['scale']:.3f}; finger lengths {fingers}; "
+          f"silhouette IoU {rep['mean_iou_before']:.2f} -> {rep['mean_iou_after']:.2f} over "
+          f"{len(rep['frames'])} frames")
     return 0
 
 
@@ -224,7 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)",
                        formatter_class=_Formatter)
     p.add_argument("pred", nargs="+", type=Path, help="prediction folder(s) in the gt/ layout")
-    p.add_argument("--gt", nargs="+", type=Path, required=True, help="ground truth folder(s), one per prediction")
+    p.add_argument("--gt", nargs="+", type=Path,
+                   help="ground truth folder(s), one per prediction; without --gt, the fit quality each prediction's "
+                        "track_log.json records (silhouette IoU, depth residual), as for a real recording")
     p.add_argument("--json", type=Path, help="write all scores to this JSON file")
     p.add_argument("--plot", type=Path, help="write the PCK curves (0-50 mm) to this PNG")
     p.add_argument("--workers", type=int, default=1, help="parallel processes over sequences")
@@ -260,6 +291,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write labelled overlay PNGs and an MP4 per sequence (with the ground-truth skeletons "
                         "where the sequence has gt/)")
     p.add_argument("--force", action="store_true", help="replace existing output folders")
+    p.add_argument("--models", help="the scene instead of each sequence.json's: shipped names or .npz paths (e.g. "
+                   "a hand from torchhand calibrate)")
+    p.add_argument("--reinit-iou", type=float, default=0.5,
+                   help="re-initialise a frame whose fitted hands overlap their data with a silhouette IoU below this "
+                        "(particle swarm seeded from the frame's blobs and the pose tracked; 0: never)")
     p.add_argument("--write-render", action="store_true",
                    help="also write each frame's rendered model depth (OUT/<sequence>/render/NNNNNN.png, 16-bit mm)")
     _segment_options(p, None)
@@ -271,6 +307,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing init_pose.json")
     _segment_options(p, None)
     p.set_defaults(func=_init)
+
+    p = sub.add_parser("calibrate", help="fit a hand's size (global scale, finger lengths) to a few frames of a "
+                       "sequence and write the resized model (.npz, for --models) and a report", formatter_class=_Formatter)
+    p.add_argument("seq", type=Path, help="sequence folder")
+    p.add_argument("--model", default="hand_right", help="the hand to resize: a shipped name or a .npz path")
+    p.add_argument("--out", type=Path, required=True, help="the resized model, e.g. my_hand.npz (report: my_hand.json)")
+    p.add_argument("--frames", type=int, default=5, help="frames to fit, evenly spread over the sequence")
+    p.add_argument("--force", action="store_true", help="replace an existing --out and its report")
+    _segment_options(p, None)
+    p.set_defaults(func=_calibrate)
 
     p = sub.add_parser("import", help="turn a folder of 16-bit depth PNGs (a user's recording) into a sequence folder",
                        formatter_class=_Formatter)

@@ -7,6 +7,7 @@ returns results (:mod:`torchhand.tracking.tracker`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
@@ -20,18 +21,20 @@ from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to
                                    draw_hull, draw_legend, draw_mask_outline, draw_skeleton, write_video)
 from torchhand.data.layout import (Poses, SequenceError, SequenceInfo, camera_dir, frame_name, read_depth,
                                    read_init_pose, read_poses, read_sequence_info, write_depth, write_poses)
-from torchhand.io.assets import THESIS_MODEL_NAMES
+from torchhand.io.assets import THESIS_MODEL_NAMES, save_assets
 from torchhand.io.output_dir import prepare_output_dir
 from torchhand.io.thesis import write_motion
 from torchhand.model.motion import theta_to_motion
+from torchhand.model.articulated import ArticulatedModel, load_model
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.scoring.metrics import fit_quality
+from torchhand.tracking.calibration import CalibrationConfig, calibrate_hand
 from torchhand.tracking.energies import EnergyTerm
 from torchhand.tracking.initialization import InitConfig, Initializer, InitResult
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
-__all__ = ["track_sequences", "automatic_init", "initialize_sequence", "REINIT_IOU"]
+__all__ = ["track_sequences", "automatic_init", "initialize_sequence", "calibrate_sequence", "REINIT_IOU"]
 
 #: A frame whose fitted hands overlap their data with a silhouette IoU below this is
 #: re-initialised (0.5: a tracked hand scores 0.8-0.95 on renders and 0.7-0.9 on the real
@@ -43,7 +46,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     viz: bool = False, force: bool = False, progress: bool = True,
                     make_terms: Optional[Callable[[], List[EnergyTerm]]] = None,
                     segment: Optional[SegmentConfig] = None, write_render: bool = False,
-                    reinit_iou: float = REINIT_IOU, init_config: InitConfig = InitConfig()) -> List[dict]:
+                    reinit_iou: float = REINIT_IOU, init_config: InitConfig = InitConfig(),
+                    models: Optional[Sequence[str]] = None) -> List[dict]:
     """Track sequence folders and write their results.
 
     Sequences with the same models are solved as one batch, frame by frame; the
@@ -54,6 +58,9 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     overlay PNGs and an MP4 (drawn after the sequence is tracked; where the sequence
     folder has ``gt/``, its skeletons are drawn beside the tracked ones).
     ``make_terms`` builds custom energy terms per batch (default: from ``config.energy``).
+    ``models``: the scene of every sequence instead of its ``sequence.json``'s (shipped
+    names or model files, e.g. a hand resized by ``torchhand calibrate``; the same
+    number of models of the same kinds, so that ``init_pose.json`` still fits).
     ``segment``: the hand segmentation of every frame (:mod:`torchhand.tracking.segmentation`;
     only the hands' pixels reach the tracker); None: what each ``sequence.json`` says
     (``torchhand import`` stores it), else none. A frame without a hand-sized blob keeps
@@ -86,6 +93,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     """
     roots = [Path(r) for r in roots]
     infos = [read_sequence_info(r) for r in roots]
+    if models is not None:
+        infos = [dataclasses.replace(i, models=list(models)) for i in infos]
     names = [i.name for i in infos]
     if len(set(names)) != len(names):
         names = [f"{i.name}_{k}" for k, i in enumerate(infos)]
@@ -209,6 +218,72 @@ def initialize_sequence(root, force: bool = False, segment: Optional[SegmentConf
     cv2.imwrite(str(overlay), img)
     return {"init_pose": str(target), "overlay": str(overlay), "iou": iou, "depth_residual_mm": med,
             "seconds": res.seconds, "cost": res.cost}
+
+
+def calibrate_sequence(root, model: str, out, frames: int = 5, force: bool = False,
+                       segment: Optional[SegmentConfig] = None, config: CalibrationConfig = CalibrationConfig(),
+                       progress: bool = True) -> dict:
+    """``torchhand calibrate``: fit the size of ``model`` (a shipped hand or a model file)
+    to ``frames`` frames of a sequence, evenly spread over it (frames without a
+    segmented hand are skipped), each initialised automatically
+    (:mod:`torchhand.tracking.calibration`). Writes the resized model to ``out`` (an
+    ``.npz`` that ``--models`` accepts) and the report beside it (``out`` with
+    ``.json``: the factors and each frame's fit before and after); neither is
+    overwritten unless ``force``. Returns the report."""
+    root, out = Path(root), Path(out)
+    report_path = out.with_suffix(".json")
+    if out.suffix != ".npz":
+        raise ValueError(f"--out {out}: the model is written as an .npz file")
+    for p in (out, report_path):
+        if p.exists() and not force:
+            raise FileExistsError(f"{p} exists; choose another --out or pass --force")
+    if frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {frames}")
+    info = read_sequence_info(root)
+    scene = Scene([load_model(model)], names=[Path(model).stem])
+    if scene.models[0].kind != "hand":
+        raise ValueError(f"--model {model}: calibration resizes a hand, this model is an object")
+    tracker = Tracker(scene, TrackerConfig())
+    initializer = Initializer(tracker)
+    search = _segment_for_search(_segment_of(info, segment), scene)
+    search = SegmentConfig.from_dict({**search.to_dict(), "hands": 1})
+    cam = info.cameras[0]
+    picks = sorted(set(np.linspace(0, info.frames - 1, min(frames, info.frames)).round().astype(int).tolist()))
+    depths, thetas, used, skipped = [], [], [], {}
+    for f in tqdm(picks, desc="calibrate: initialise", unit="frame", disable=not progress):
+        try:
+            depth, seg = _read_frame(root, info, f, search)
+        except (SequenceError, SegmentationError) as err:
+            skipped[f] = str(err)
+            continue
+        depths.append(depth)
+        thetas.append(initializer(depth, cam, seg).theta)
+        used.append(f)
+    if not used:
+        raise ValueError(f"{root}: no frame of {picks} has a segmented hand: {skipped}")
+    theta = torch.stack(thetas)
+    res = calibrate_hand(tracker, depths, [cam] * len(used), theta, config, name=out.stem)
+    before = [_fit(scene, tracker.renderer, theta[k], cam, depths[k]) for k in range(len(used))]
+    sized = Scene([ArticulatedModel(res.assets)], names=scene.names)
+    after = [_fit(sized, tracker.renderer, res.theta[k], cam, depths[k]) for k in range(len(used))]
+    report = {"model": str(out), "base_model": model, "sequence": str(root), "scale": res.scale,
+              "fingers": res.fingers, "skipped_frames": skipped,
+              "frames": [{"frame": f, "iou_before": b[0], "iou_after": a[0], "depth_residual_mm_before": b[1],
+                          "depth_residual_mm_after": a[1]} for f, b, a in zip(used, before, after)],
+              "mean_iou_before": float(np.mean([b[0] for b in before])),
+              "mean_iou_after": float(np.mean([a[0] for a in after]))}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_assets(res.assets, out, overwrite=force)
+    report_path.write_text(json.dumps(report, indent=2))
+    report["report"] = str(report_path)
+    return report
+
+
+def _fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray) -> tuple:
+    """(silhouette IoU, median depth residual) of a scene at one pose against data."""
+    with torch.no_grad():
+        model = renderer(scene(theta[None]).vertices, cam, normals=False).depth[0].cpu().numpy()
+    return fit_quality(model, data)
 
 
 def _segment_for_search(segment: Optional[SegmentConfig], scene: Scene) -> SegmentConfig:

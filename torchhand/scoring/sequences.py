@@ -20,6 +20,7 @@ A frame is *lost* when any model's error exceeds :data:`LOST_MM`.
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
@@ -29,7 +30,12 @@ import numpy as np
 from torchhand.data.layout import Poses, SequenceError, read_poses
 from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, max_depth, model_pair_counts, pck_curve
 
-__all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize", "model_errors", "LOST_MM"]
+__all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize", "model_errors", "fit_report",
+           "LOST_MM", "GOOD_IOU"]
+
+#: a frame whose fitted models overlap their data with a silhouette IoU below this is
+#: counted as poorly fitted by :func:`fit_report`
+GOOD_IOU = 0.8
 
 #: mm, a frame in which some model is farther off than this is lost
 LOST_MM = 20.0
@@ -261,3 +267,46 @@ def summarize(results: List[Dict]) -> Dict:
     pooled["note"] = "median_px/median_mm pooled over per-frame mean errors of all sequences"
     pooled["sequences"] = results
     return pooled
+
+
+def fit_report(pred_dirs: Sequence) -> Dict:
+    """The fit quality of tracked sequences without ground truth, from each output's
+    ``track_log.json`` (the silhouette IoU of the fitted models and the data, and the
+    median depth residual on their overlap, per frame; :func:`torchhand.scoring.
+    metrics.fit_quality`). Returns ``{"sequences": [...], "frames", "mean_iou",
+    "min_iou", "median_depth_residual_mm", "frames_below_iou", "iou_threshold"}``,
+    per sequence the same plus ``worst_frame``, ``reinitialized_frames`` and
+    ``flagged_frames``."""
+    rows = []
+    for d in pred_dirs:
+        path = Path(d) / "track_log.json"
+        try:
+            log = json.loads(path.read_text())
+            frames = log["frames"]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise EvaluationError(f"{path}: cannot read the track log ({err}); without --gt, eval reads the fit "
+                                  "quality that torchhand track writes there") from None
+        iou = np.array([np.nan if f.get("iou") is None else f["iou"] for f in frames], float)
+        res = np.array([np.nan if f.get("depth_residual_mm") is None else f["depth_residual_mm"] for f in frames],
+                       float)
+        ok = np.isfinite(iou)
+        rows.append({"sequence": log.get("sequence", Path(d).name), "frames": len(frames),
+                     "scored_frames": int(ok.sum()),
+                     "mean_iou": float(np.mean(iou[ok])) if ok.any() else float("nan"),
+                     "min_iou": float(np.min(iou[ok])) if ok.any() else float("nan"),
+                     "worst_frame": int(np.nanargmin(iou)) if ok.any() else None,
+                     "median_depth_residual_mm": float(np.nanmedian(res)) if np.isfinite(res).any() else float("nan"),
+                     "frames_below_iou": int((iou[ok] < GOOD_IOU).sum()),
+                     "reinitialized_frames": int(sum(bool(f.get("reinitialized")) for f in frames)),
+                     "flagged_frames": int(sum(not f.get("valid", True) for f in frames)),
+                     "per_frame": [{"frame": k, "iou": None if not ok[k] else float(iou[k]),
+                                    "depth_residual_mm": None if not np.isfinite(res[k]) else float(res[k])}
+                                   for k in range(len(frames))]})
+    all_iou = np.concatenate([[f["iou"] for f in r["per_frame"] if f["iou"] is not None] for r in rows] or [[]])
+    all_res = np.concatenate([[f["depth_residual_mm"] for f in r["per_frame"] if f["depth_residual_mm"] is not None]
+                              for r in rows] or [[]])
+    return {"sequences": rows, "frames": int(sum(r["frames"] for r in rows)), "iou_threshold": GOOD_IOU,
+            "mean_iou": float(np.mean(all_iou)) if all_iou.size else float("nan"),
+            "min_iou": float(np.min(all_iou)) if all_iou.size else float("nan"),
+            "median_depth_residual_mm": float(np.median(all_res)) if all_res.size else float("nan"),
+            "frames_below_iou": int(sum(r["frames_below_iou"] for r in rows))}

@@ -49,7 +49,8 @@ from torchhand.optim.pso import particle_swarm
 from torchhand.tracking.preprocess import preprocess_depth
 from torchhand.tracking.segmentation import Segmentation
 
-__all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands"]
+__all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth_discrepancy", "crop_camera",
+           "search_box"]
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,7 @@ def _hand_frame(model) -> tuple:
     return centre, axis, normal
 
 
-def _crop_camera(camera: Camera, box: tuple, resolution: int) -> tuple:
+def crop_camera(camera: Camera, box: tuple, resolution: int) -> tuple:
     """A camera seeing the pixel box (r0, r1, c0, c1) at ``resolution`` px on its long side,
     and the full-resolution pixel of each of its pixels."""
     r0, r1, c0, c1 = box
@@ -111,7 +112,16 @@ def _crop_camera(camera: Camera, box: tuple, resolution: int) -> tuple:
     return small, rows, cols
 
 
-def _discrepancy(model_depth: torch.Tensor, data: torch.Tensor, clamp: float) -> torch.Tensor:
+def search_box(mask: np.ndarray) -> tuple:
+    """(r0, r1, c0, c1): the box of a mask's pixels widened by 30 % of its size (+4 px)."""
+    rows, cols = np.nonzero(mask)
+    pad = int(0.3 * max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
+    H, W = mask.shape
+    return (max(rows.min() - pad, 0), min(rows.max() + 1 + pad, H), max(cols.min() - pad, 0),
+            min(cols.max() + 1 + pad, W))
+
+
+def depth_discrepancy(model_depth: torch.Tensor, data: torch.Tensor, clamp: float) -> torch.Tensor:
     """(N, h, w) rendered depth vs (h, w) data (NaN: unknown, left out) -> (N,) FORTH's
     clamped depth discrepancy."""
     m, d = (model_depth > 0) & ~torch.isnan(data)[None], (data > 0)[None]
@@ -203,51 +213,52 @@ class Initializer:
         bases = [torch.cat(c) for c in combos]
         if around is not None:
             bases.append(around.detach().double().cpu())
-        x = torch.zeros(P, D, dtype=torch.float64)
         lo, hi = scene.lower.double().cpu(), scene.upper.double().cpu()
         spread = torch.full((D,), config.finger_spread, dtype=torch.float64)
         for sl in scene.slices.values():
             spread[sl.start : sl.start + 3] = config.translation_spread
             spread[sl.start + 3 : sl.start + 6] = config.rotation_spread
-        for p in range(P):
-            base = bases[p % len(bases)]
-            noise = torch.randn(D, generator=gen, dtype=torch.float64) * spread if p >= len(bases) else 0
-            x[p] = base + noise
+        # one independent swarm per seed hypothesis (a shared best would pull every
+        # particle into the first basin found: a hand flipped about its length axis has
+        # a similar silhouette), unless there are too many for a useful swarm each
+        S = len(bases) if len(bases) * 8 <= P else 1
+        n = P // S
+        x = torch.zeros(S, n, D, dtype=torch.float64)
+        for k in range(S * n):
+            sw, p = (k % S, k // S) if S > 1 else (0, k)
+            base = bases[sw] if S > 1 else bases[k % len(bases)]
+            first = p == 0 if S > 1 else k < len(bases)
+            x[sw, p] = base + (0 if first else torch.randn(D, generator=gen, dtype=torch.float64) * spread)
         x = torch.maximum(torch.minimum(x, hi), lo)
-        # the search at low resolution, in the blob's box
-        rows, cols = np.nonzero(segmentation.mask)
-        pad = int(0.3 * max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
-        box = (max(rows.min() - pad, 0), min(rows.max() + 1 + pad, camera.height),
-               max(cols.min() - pad, 0), min(cols.max() + 1 + pad, camera.width))
-        small, rr, cc = _crop_camera(camera, box, config.resolution)
+        small, rr, cc = crop_camera(camera, search_box(segmentation.mask), config.resolution)
         data_small = torch.as_tensor(data_full[np.ix_(rr, cc)], device=dev)
 
         def cost(pos: torch.Tensor, cam=small, data=data_small, models=self.coarse, renderer=self.renderer
                  ) -> torch.Tensor:
-            th = scene.clamp(pos[0].to(dev, dt))
+            th = scene.clamp(pos.reshape(-1, D).to(dev, dt))
             with torch.no_grad(), skip_checks():
                 verts = models(th, validate=False).vertices
                 rend = renderer(verts, cam, normals=False)
-            return _discrepancy(rend.depth, data, config.clamp_mm)[None].double().cpu()
+            return depth_discrepancy(rend.depth, data, config.clamp_mm).double().cpu().reshape(pos.shape[:2])
 
         vmax = spread * 0.5
-        res = particle_swarm(cost, x[None], lo, hi, config.generations, velocity_scale=vmax, generator=gen)
-        # refine the best distinct particles with the tracker's objective
-        own, oc = res.particles[0], res.particle_cost[0]
-        pick = []
+        res = particle_swarm(cost, x, lo, hi, config.generations, velocity_scale=vmax, generator=gen)
+        # refine the best of every swarm, then the best distinct particles, with the tracker's objective
+        own, oc = res.particles.reshape(-1, D), res.particle_cost.reshape(-1)
+        pick = [int(torch.argmin(res.particle_cost[sw])) + sw * n for sw in range(S)][: max(config.refine, S)]
         for i in torch.argsort(oc).tolist():
+            if len(pick) >= config.refine:
+                break
             if all(torch.linalg.norm(own[i, :3] - own[j, :3]) > 5 or (own[i] - own[j]).abs().max() > 0.3 for j in pick):
                 pick.append(i)
-            if len(pick) == config.refine:
-                break
         starts = scene.clamp(own[pick].to(dev, dt))
-        n = len(pick)
         frame = preprocess_depth(data_full, camera, tracker.config.preprocess, device=dev, dtype=dt)
-        refined = tracker.solve(starts, starts, [frame] * n, [camera] * n, config.refine_iterations, 0.0).theta
+        refined = tracker.solve(starts, starts, [frame] * len(pick), [camera] * len(pick), config.refine_iterations,
+                                0.0).theta
         final = cost(refined[None].double(), camera, torch.as_tensor(data_full, device=dev), scene,
                      tracker.renderer)[0]
         k = int(torch.argmin(final))
-        return InitResult(refined[k].detach(), float(final[k]), float(res.cost[0]), time.perf_counter() - t0)
+        return InitResult(refined[k].detach(), float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
 
 
 def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
