@@ -246,7 +246,7 @@ def calibrate_sequence(root, model: str, out, frames: int = 5, force: bool = Fal
     tracker = Tracker(scene, TrackerConfig())
     initializer = Initializer(tracker)
     search = _segment_for_search(_segment_of(info, segment), scene)
-    search = SegmentConfig.from_dict({**search.to_dict(), "hands": 1})
+    search = dataclasses.replace(search, hands=1)
     cam = info.cameras[0]
     picks = sorted(set(np.linspace(0, info.frames - 1, min(frames, info.frames)).round().astype(int).tolist()))
     depths, thetas, used, skipped = [], [], [], {}
@@ -376,10 +376,7 @@ class _Refit:
         self.reinitialized: List[List[bool]] = []
 
     def fit(self, theta: torch.Tensor, i: int, data: np.ndarray) -> tuple:
-        with torch.no_grad():
-            verts = self.scene(theta[None]).vertices
-            model = self.tracker.renderer(verts, self.cams[i], normals=False).depth[0].cpu().numpy()
-        return fit_quality(model, data)
+        return _fit(self.scene, self.tracker.renderer, theta, self.cams[i], data)
 
     def __call__(self, f: int, res: FrameResult) -> FrameResult:
         theta, notes = res.theta.clone(), list(res.notes)
