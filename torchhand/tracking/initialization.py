@@ -5,8 +5,11 @@ Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
 
 1. seeds: the model's palm centre on the blob's palm centre (12 mm behind the seen
    surface), the hand's length axis on the blob's first principal axis (pointing away
-   from the forearm where one was seen, both signs otherwise), its palm normal on the
-   blob's third axis (both signs), fingers at the rest pose;
+   from the forearm where one was seen; else towards the fingertips that the shipped
+   detector finds on the blob, when at least two lie 20 mm or more along the axis from
+   the blob's centroid and at least three times as many on that side as on the other
+   (the thumb may lie aside); both signs otherwise), its palm normal on the blob's third
+   axis (both signs), fingers at the rest pose;
 2. particle swarm optimisation (:func:`~torchhand.optim.pso.particle_swarm`, 64
    particles x 40 generations by default, as FORTH's tracker and HOPE64) around the
    seeds over FORTH's depth-discrepancy objective: the rendered depth of each particle
@@ -53,6 +56,10 @@ __all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth
            "search_box"]
 
 
+#: Fingertip detections scoring below this are not used (as the salient-point term).
+TIP_SCORE = 0.15
+
+
 @dataclass(frozen=True)
 class InitConfig:
     particles: int = 64
@@ -65,6 +72,7 @@ class InitConfig:
     refine: int = 4
     refine_iterations: int = 15
     proxy_faces: int = 2000
+    fingertips: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -151,6 +159,27 @@ class Initializer:
         cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in self.coarse.models)
         self.renderer = Renderer(self.coarse.faces, self.coarse.face_model_id, self.coarse.face_bone_id,
                                  backend=tracker.config.render_backend, cull_back_faces=cull)
+        self._detector = None
+
+    def fingertips(self, data: np.ndarray, blob: np.ndarray, camera: Camera) -> np.ndarray:
+        """(n, 3) camera-frame points of the fingertips the shipped detector finds on one
+        blob of a segmented frame (score >= ``TIP_SCORE``; each at the median depth of its
+        5x5 pixels in the blob)."""
+        if self._detector is None:
+            from torchhand.salient.detector import SalientDetector
+
+            self._detector = SalientDetector.load_onnx(threads=1)
+        det = self._detector.detect(np.nan_to_num(data, nan=0.0).astype(np.float32))
+        H, W = blob.shape
+        out = []
+        for u, v in det.uv.numpy()[det.score.numpy() >= TIP_SCORE].round().astype(int):
+            v0, v1, u0, u1 = max(v - 2, 0), min(v + 3, H), max(u - 2, 0), min(u + 3, W)
+            z = data[v0:v1, u0:u1][blob[v0:v1, u0:u1]]
+            z = z[np.isfinite(z) & (z > 0)]
+            if len(z):
+                zm = float(np.median(z))
+                out.append(((u - camera.cx) * zm / camera.fx, (v - camera.cy) * zm / camera.fy, zm))
+        return np.asarray(out, np.float64).reshape(-1, 3)
 
     def __call__(self, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
                  around: Optional[torch.Tensor] = None) -> InitResult:
@@ -184,7 +213,14 @@ class Initializer:
             _, _, vt = np.linalg.svd(c, full_matrices=False)
             a1, a3 = vt[0], vt[2]
             arm = segmentation.forearm[k]
-            signs_axis = [(-1.0 if a1 @ arm > 0 else 1.0)] if np.any(arm) else [1.0, -1.0]
+            signs_axis = [1.0, -1.0]
+            if np.any(arm):
+                signs_axis = [-1.0 if a1 @ arm > 0 else 1.0]
+            elif config.fingertips:
+                along = (self.fingertips(data_full, segmentation.blobs[k], camera) - pts.mean(0)) @ a1
+                pos, neg = int((along >= 20.0).sum()), int((along <= -20.0).sum())
+                if max(pos, neg) >= 2 and max(pos, neg) >= 3 * min(pos, neg):  # the thumb may lie aside
+                    signs_axis = [1.0 if pos > neg else -1.0]
             centre, axis, normal = (x.numpy() for x in _hand_frame(model))
             T_wc = camera.T_wc.double().cpu().numpy()
             palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
