@@ -19,6 +19,7 @@ import torch
 
 from _common import demo_scene, machine, set_threads, write_json
 from torchhand.data.layout import Poses, write_poses
+from torchhand.app.scaleout import evaluate_pairs
 from torchhand.scoring.sequences import evaluate_many
 from torchhand.model.scene import Scene
 
@@ -52,13 +53,13 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         pairs = [make_pair(Path(tmp), k, scene, theta, cam, args.frames) for k in range(args.sequences)]
         t0 = time.perf_counter()
-        evaluate_many(pairs, workers=args.workers, with_penetration=False, progress=False)
+        evaluate_pairs(pairs, workers=args.workers, with_penetration=False, progress=False)
         result["keypoints_seconds"] = time.perf_counter() - t0
         # Penetration (fcl triangle pairs + open3d depth per frame) is far slower: timed
         # on --penetration-frames frames of one sequence and reported per frame.
         pen = make_pair(Path(tmp) / "pen", 99, scene, theta, cam, args.penetration_frames)
         t0 = time.perf_counter()
-        evaluate_many([pen], workers=1, with_penetration=True, progress=False)
+        evaluate_many([pen], with_penetration=True, progress=False)
         result["penetration_ms_per_frame"] = 1000 * (time.perf_counter() - t0) / args.penetration_frames
     write_json(args.json, result)
 

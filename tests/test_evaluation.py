@@ -4,6 +4,7 @@ errors for incomparable folders, parallel evaluation and interpenetration."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import torch
 
 from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import Poses, read_poses, write_poses
+from torchhand.app.scaleout import evaluate_pairs
 from torchhand.scoring.sequences import EvaluationError, evaluate_many, evaluate_sequence
 from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
 from torchhand.model.scene import Scene
@@ -183,8 +185,13 @@ def test_evaluate_many_parallel_equals_serial(gt1, tmp_path):
         write_poses(tmp_path / f"s{k}" / "gt", gt1)
         write_poses(tmp_path / f"p{k}", _shifted(gt1, shift))
         pairs.append((tmp_path / f"p{k}", tmp_path / f"s{k}"))
-    serial = evaluate_many(pairs, workers=1, progress=False)
-    parallel = evaluate_many(pairs, workers=2, progress=False)
+    serial = evaluate_many(pairs, progress=False)
+    parallel = evaluate_pairs(pairs, workers=2, progress=False)
+    assert parallel.pop("failed") == []
+    for s in parallel["sequences"]:  # the pairs go to the workers as absolute paths
+        s["prediction"] = str(Path(s["prediction"]).relative_to(tmp_path.resolve()))
+    for s in serial["sequences"]:
+        s["prediction"] = str(Path(s["prediction"]).relative_to(tmp_path))
     assert serial == parallel
     assert serial["frames"] == 9 and len(serial["sequences"]) == 3
     assert [s["sequence"] for s in serial["sequences"]] == ["s0", "s1", "s2"]

@@ -63,9 +63,12 @@ def _synth(args) -> int:
 
 
 def _eval(args) -> int:
-    from torchhand.scoring.sequences import evaluate_many, fit_report
+    from torchhand.app.scaleout import evaluate_pairs, read_list
+    from torchhand.scoring.sequences import fit_report
 
-    if args.gt is None:  # no ground truth: how well the fitted models explain the data
+    if args.gt is None and not args.list:  # no ground truth: how well the fitted models explain the data
+        if not args.pred:
+            raise ValueError("no predictions given (PRED... or --list FILE)")
         result = fit_report(args.pred)
         for r in result["sequences"]:
             print(f"{r['sequence']}: {r['frames']} frames, silhouette IoU mean {r['mean_iou']:.2f} (min "
@@ -81,10 +84,18 @@ def _eval(args) -> int:
             args.json.write_text(json.dumps(result, indent=2))
             print(f"wrote {args.json}")
         return 0
-    if len(args.pred) != len(args.gt):
-        raise ValueError(f"give one --gt folder per prediction: {len(args.pred)} predictions, {len(args.gt)} --gt")
-    result = evaluate_many(list(zip(args.pred, args.gt)), workers=args.workers,
-                           with_penetration=not args.no_penetration)
+    gts = args.gt or []
+    if len(args.pred) != len(gts):
+        raise ValueError(f"give one --gt folder per prediction: {len(args.pred)} predictions, {len(gts)} --gt")
+    pairs = list(zip(args.pred, gts)) + (read_list(args.list, 2) if args.list else [])
+    if not pairs:
+        raise ValueError("no predictions given (PRED... --gt GT... or --list FILE)")
+    missing = [str(p) for pair in pairs for p in pair if not Path(p).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"{len(missing)} folders not found, nothing was scored: {', '.join(missing)}")
+    result = evaluate_pairs(pairs, workers=args.workers, ray=args.ray, with_penetration=not args.no_penetration)
+    for f in result["failed"]:
+        print(f"torchhand eval: error: {f['prediction']}: {f['error']}", file=sys.stderr)
     flagged = sum(r["flagged_frames"] for r in result.get("sequences", [result]))
     print(f"{result['frames']} frames ({flagged} flagged by the tracker): "
           f"2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
@@ -111,11 +122,11 @@ def _eval(args) -> int:
         curves = {r["sequence"]: (r["pck"]["thresholds_mm"], r["pck"]["fraction"]) for r in seqs}
         plot_curves(curves, args.plot, "3D error threshold (mm)", "fraction of keypoints")
         print(f"wrote {args.plot}")
-    return 0
+    return 1 if result["failed"] else 0
 
 
 def _track(args) -> int:
-    from torchhand.app.runner import track_sequences
+    from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, read_list, track_many
     from torchhand.tracking.energies import parse_energy
     from torchhand.tracking.tracker import TrackerConfig
 
@@ -125,17 +136,26 @@ def _track(args) -> int:
                         prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend,
                         labels=args.labels)
     segment = _segment_config(args, "none") if args.segment else None
-    summaries = track_sequences(args.dirs, args.out, cfg, device=args.device, viz=args.viz, force=args.force,
-                                segment=segment, write_render=args.write_render, reinit_iou=args.reinit_iou,
-                                models=args.models.split(",") if args.models else None)
+    dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
+    job = TrackJob(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
+                   reinit_iou=args.reinit_iou, models=tuple(args.models.split(",")) if args.models else None,
+                   threads=args.threads)
+    run = track_many(dirs, args.out, job, workers=args.workers, ray=args.ray, batch=args.batch, resume=args.resume,
+                     force=args.force, retries=args.retries)
+    summaries = run["sequences"]
     failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:
-        if s["status"] == "ok":
+        if s.get("resumed"):
+            print(f"{s['sequence']}: complete, kept (--resume) -> {s['out']}")
+        elif s["status"] == "ok":
             print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
-                  f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: silhouette IoU {s['mean_iou']:.2f}, median depth residual "
-                  f"{s['median_depth_residual_mm']:.1f} mm -> {s['out']}")
+                  f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: silhouette IoU "
+                  f"{s['mean_iou']:.2f}, median depth residual {s['median_depth_residual_mm']:.1f} mm -> {s['out']}")
         else:
-            print(f"torchhand track: error: {s['sequence']}: {s['error']}; nothing written", file=sys.stderr)
+            print(f"torchhand track: error: {s['sequence']}: {s['error'].rstrip()}; nothing written", file=sys.stderr)
+    if len(summaries) > 1:
+        print(f"{len(summaries) - len(failed)} of {len(summaries)} sequences tracked ({run['resumed']} kept), "
+              f"{run['frames']} frames in {run['seconds']:.1f} s; summary: {Path(args.out) / SUMMARY_NAME}")
     if failed:
         print(f"torchhand track: {len(failed)} of {len(summaries)} sequences failed", file=sys.stderr)
         return 1
@@ -209,6 +229,25 @@ def _segment_options(p: argparse.ArgumentParser, default: str | None) -> None:
     p.add_argument("--hands", type=int, default=1, choices=[1, 2], help="hands in the scene (auto segmentation)")
 
 
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {n}")
+    return n
+
+
+def _scale_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=_positive_int, default=1,
+                   help="local processes, one task at a time each (with --ray: the CPUs of a local Ray instance)")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="run the tasks on Ray: without ADDRESS a local instance, 'auto' the running cluster, or "
+                        "HOST:PORT of its head (pip install 'torchhand[ray]')")
+    p.add_argument("--retries", type=int, default=2, help="times a task whose worker died is run again")
+
+
 def _backend_option(p: argparse.ArgumentParser) -> None:
     from torchhand.geometry.raycast import BACKENDS
 
@@ -252,19 +291,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)",
                        formatter_class=_Formatter)
-    p.add_argument("pred", nargs="+", type=Path, help="prediction folder(s) in the gt/ layout")
-    p.add_argument("--gt", nargs="+", type=Path,
+    p.add_argument("pred", nargs="*", type=Path, help="prediction folder(s) in the gt/ layout")
+    p.add_argument("--gt", nargs="+", type=Path, default=None,
                    help="ground truth folder(s), one per prediction; without --gt, the fit quality each prediction's "
                         "track_log.json records (silhouette IoU, depth residual), as for a real recording")
     p.add_argument("--json", type=Path, help="write all scores to this JSON file")
     p.add_argument("--plot", type=Path, help="write the PCK curves (0-50 mm) to this PNG")
-    p.add_argument("--workers", type=int, default=1, help="parallel processes over sequences")
+    p.add_argument("--list", type=Path, help="a file of 'PRED GT' folder pairs, one per line (relative to the file)")
+    _scale_options(p)
     p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
     p.set_defaults(func=_eval)
 
     p = sub.add_parser("track", help="track sequences from their first-frame pose (the tracking never reads gt/)",
                        formatter_class=_Formatter)
-    p.add_argument("dirs", nargs="+", type=Path, help="sequence folders; same-scene sequences form one batch")
+    p.add_argument("dirs", nargs="*", type=Path, help="sequence folders")
+    p.add_argument("--list", type=Path, help="a file of sequence folders, one per line (relative to the file)")
+    _scale_options(p)
+    p.add_argument("--batch", type=int, default=None,
+                   help="same-scene sequences tracked as one batch per task (default: 1 on CPU, 16 on CUDA); the "
+                        "results depend on it, never on --workers")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the sequences of --out that are complete and were tracked with these settings; track "
+                        "the rest")
     p.add_argument("--out", type=Path, required=True, help="output folder; each sequence gets OUT/<name>/")
     p.add_argument("--energy", default="LO+F",
                    help="energy terms: LO (model-to-data + data-to-model) plus any of C (collisions), S (salient "
@@ -347,9 +395,14 @@ def main(argv=None) -> int:
         if str(device).startswith("cuda") and not torch.cuda.is_available():
             raise ValueError(f"--device {device}: no CUDA device is available (use --device cpu)")
         return args.func(args)
-    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError, ImportError) as err:
+    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError, ImportError,
+            ConnectionError) as err:
         print(f"torchhand {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"torchhand {args.command}: interrupted; every sequence already written is complete (rerun with "
+              "--resume to finish the others)", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

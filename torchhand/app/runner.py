@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
@@ -22,7 +23,7 @@ from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to
 from torchhand.data.layout import (Poses, SequenceError, SequenceInfo, camera_dir, frame_name, read_depth,
                                    read_init_pose, read_poses, read_sequence_info, write_depth, write_poses)
 from torchhand.io.assets import THESIS_MODEL_NAMES, save_assets
-from torchhand.io.output_dir import prepare_output_dir
+from torchhand.io.output_dir import commit_dir, partial_dir
 from torchhand.io.thesis import write_motion
 from torchhand.model.motion import theta_to_motion
 from torchhand.model.articulated import ArticulatedModel, load_model
@@ -34,7 +35,8 @@ from torchhand.tracking.initialization import InitConfig, Initializer, InitResul
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
-__all__ = ["track_sequences", "automatic_init", "initialize_sequence", "calibrate_sequence", "REINIT_IOU"]
+__all__ = ["track_sequences", "track_settings", "output_names", "automatic_init", "initialize_sequence",
+           "calibrate_sequence", "REINIT_IOU"]
 
 #: A frame whose fitted hands overlap their data with a silhouette IoU below this is
 #: re-initialised (0.5: a tracked hand scores 0.8-0.95 on renders and 0.7-0.9 on the real
@@ -47,7 +49,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     make_terms: Optional[Callable[[], List[EnergyTerm]]] = None,
                     segment: Optional[SegmentConfig] = None, write_render: bool = False,
                     reinit_iou: float = REINIT_IOU, init_config: InitConfig = InitConfig(),
-                    models: Optional[Sequence[str]] = None) -> List[dict]:
+                    models: Optional[Sequence[str]] = None, names: Optional[Sequence[str]] = None,
+                    on_frames: Optional[Callable[[int], None]] = None) -> List[dict]:
     """Track sequence folders and write their results.
 
     Sequences with the same models are solved as one batch, frame by frame; the
@@ -85,6 +88,14 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     that look like metres), or of which no frame could be tracked, fails: nothing is
     written for it and its summary says why; the others are tracked.
 
+    Each sequence's outputs are written to a hidden ``<out>/.<name>.partial-*`` folder
+    and renamed to ``<out>/<name>`` when complete, so a crash never leaves a folder
+    that looks finished; ``track_log.json`` records the settings of the run
+    (:func:`track_settings`), against which ``--resume`` checks a finished folder.
+    ``names``: the output folder names (default: each ``sequence.json``'s name, made
+    unique); ``on_frames(n)`` is called as frames are tracked (progress of a caller
+    that runs many calls, :mod:`torchhand.app.scaleout`).
+
     Returns:
         one dict per sequence, in the order of ``roots``: ``sequence``, ``status``
         ("ok" or "failed"), ``error`` (failed), ``frames``, ``out``,
@@ -95,9 +106,10 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     infos = [read_sequence_info(r) for r in roots]
     if models is not None:
         infos = [dataclasses.replace(i, models=list(models)) for i in infos]
-    names = [i.name for i in infos]
-    if len(set(names)) != len(names):
-        names = [f"{i.name}_{k}" for k, i in enumerate(infos)]
+    names = list(names) if names is not None else output_names(infos)
+    if len(names) != len(roots) or len(set(names)) != len(names):
+        raise ValueError(f"names: one distinct output name per sequence, got {names} for {len(roots)} sequences")
+    settings = track_settings(config, segment, reinit_iou, init_config, models, device)
     out = Path(out)
     targets = [out / n for n in names]
     for t in targets:
@@ -145,12 +157,34 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     tqdm.write(f"{names[members[i]]} frame {f}: {note}")
             results.append(res)
             bar.update(len(members))
+            if on_frames is not None:
+                on_frames(sum(f < infos[k].frames for k in members))
         bar.close()
         for i, k in enumerate(members):
             summaries[k] = _write_sequence(targets[k], roots[k], infos[k], names[k], scene, cams[i], results, i,
-                                           len(members), config, viz, force, frames, refit, tracker.renderer,
+                                           len(members), settings, viz, force, frames, refit, tracker.renderer,
                                            write_render)
     return [summaries[k] for k in range(len(roots))]
+
+
+def output_names(infos: Sequence[SequenceInfo]) -> List[str]:
+    """The output folder name of each sequence: its ``sequence.json`` name, with the
+    sequence's index appended to every name when two are equal."""
+    names = [i.name for i in infos]
+    if len(set(names)) != len(names):
+        names = [f"{i.name}_{k}" for k, i in enumerate(infos)]
+    return names
+
+
+def track_settings(config: TrackerConfig, segment: Optional[SegmentConfig], reinit_iou: float,
+                   init_config: InitConfig, models: Optional[Sequence[str]], device: str = "cpu") -> dict:
+    """Everything of a run that changes its tracked poses, as JSON (``track_log.json``
+    ``settings``; ``--resume`` refuses a folder tracked with other settings)."""
+    return json.loads(json.dumps({
+        "command": "track", "tracker": dataclasses.asdict(config),
+        "segment": None if segment is None else dataclasses.asdict(segment), "reinit_iou": reinit_iou,
+        "init": dataclasses.asdict(init_config), "models": None if models is None else list(models),
+        "device": str(device)}))
 
 
 def _failed(name: str, error: str) -> dict:
@@ -409,10 +443,11 @@ class _Refit:
         return res._replace(theta=theta, notes=notes)
 
 
-def _write_sequence(target: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
-                    batch: int, config: TrackerConfig, viz: bool, force: bool, frames: _Frames, refit: _Refit,
+def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
+                    batch: int, settings: dict, viz: bool, force: bool, frames: _Frames, refit: _Refit,
                     renderer=None, write_render: bool = False) -> dict:
-    """Write one sequence's outputs from the batch's frame results (problem ``i``)."""
+    """Write one sequence's outputs from the batch's frame results (problem ``i``), into
+    a partial folder renamed to ``final`` when complete."""
     N = info.frames
     valid = np.array([r.valid[i].item() for r in results[:N]], bool)
     if not valid.any():
@@ -424,7 +459,22 @@ def _write_sequence(target: Path, root: Path, info: SequenceInfo, name: str, sce
         posed = scene(th)
         kp3 = cam.to_camera(posed.keypoints).cpu().numpy()[:, None]
         kp2 = cam.project(posed.keypoints).cpu().numpy()[:, None]
-    target = prepare_output_dir(target, force)
+    target = partial_dir(final)
+    try:
+        summary = _write_outputs(target, root, info, name, scene, cam, results, i, batch, settings, viz, frames,
+                                 refit, renderer, write_render, TH, th, posed, kp3, kp2, valid)
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        raise
+    commit_dir(target, final, force)
+    summary["out"] = str(final)
+    return summary
+
+
+def _write_outputs(target: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
+                   batch: int, settings: dict, viz: bool, frames: _Frames, refit: _Refit, renderer,
+                   write_render: bool, TH, th, posed, kp3, kp2, valid) -> dict:
+    N = info.frames
     write_poses(target, Poses(TH.astype(np.float64), kp3, kp2, list(scene.names), scene.dof_names,
                               scene.keypoint_names, valid))
     (target / "motion").mkdir()
@@ -445,7 +495,8 @@ def _write_sequence(target: Path, root: Path, info: SequenceInfo, name: str, sce
             "depth_residual_mm": _finite(quality[f][1]), "reinitialized": reinit[f], "notes": r.notes[i]}
            for f, r in enumerate(results[:N])]
     (target / "track_log.json").write_text(json.dumps({"sequence": name, "source": str(root),
-                                                       "energy": config.energy, "frames": log}))
+                                                       "energy": settings["tracker"]["energy"],
+                                                       "settings": settings, "frames": log}))
     if viz:
         _write_overlays(target, root, info, scene, posed, cam, frames, i)
     ious = [q[0] for q in quality if np.isfinite(q[0])]

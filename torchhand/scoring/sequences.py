@@ -21,7 +21,6 @@ A frame is *lost* when any model's error exceeds :data:`LOST_MM`.
 from __future__ import annotations
 
 import json
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
@@ -212,27 +211,17 @@ def _penetration(poses: Poses) -> Dict:
     return {"pairs_per_frame": float(np.mean(pairs)), "max_pairs": int(max(pairs)), "max_depth_mm": depth}
 
 
-def _evaluate_star(args):
-    return evaluate_sequence(*args)
-
-
-def evaluate_many(pairs: Sequence[Tuple[Path, Path]], workers: int = 1, with_penetration: bool = True,
-                  progress: bool = True) -> Dict:
-    """Score several (prediction, ground truth) pairs, in parallel processes.
+def evaluate_many(pairs: Sequence[Tuple[Path, Path]], with_penetration: bool = True, progress: bool = True) -> Dict:
+    """Score several (prediction, ground truth) pairs in this process (over processes
+    or a Ray cluster: :func:`torchhand.app.scaleout.evaluate_pairs`).
 
     Returns ``{"sequences": [per-sequence dicts], ...overall scores}`` where the
     overall scores pool all keypoints of all frames of all sequences.
     """
     from tqdm import tqdm
 
-    jobs = [(Path(p), Path(g), with_penetration) for p, g in pairs]
-    if workers > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            results = list(tqdm(ex.map(_evaluate_star, jobs), total=len(jobs), desc="eval", unit="seq",
-                                disable=not progress))
-    else:
-        results = [evaluate_sequence(*j) for j in tqdm(jobs, desc="eval", unit="seq", disable=not progress)]
-    return summarize(results)
+    return summarize([evaluate_sequence(Path(p), Path(g), with_penetration)
+                      for p, g in tqdm(pairs, desc="eval", unit="seq", disable=not progress)])
 
 
 def summarize(results: List[Dict]) -> Dict:

@@ -1,0 +1,131 @@
+"""Scale-out benchmark: 8 sequences tracked with 1 and 2 workers, local processes and
+Ray (docs/benchmarks.md).
+
+    python eval/bench_scale.py --json out/bench_scale.json [--sequences 8 --frames 20]
+
+The sequences are windows of the shipped demo motion (the right hand, kinect noise),
+one sequence per task (the CPU default). Timed side by side in one run:
+
+- ``sequential``: ``torchhand track`` with one worker (this process);
+- ``local_2``: two spawned worker processes (their start and imports included);
+- ``ray_1`` / ``ray_2``: a local Ray instance with 1 / 2 CPUs, started before the clock
+  (as a running cluster is), the workers' start and imports included.
+
+Per task, the events the workers send (start, done, in this process's clock) give the
+time the task itself ran. ``ray_overhead_s_per_task`` is the wall time of the 1-CPU Ray
+run not spent inside a task, per task, once its worker runs (dispatch, results,
+scheduling); ``ray_worker_start_s`` the one-off start of a worker (process and
+imports); ``ray_task_slowdown`` how much longer a task takes under Ray than in the
+sequential run (Ray's own processes share the cores); ``ray_overhead_of_100_frame_sequence``
+both as a fraction of a 100-frame sequence's time. ``*_after_start`` speedups count the
+frames/s once the workers run. Every run's θ is checked equal to the sequential run's
+to the last bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine, set_threads, write_json  # noqa: E402
+
+from torchhand.app.scaleout import TrackJob, track_many  # noqa: E402
+from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence  # noqa: E402
+from torchhand.model.scene import Scene  # noqa: E402
+
+
+def make_sequences(root: Path, n: int, frames: int) -> list:
+    demo = demo_motion()
+    scene = Scene.from_names(["hand_right"], dtype=demo.theta.dtype)
+    right = demo.scene.slices["hand_right"]
+    out = []
+    for k in range(n):
+        start = (k * 7) % max(len(demo.theta) - frames, 1)
+        th = demo.theta[start : start + frames, right]
+        fr = SyntheticFrames(scene, th, demo.cameras, f"seq{k:02d}", {"format": "demo window", "start": start})
+        out.append(write_synthetic_sequence(fr, root / f"seq{k:02d}", noise="kinect", seed=k, rgb=False))
+    return out
+
+
+def timed(seqs, out: Path, **kw) -> dict:
+    events = []
+    t0 = time.perf_counter()
+    run = track_many(seqs, out, TrackJob(), progress=False,
+                     on_event=lambda e: events.append((time.perf_counter() - t0, *e)), **kw)
+    wall = time.perf_counter() - t0
+    assert run["failed"] == 0, run
+    starts = {i: t for t, i, kind, _ in events if kind == "start"}
+    ends = {i: t for t, i, kind, _ in events if kind == "done"}
+    pid = {i: v for _, i, kind, v in events if kind == "start"}
+    task_s = [ends[i] - starts[i] for i in ends]
+    first = min(starts.values())
+    used = len(set(pid.values()))
+    return {"wall_s": wall, "frames_per_s": run["frames"] / wall, "tasks": run["tasks"],
+            "task_s_mean": statistics.mean(task_s), "first_start_s": first, "workers_used": used,
+            # after the workers started: the wall time not spent inside a task, per task and worker
+            "dispatch_s_per_task": (wall - first - sum(task_s) / used) / (len(task_s) / used)}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--sequences", type=int, default=8)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--no-ray", action="store_true")
+    args = ap.parse_args(argv)
+    set_threads(1)
+    result = {"sequences": args.sequences, "frames_per_sequence": args.frames, **machine()}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        seqs = make_sequences(tmp / "data", args.sequences, args.frames)
+        runs = {"sequential": timed(seqs, tmp / "seq"), "local_2": timed(seqs, tmp / "local2", workers=2)}
+        if not args.no_ray:
+            import ray
+
+            from torchhand.app.scaleout import connect_ray
+
+            for n in (1, 2):
+                t0 = time.perf_counter()
+                connect_ray("local", n)
+                result[f"ray_start_s_{n}"] = time.perf_counter() - t0
+                runs[f"ray_{n}"] = timed(seqs, tmp / f"ray{n}", ray="local")
+                ray.shutdown()
+        folders = {"sequential": "seq", "local_2": "local2", "ray_1": "ray1", "ray_2": "ray2"}
+        for name in runs:
+            for s in seqs:
+                same = np.array_equal(np.load(tmp / folders[name] / s.name / "theta.npy"),
+                                      np.load(tmp / "seq" / s.name / "theta.npy"))
+                assert same, f"{name}: {s.name} differs from the sequential run"
+    result["runs"] = runs
+    seq = runs["sequential"]
+    result["seconds_per_frame"] = seq["wall_s"] / (args.sequences * args.frames)
+    def steady(r):  # frames/s once the workers run
+        return (args.sequences * args.frames) / (r["wall_s"] - r["first_start_s"])
+
+    result["speedup_2_workers_local"] = seq["wall_s"] / runs["local_2"]["wall_s"]
+    result["speedup_2_workers_local_after_start"] = steady(runs["local_2"]) / steady(seq)
+    if "ray_2" in runs:
+        r1, r2 = runs["ray_1"], runs["ray_2"]
+        result["speedup_2_workers_ray"] = r1["wall_s"] / r2["wall_s"]
+        result["speedup_2_workers_ray_after_start"] = steady(r2) / steady(r1)
+        result["speedup_ray_2_vs_sequential"] = seq["wall_s"] / r2["wall_s"]
+        result["ray_worker_start_s"] = r1["first_start_s"]
+        result["ray_overhead_s_per_task"] = r1["dispatch_s_per_task"]
+        result["ray_task_slowdown"] = r1["task_s_mean"] / seq["task_s_mean"] - 1  # Ray's own processes' CPU
+        hundred = 100 * result["seconds_per_frame"]
+        result["ray_overhead_of_100_frame_sequence"] = (r1["dispatch_s_per_task"] + result["ray_task_slowdown"]
+                                                        * hundred) / hundred
+    write_json(args.json, result)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,189 @@
+"""Tracking many sequences as tasks: local processes and Ray give the sequential run's
+θ to the last bit, a killed worker is retried, --resume, Ctrl-C and failing sequences
+leave every finished sequence intact, and bad input is named."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchhand.app.cli import main
+from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, connect_ray, read_list, track_many
+from torchhand.data.layout import camera_dir, frame_name
+from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
+from torchhand.model.scene import Scene
+from torchhand.tracking.tracker import TrackerConfig
+
+FRAMES = 3
+JOB = TrackJob(TrackerConfig(max_iterations=8, first_frame_iterations=8))
+
+
+@pytest.fixture(scope="module")
+def sequences(tmp_path_factory):
+    """Four 3-frame one-hand sequences (windows of the demo motion), kinect noise."""
+    root = tmp_path_factory.mktemp("seqs")
+    demo = demo_motion()
+    scene = Scene.from_names(["hand_right"], dtype=demo.theta.dtype)
+    right = demo.scene.slices["hand_right"]
+    out = []
+    for k in range(4):
+        th = demo.theta[10 * k : 10 * k + FRAMES, right]
+        fr = SyntheticFrames(scene, th, demo.cameras, f"s{k}", {"format": "test"})
+        out.append(write_synthetic_sequence(fr, root / f"s{k}", noise="kinect", seed=k, rgb=False))
+    return out
+
+
+@pytest.fixture(scope="module")
+def sequential(sequences, tmp_path_factory):
+    out = tmp_path_factory.mktemp("sequential")
+    run = track_many(sequences, out, JOB, progress=False)
+    assert run["failed"] == 0 and run["tasks"] == 4
+    return out
+
+
+def _theta(out: Path, names=("s0", "s1", "s2", "s3")) -> dict:
+    return {n: np.load(out / n / "theta.npy") for n in names}
+
+
+def _assert_equal(a: Path, b: Path, names=("s0", "s1", "s2", "s3")) -> None:
+    ta, tb = _theta(a, names), _theta(b, names)
+    for n in names:
+        assert np.array_equal(ta[n], tb[n]), n  # to the last bit
+        assert (a / n / "track_log.json").is_file() and (a / n / "motion").is_dir()
+    assert not [p for p in a.iterdir() if ".partial-" in p.name]
+
+
+def test_processes_equal_the_sequential_run(sequences, sequential, tmp_path):
+    events = []
+    run = track_many(sequences, tmp_path / "out", JOB, workers=2, progress=False, on_event=events.append)
+    _assert_equal(tmp_path / "out", sequential)
+    pids = {e[2] for e in events if e[1] == "start"}
+    assert len(pids) == 2 and os.getpid() not in pids  # two worker processes did the work
+    assert sum(e[2] for e in events if e[1] == "frames") == 4 * FRAMES  # the progress of every frame
+    summary = json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())
+    assert [s["status"] for s in summary["sequences"]] == ["ok"] * 4 and summary["frames"] == 4 * FRAMES
+    assert run["workers"] == 2
+
+
+def _kill_once(state: dict):
+    """An event handler that kills the worker of task 1 at its first tracked frame."""
+
+    def handle(event):
+        i, kind, value = event
+        if kind == "start":
+            state.setdefault("pids", {})[i] = value
+        if kind == "frames" and i == 1 and not state.get("killed"):
+            state["killed"] = state["pids"][1]
+            os.kill(state["pids"][1], signal.SIGKILL)
+
+    return handle
+
+
+def test_a_killed_worker_is_retried_and_the_outputs_equal(sequences, sequential, tmp_path):
+    state = {}
+    run = track_many(sequences, tmp_path / "out", JOB, workers=2, progress=False, on_event=_kill_once(state))
+    assert state.get("killed")
+    assert run["failed"] == 0
+    _assert_equal(tmp_path / "out", sequential)
+
+
+def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
+    out = tmp_path / "out"
+
+    def interrupt(event):  # Ctrl-C as the third task starts
+        if event[1] == "start" and event[0] == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_many(sequences, out, JOB, progress=False, on_event=interrupt)
+    assert sorted(p.name for p in out.iterdir()) == ["s0", "s1"]  # the finished ones, no partial folder
+    _assert_equal(out, sequential, ("s0", "s1"))
+    kept = (out / "s0" / "theta.npy").stat().st_mtime_ns
+    (out / ".s2.partial-deadbeef").mkdir()  # what a killed writer leaves
+    with pytest.raises(FileExistsError, match="--resume"):
+        track_many(sequences, out, JOB, progress=False)
+    run = track_many(sequences, out, JOB, resume=True, progress=False)
+    assert run["resumed"] == 2 and run["tasks"] == 2 and run["failed"] == 0
+    assert (out / "s0" / "theta.npy").stat().st_mtime_ns == kept
+    _assert_equal(out, sequential)
+    other = TrackJob(TrackerConfig(energy="LO", max_iterations=8, first_frame_iterations=8))
+    with pytest.raises(ValueError, match="tracker.energy: 'LO\\+F' there, 'LO' now"):
+        track_many(sequences, out, other, resume=True, progress=False)
+
+
+def test_resume_refuses_a_folder_of_another_command(sequences, tmp_path):
+    assert main(["demo", "--out", str(tmp_path / "s0"), "--frames", "2", "--track-frames", "0"]) == 0
+    with pytest.raises(ValueError, match="not written by torchhand track"):
+        track_many(sequences[:1], tmp_path, JOB, resume=True, progress=False)
+
+
+def test_a_failing_sequence_among_good_ones(sequences, sequential, tmp_path, capsys):
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(sequences[0], bad)
+    (camera_dir(bad, 0) / "depth" / frame_name(0)).write_bytes(b"not a png")
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"# a dataset\n{sequences[1]}\n\nbad\n{sequences[2]}\n")
+    code = main(["track", "--list", str(listing), "--out", str(tmp_path / "out"), "--workers", "2",
+                 "--iterations", "8", "--first-iterations", "8"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "s0" in err and frame_name(0) in err and "1 of 3 sequences failed" in err
+    summary = json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())
+    assert [s["status"] for s in summary["sequences"]] == ["ok", "failed", "ok"]
+    assert np.array_equal(np.load(tmp_path / "out" / "s1" / "theta.npy"), np.load(sequential / "s1" / "theta.npy"))
+    assert not (tmp_path / "out" / "s0").exists()
+
+
+def test_bad_input_is_named(sequences, tmp_path, capsys):
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{sequences[0]}\nmissing_a\nmissing_b\n")
+    assert main(["track", "--list", str(listing), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "missing_a" in err and "missing_b" in err and "nothing was tracked" in err
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(SystemExit):
+        main(["track", str(sequences[0]), "--out", str(tmp_path / "out"), "--workers", "0"])
+    assert "--workers: expected an integer >= 1, got 0" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="2 path"):
+        listing.write_text("only_one\n")
+        read_list(listing, 2)
+    with pytest.raises(ValueError, match="--workers must be an integer >= 1"):
+        track_many(sequences, tmp_path / "out", JOB, workers=-1, progress=False)
+
+
+ray = pytest.importorskip("ray") if os.environ.get("TORCHHAND_TEST_RAY", "1") != "0" else None
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    if ray is None:
+        pytest.skip("Ray tests disabled")
+    connect_ray("local", 2)
+    yield
+    ray.shutdown()
+
+
+def test_an_unreachable_ray_address_fails_fast():
+    pytest.importorskip("ray")
+    t0 = time.perf_counter()
+    with pytest.raises(ConnectionError, match="127.0.0.1:9"):
+        connect_ray("127.0.0.1:9", 1, timeout_s=2.0)
+    assert time.perf_counter() - t0 < 10
+
+
+def test_ray_equals_the_sequential_run_and_retries_a_killed_worker(ray_cluster, sequences, sequential, tmp_path):
+    run = track_many(sequences, tmp_path / "ray", JOB, ray="local", progress=False)
+    assert run["failed"] == 0
+    _assert_equal(tmp_path / "ray", sequential)
+    state = {}
+    run = track_many(sequences, tmp_path / "killed", JOB, ray="local", progress=False, on_event=_kill_once(state))
+    assert state.get("killed") and run["failed"] == 0
+    _assert_equal(tmp_path / "killed", sequential)

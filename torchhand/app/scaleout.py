@@ -1,0 +1,484 @@
+"""Many sequences at once: tracking and scoring as tasks over local processes or a Ray
+cluster, with one progress bar, a summary, retries and resumable output.
+
+The unit of work is a *task*: up to ``batch`` same-scene sequences tracked as one
+batch by :func:`~torchhand.app.runner.track_sequences` (or one prediction scored). The
+tasks depend only on the sequence list and ``batch``, never on the number of workers,
+so a run with any worker count, local or on Ray, computes exactly what the sequential
+run computes (the same θ to the last bit on CPU with the same ``--threads``).
+
+- ``workers > 1``: a pool of local processes (forked from a server process that has
+  imported torchhand once, or spawned where there is no fork); a worker that dies (killed, out
+  of memory) takes its task down with it, and the pool is rebuilt and the unfinished
+  tasks resubmitted, up to ``retries`` times each.
+- ``ray``: the tasks are Ray tasks (``max_retries=retries``: Ray reruns the task of a
+  dead worker). ``"local"`` starts a local Ray instance with ``workers`` CPUs;
+  ``"auto"`` joins the running cluster (``ray start``; ``RAY_ADDRESS``); ``HOST:PORT``
+  joins that cluster's head, checked first with a socket so that an unreachable
+  address fails in seconds with the address named. The workers must see the same
+  file system paths (sequence folders and ``--out``) and have torchhand installed.
+
+Every sequence is written to a hidden partial folder and renamed when complete
+(:mod:`torchhand.io.output_dir`), so a killed worker or an interrupted run (Ctrl-C)
+never leaves a folder that looks finished; the partial folders of a run are removed
+when it ends, however it ends. ``resume`` skips the sequences whose folders are
+complete and were tracked with the same settings (``track_log.json``), and refuses a
+folder written by another command or with other settings, naming the difference.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import multiprocessing
+import os
+import queue as queue_lib
+import socket
+import time
+import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence
+
+import torch
+from tqdm import tqdm
+
+from torchhand.data.layout import SequenceError, read_sequence_info
+from torchhand.io.output_dir import remove_partials
+from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
+from torchhand.tracking.initialization import InitConfig
+from torchhand.tracking.segmentation import SegmentConfig
+from torchhand.tracking.tracker import TrackerConfig
+
+__all__ = ["TrackJob", "track_many", "evaluate_pairs", "run_tasks", "read_list", "connect_ray", "default_batch",
+           "TaskFailure", "SUMMARY_NAME"]
+
+#: The run summary written into ``--out``: every sequence's status, time and frames.
+SUMMARY_NAME = "track_summary.json"
+
+
+@dataclass(frozen=True)
+class TrackJob:
+    """What :func:`~torchhand.app.runner.track_sequences` is asked for every task."""
+
+    config: TrackerConfig = field(default_factory=TrackerConfig)
+    device: str = "cpu"
+    viz: bool = False
+    segment: Optional[SegmentConfig] = None
+    write_render: bool = False
+    reinit_iou: Optional[float] = None  # None: the runner's default
+    init_config: InitConfig = field(default_factory=InitConfig)
+    models: Optional[tuple] = None
+    threads: int = 1
+
+
+@dataclass(frozen=True)
+class TaskFailure:
+    """A task that raised, or whose worker died more often than it was retried."""
+
+    error: str
+
+
+def default_batch(device: str) -> int:
+    """Same-scene sequences per task: 1 on CPU (processes gain ~1.9x on two cores where
+    batching gains 1.2x, docs/benchmarks.md), 16 on a GPU (where batching is the gain)."""
+    return 1 if str(device) == "cpu" else 16
+
+
+# ----------------------------------------------------------------------------- tasks
+
+
+class _Report:
+    """Sends a task's events (``start`` with its pid, ``frames`` with a count) to the
+    process that runs the tasks; picklable (it holds a queue)."""
+
+    def __init__(self, sink, index: int):
+        self.sink, self.index = sink, index
+
+    def __call__(self, kind: str, value) -> None:
+        event = (self.index, kind, value)
+        if callable(self.sink):
+            self.sink(event)
+        elif hasattr(self.sink, "actor"):  # a Ray queue: fire and forget, for a task blocked in
+            self.sink.actor.put_nowait.remote(event)  # ray.get lends its CPU to another task
+        else:
+            self.sink.put(event)
+
+
+def _call(fn: Callable, arg, report: _Report, threads: int):
+    """Run one task in a worker: its threads, its start event, its errors as a value."""
+    torch.set_num_threads(max(1, threads))
+    report("start", os.getpid())
+    try:
+        result = fn(arg, report)
+    except Exception as err:  # a task's own error is its result; the others go on
+        result = TaskFailure(f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
+    report("done", None)
+    return result
+
+
+def run_tasks(fn: Callable, args: Sequence, workers: int = 1, ray: Optional[str] = None, retries: int = 2,
+              threads: int = 1, on_event: Optional[Callable[[tuple], None]] = None) -> List:
+    """``[fn(a, report) for a in args]``, sequentially, over ``workers`` local processes
+    or as Ray tasks (``ray``: ``"local"``, ``"auto"`` or an address; see the module).
+
+    ``fn`` must be importable by the workers (a module-level function); it reports
+    progress through ``report(kind, value)``, which reaches ``on_event((index, kind,
+    value))`` in this process. A task that raises returns a :class:`TaskFailure`, as
+    does one whose worker died more than ``retries`` times. Results are in the order
+    of ``args``."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"--workers must be an integer >= 1, got {workers!r}")
+    if retries < 0:
+        raise ValueError(f"--retries must be >= 0, got {retries}")
+    handle = on_event or (lambda event: None)
+    if ray is not None:
+        return _run_ray(fn, args, workers, ray, retries, threads, handle)
+    if workers == 1 or len(args) <= 1:
+        old = torch.get_num_threads()
+        try:
+            return [_call(fn, a, _Report(handle, i), threads) for i, a in enumerate(args)]
+        finally:
+            torch.set_num_threads(old)
+    return _run_processes(fn, args, workers, retries, threads, handle)
+
+
+def _drain(q, handle) -> None:
+    while True:
+        try:
+            handle(q.get_nowait())
+        except queue_lib.Empty:
+            return
+        except (EOFError, OSError, BrokenPipeError):  # the manager went away (interrupted)
+            return
+
+
+def _run_processes(fn, args, workers, retries, threads, handle) -> List:
+    # workers fork from a server process that imported torch and the task's module once
+    # (no fork of this process, which may hold torch threads; no import per worker)
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["torch", fn.__module__, "torchhand.app.runner"])
+    else:
+        ctx = multiprocessing.get_context("spawn")
+    results: Dict[int, object] = {}
+    attempts = {i: 0 for i in range(len(args))}
+    with ctx.Manager() as manager:
+        q = manager.Queue()
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx)
+        running: dict = {}
+        try:
+            running = {pool.submit(_call, fn, args[i], _Report(q, i), threads): i for i in range(len(args))}
+            while running:
+                done, _ = wait(list(running), timeout=0.1, return_when=FIRST_COMPLETED)
+                _drain(q, handle)
+                broken = False
+                for fut in done:
+                    i = running.pop(fut)
+                    try:
+                        results[i] = fut.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        attempts[i] += 1
+                if broken:  # a worker died: every task it shared the pool with is resubmitted
+                    lost = sorted(set(running.values()) | {i for i in attempts if i not in results})
+                    for fut in running:
+                        fut.cancel()
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    pool = ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx)
+                    running = {}
+                    for i in lost:
+                        if attempts[i] > retries:
+                            results[i] = TaskFailure(f"its worker process died {attempts[i]} times")
+                        else:
+                            running[pool.submit(_call, fn, args[i], _Report(q, i), threads)] = i
+            _drain(q, handle)
+            pool.shutdown(wait=True)
+        finally:
+            if running:  # Ctrl-C or an error here: stop the workers now
+                for p in list((getattr(pool, "_processes", None) or {}).values()):
+                    if p.is_alive():
+                        p.terminate()
+                pool.shutdown(wait=False, cancel_futures=True)
+    return [results[i] for i in range(len(args))]
+
+
+def connect_ray(address: str, num_cpus: int, timeout_s: float = 5.0) -> bool:
+    """Connect to (or start, ``"local"``) a Ray cluster; True when this call started it.
+    An address that does not answer within ``timeout_s`` is an error naming it."""
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("--ray needs Ray: pip install 'torchhand[ray]'") from None
+    if ray.is_initialized():
+        return False
+    if address == "local":
+        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        return True
+    if address != "auto":
+        hostport = address.split("://", 1)[-1]
+        host, _, port = hostport.rpartition(":")
+        if not host or not port.isdigit():
+            raise ValueError(f"--ray {address}: expected auto, or HOST:PORT of a Ray head (e.g. 10.0.0.1:6379)")
+        try:
+            socket.create_connection((host, int(port)), timeout=timeout_s).close()
+        except OSError as err:
+            raise ConnectionError(f"--ray {address}: no Ray cluster answers at {hostport} within {timeout_s:g} s "
+                                  f"({err})") from None
+    try:
+        ray.init(address=address, log_to_driver=False, configure_logging=False)
+    except ConnectionError as err:
+        raise ConnectionError(f"--ray {address}: cannot connect to a Ray cluster ({err})") from None
+    return False
+
+
+def _run_ray(fn, args, workers, address, retries, threads, handle) -> List:
+    started = connect_ray(address, workers)
+    import ray
+    from ray.util.queue import Queue
+
+    refs: Dict[object, int] = {}
+    try:
+        q = Queue()
+        task = ray.remote(num_cpus=threads, max_retries=retries)(_call)
+        refs = {task.remote(fn, a, _Report(q, i), threads): i for i, a in enumerate(args)}
+        results: Dict[int, object] = {}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1, timeout=0.1)
+            _drain_ray(q, handle)
+            for ref in done:
+                try:
+                    results[refs[ref]] = ray.get(ref)
+                except ray.exceptions.RayError as err:  # retries exhausted, or the task could not run
+                    results[refs[ref]] = TaskFailure(f"{type(err).__name__}: {err}")
+        _drain_ray(q, handle)
+        return [results[i] for i in range(len(args))]
+    finally:
+        for ref in refs:  # Ctrl-C or an error here: stop what still runs
+            try:
+                ray.cancel(ref, force=True)
+            except Exception:  # already finished
+                pass
+        if started:
+            ray.shutdown()
+
+
+def _drain_ray(q, handle) -> None:
+    n = q.qsize()
+    if n:
+        for event in q.get_nowait_batch(n):
+            handle(event)
+
+
+# -------------------------------------------------------------------------- tracking
+
+
+def read_list(path, columns: int = 1) -> List[tuple]:
+    """The rows of a list file (``--list``): one sequence (or ``columns`` paths) per
+    line, blank lines and ``#`` comments skipped; relative paths are relative to the
+    list file's folder."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--list {path}: no such file")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != columns:
+            raise ValueError(f"--list {path} line {n}: expected {columns} path(s), got {len(parts)}: {line!r}")
+        rows.append(tuple(p if Path(p).is_absolute() else path.parent / p for p in parts))
+    if not rows:
+        raise ValueError(f"--list {path}: no paths in it")
+    return [tuple(Path(p) for p in r) for r in rows]
+
+
+def _track_task(spec: dict, report: _Report) -> List[dict]:
+    from torchhand.app.runner import track_sequences
+
+    job: TrackJob = spec["job"]
+    extra = {} if job.reinit_iou is None else {"reinit_iou": job.reinit_iou}
+    return track_sequences(spec["roots"], spec["out"], job.config, device=job.device, viz=job.viz,
+                           force=spec["force"], progress=False, segment=job.segment, write_render=job.write_render,
+                           init_config=job.init_config, models=job.models, names=spec["names"],
+                           on_frames=lambda n: report("frames", n), **extra)
+
+
+def _differences(old: dict, new: dict, prefix: str = "") -> List[str]:
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k), new.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{k}.")
+        elif a != b:
+            out.append(f"{prefix}{k}: {a!r} there, {b!r} now")
+    return out
+
+
+def _complete(target: Path, settings: dict) -> Optional[dict]:
+    """The summary of a finished sequence folder tracked with ``settings``; errors for a
+    folder of another command or other settings."""
+    log = target / "track_log.json"
+    if not log.is_file():
+        raise ValueError(f"--resume: {target} was not written by torchhand track (no track_log.json); "
+                         "choose another --out")
+    try:
+        d = json.loads(log.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"--resume: {log} is not valid JSON ({err})") from None
+    old = d.get("settings")
+    if old is None or old.get("command") != "track":
+        raise ValueError(f"--resume: {target} was written by another command or an older torchhand (its "
+                         "track_log.json records no track settings); choose another --out")
+    diff = _differences(old, settings)
+    if diff:
+        raise ValueError(f"--resume: {target} was tracked with other settings: " + "; ".join(diff))
+    frames = d.get("frames", [])
+    return {"sequence": d.get("sequence", target.name), "status": "ok", "resumed": True, "frames": len(frames),
+            "out": str(target), "seconds_per_frame": sum(f.get("seconds", 0.0) for f in frames) / max(len(frames), 1),
+            "flagged_frames": sum(not f.get("valid", True) for f in frames),
+            "reinitialized_frames": sum(bool(f.get("reinitialized")) for f in frames)}
+
+
+def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: int = 1, ray: Optional[str] = None,
+               batch: Optional[int] = None, resume: bool = False, force: bool = False, retries: int = 2,
+               progress: bool = True, on_event: Optional[Callable[[tuple], None]] = None) -> dict:
+    """``torchhand track DIR... [--workers N | --ray [ADDRESS]] [--resume]``: track
+    sequence folders as tasks (see the module), with one progress bar over all their
+    frames, and write ``<out>/track_summary.json``.
+
+    Every folder is checked before any work starts (all unreadable ones are named in
+    one error), as is every existing output folder (refused unless ``force`` or, with
+    ``resume``, complete with the same settings). Returns the summary: ``sequences``
+    (each one's status, error, frames, time, output), ``failed``, ``frames``,
+    ``seconds``, and the run's ``settings``."""
+    from torchhand.app.runner import REINIT_IOU, output_names, track_settings
+
+    t0 = time.perf_counter()
+    job = job or TrackJob()
+    if resume and force:
+        raise ValueError("--resume keeps finished sequences and --force replaces them: give one")
+    if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int) or batch < 1):
+        raise ValueError(f"--batch must be an integer >= 1, got {batch!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"--workers must be an integer >= 1, got {workers!r}")
+    roots = [Path(r).resolve() for r in roots]
+    if not roots:
+        raise ValueError("no sequence folders given (DIR... or --list FILE)")
+    infos, bad = [], []
+    for r in roots:
+        try:
+            infos.append(read_sequence_info(r))
+        except SequenceError as err:
+            bad.append(str(err))
+    if bad:
+        raise ValueError(f"{len(bad)} of {len(roots)} sequence folders cannot be read, nothing was tracked:\n  "
+                         + "\n  ".join(bad))
+    if job.models is not None:
+        infos = [dataclasses.replace(i, models=list(job.models)) for i in infos]
+    out = Path(out).resolve()
+    names = output_names(infos)
+    reinit = REINIT_IOU if job.reinit_iou is None else job.reinit_iou
+    settings = track_settings(job.config, job.segment, reinit, job.init_config, job.models, job.device)
+    done: Dict[int, dict] = {}
+    taken = []
+    for k, n in enumerate(names):
+        target = out / n
+        if target.exists() and (not target.is_dir() or any(target.iterdir())):
+            if resume:
+                done[k] = _complete(target, settings)
+            elif not force:
+                taken.append(str(target))
+    if taken:
+        raise FileExistsError(f"{len(taken)} output folders are not empty: {', '.join(taken)}; choose another --out, "
+                              "pass --resume to keep the finished ones, or --force to replace them")
+    remove_partials(out, set(names))  # what killed runs left: never results
+    batch = batch or default_batch(job.device)
+    groups: Dict[tuple, List[int]] = {}
+    for k, info in enumerate(infos):
+        if k not in done:
+            groups.setdefault(tuple(info.models), []).append(k)
+    tasks = [members[j : j + batch] for members in groups.values() for j in range(0, len(members), batch)]
+    specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job}
+             for t in tasks]
+    total = sum(infos[k].frames for t in tasks for k in t)
+    bar = tqdm(total=total, desc=f"track {len(tasks)} tasks", unit="frame", disable=not progress)
+
+    def handle(event: tuple) -> None:
+        if event[1] == "frames":
+            bar.update(event[2])
+        if on_event is not None:
+            on_event(event)
+
+    try:
+        results = run_tasks(_track_task, specs, workers, ray, retries, job.threads, handle)
+    finally:
+        bar.close()
+        remove_partials(out, set(names))
+    summaries: Dict[int, dict] = dict(done)
+    for t, res in zip(tasks, results):
+        for j, k in enumerate(t):
+            if isinstance(res, TaskFailure):
+                summaries[k] = {"sequence": names[k], "status": "failed", "error": res.error, "frames": 0,
+                                "out": None}
+            else:
+                summaries[k] = res[j]
+        for k in t:
+            summaries[k]["source"] = str(roots[k])
+    seqs = [summaries[k] for k in range(len(roots))]
+    summary = {"command": "track", "settings": settings, "workers": workers, "ray": ray, "batch": batch,
+               "tasks": len(tasks), "sequences": seqs, "failed": sum(s["status"] != "ok" for s in seqs),
+               "resumed": len(done), "frames": total, "seconds": time.perf_counter() - t0}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / SUMMARY_NAME).write_text(json.dumps(_jsonable(summary), indent=2))
+    return summary
+
+
+def _jsonable(x):
+    """JSON without NaN (null instead) and with paths as strings."""
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+def _evaluate_task(pair: tuple, report: _Report) -> dict:
+    pred, gt, with_penetration = pair
+    return evaluate_sequence(pred, gt, with_penetration=with_penetration)
+
+
+def evaluate_pairs(pairs: Sequence[tuple], workers: int = 1, ray: Optional[str] = None,
+                   with_penetration: bool = True, progress: bool = True, retries: int = 2) -> dict:
+    """Score (prediction, ground truth) folder pairs as tasks (sequentially, over local
+    processes or on Ray) and pool them (:func:`~torchhand.scoring.sequences.summarize`).
+    Pairs that cannot be scored are listed in ``failed`` (prediction, error); the others
+    are scored. Raises :class:`EvaluationError` when none can be."""
+    pairs = [(Path(p).resolve(), Path(g).resolve(), with_penetration) for p, g in pairs]
+    bar = tqdm(total=len(pairs), desc="eval", unit="seq", disable=not progress)
+    try:
+        results = run_tasks(_evaluate_task, pairs, workers, ray, retries, 1,
+                            lambda e: bar.update(1) if e[1] == "done" else None)
+    finally:
+        bar.close()
+    failed = [{"prediction": str(p[0]), "error": r.error.splitlines()[0]}
+              for p, r in zip(pairs, results) if isinstance(r, TaskFailure)]
+    good = [r for r in results if not isinstance(r, TaskFailure)]
+    if not good:
+        raise EvaluationError("no prediction could be scored: " + "; ".join(f"{f['prediction']}: {f['error']}"
+                                                                           for f in failed))
+    result = summarize(good)
+    result["failed"] = failed
+    return result
