@@ -15,6 +15,18 @@
    ``RUN/done.json``. A finished or started run is never overwritten without ``--force``.
 
 ``--config`` is a JSON object overriding fields of :class:`TrainConfig`.
+
+Distributed data-parallel training (DDP, ``docs/salient.md``)::
+
+    torchrun --nproc_per_node 2 -m train.salient_detector --out runs/salient [--resume]
+
+runs one process per rank (gloo on CPU, nccl with SyncBatchNorm on CUDA, one GPU per
+rank). The global batch stays ``batch_size``: every rank draws the same batch (one
+generator, seeded alike) and crops only its own ``batch_size / world`` samples of it
+(:func:`sample_batch` ``part``), and the loss is normalised by the positives of the
+whole batch, so a step sees the data of the single-process step. Rank 0 renders the
+frames, writes the log, the checkpoints and the results; a resume is exact for the
+same world size.
 """
 
 from __future__ import annotations
@@ -24,6 +36,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import shutil
 import sys
 import time
@@ -33,6 +46,7 @@ from typing import List, Optional
 
 import numpy as np
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 from tqdm import tqdm
 
@@ -179,11 +193,16 @@ def build_datasets(cfg: TrainConfig, hia_root: Path, cache: Path) -> tuple:
 # ------------------------------------------------------------------------- batches
 
 
-def sample_batch(data: SalientFrames, cfg: TrainConfig, g: torch.Generator) -> tuple:
+def sample_batch(data: SalientFrames, cfg: TrainConfig, g: torch.Generator, part: tuple = (0, 1)) -> tuple:
     """Random crops with scale and flip augmentation.
 
+    ``part = (rank, world)``: the random draws are those of the whole batch
+    (``cfg.batch_size``, the same on every rank), the crops only those of the rank's
+    contiguous share (the distributed sampler of DDP training).
+
     Returns (depth (B, 1, C, C) mm, tips (B, P, 3) [u, v, z] in crop pixels (NaN =
-    none), visible (B, P) bool, ignore (B, P) bool (barely visible fingertips)).
+    none), visible (B, P) bool, ignore (B, P) bool (barely visible fingertips)),
+    B = ``batch_size / world``.
     """
     N, H, W = data.depth.shape
     B, C = cfg.batch_size, cfg.crop
@@ -194,9 +213,11 @@ def sample_batch(data: SalientFrames, cfg: TrainConfig, g: torch.Generator) -> t
     on_tip = (torch.rand(B, generator=g) < cfg.p_crop_on_tip).numpy()
     pick = torch.rand(B, 2, generator=g).numpy()
     flip = (torch.rand(B, generator=g) < 0.5).numpy()
-    depth = np.zeros((B, 1, C, C), np.float32)
-    tips = np.full((B, P, 3), np.nan, np.float32)
-    for b in range(B):
+    rank, world = part
+    share = range(rank * B // world, (rank + 1) * B // world)
+    depth = np.zeros((len(share), 1, C, C), np.float32)
+    tips = np.full((len(share), P, 3), np.nan, np.float32)
+    for i, b in enumerate(share):
         f, s = idx[b], scale[b]
         size = int(round(C / s))  # source window, resized to C x C
         vis = np.nonzero(data.area_mm2[f] >= VISIBLE_MM2)[0]
@@ -219,10 +240,10 @@ def sample_batch(data: SalientFrames, cfg: TrainConfig, g: torch.Generator) -> t
         if flip[b]:
             win = win[:, ::-1]
             uv[:, 0] = C - 1 - uv[:, 0]
-        depth[b, 0] = win
-        tips[b, :, :2] = uv
-        tips[b, :, 2] = data.tip_depth[f] / s
-    area = data.area_mm2[idx]
+        depth[i, 0] = win
+        tips[i, :, :2] = uv
+        tips[i, :, 2] = data.tip_depth[f] / s
+    area = data.area_mm2[idx[share.start : share.stop]]
     visible = area >= VISIBLE_MM2
     ignore = (area > 0) & ~visible
     return (torch.from_numpy(depth), torch.from_numpy(tips), torch.from_numpy(visible), torch.from_numpy(ignore))
@@ -257,15 +278,16 @@ def targets(depth: torch.Tensor, tips: torch.Tensor, visible: torch.Tensor, igno
     return positive.reshape(B, h, w), (~ign).float().reshape(B, h, w), offset
 
 
-def loss_fn(out, positive, weight, offset, cfg: TrainConfig) -> tuple:
-    """Focal loss on the scores (normalised by the positives) + smooth-L1 on offsets."""
+def loss_fn(out, positive, weight, offset, cfg: TrainConfig, npos: Optional[torch.Tensor] = None) -> tuple:
+    """Focal loss on the scores (normalised by the positives, ``npos``: of the whole
+    batch where it is split over ranks) + smooth-L1 on offsets."""
     logits = out.logits[:, 0]
     p = torch.sigmoid(logits)
     y = positive.float()
     ce = F.binary_cross_entropy_with_logits(logits, y, reduction="none")
     pt = p * y + (1 - p) * (1 - y)
     alpha = cfg.focal_alpha * y + (1 - cfg.focal_alpha) * (1 - y)
-    npos = y.sum().clamp_min(1.0)
+    npos = (y.sum() if npos is None else npos).clamp_min(1.0)
     cls = (alpha * (1 - pt) ** cfg.focal_gamma * ce * weight).sum() / npos
     reg = F.smooth_l1_loss(out.offsets, offset, reduction="none", beta=1.0).sum(1)
     reg = (reg * y).sum() / npos
@@ -284,12 +306,12 @@ def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = DEFAULT
     with torch.no_grad():
         for s in range(0, len(data.depth), batch):
             x = torch.from_numpy(data.depth[s: s + batch].astype(np.float32))[:, None]
-            out = net(x)
+            out = net(x.to(next(net.parameters()).device))
             for b, d in enumerate(detect_peaks(out.hough, threshold=threshold, max_detections=DEFAULT_MAX_DETECTIONS,
                                                logits=out.logits)):
                 f = s + b
-                dets_uv.append(d.uv.numpy())
-                dets_s.append(d.score.numpy())
+                dets_uv.append(d.uv.cpu().numpy())
+                dets_s.append(d.score.cpu().numpy())
                 a = data.area_mm2[f]
                 gts.append(data.uv[f][a >= VISIBLE_MM2])
                 igns.append(data.uv[f][(a > 0) & (a < VISIBLE_MM2)])
@@ -304,13 +326,39 @@ def _rng_state(g: torch.Generator) -> dict:
     return {"sampler": g.get_state(), "torch": torch.get_rng_state(), "numpy": np.random.get_state()[1]}
 
 
+def world() -> tuple:
+    """(rank, world size, device) of this process: a torchrun rank joins the process
+    group here (gloo on CPU, nccl on CUDA: one GPU per local rank); a plain run is
+    (0, 1, cpu)."""
+    size = int(os.environ.get("WORLD_SIZE", "1"))
+    if size <= 1:
+        return 0, 1, torch.device("cpu")
+    cuda = torch.cuda.is_available()
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if cuda else "gloo")
+    device = torch.device("cpu")
+    if cuda:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    return dist.get_rank(), dist.get_world_size(), device
+
+
+def _barrier(size: int) -> None:
+    if size > 1:
+        dist.barrier()
+
+
 def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: SalientFrames,
           resume: bool, progress: bool = True, stop_at: Optional[int] = None) -> SalientNet:
-    """Train (or continue from ``out/checkpoint.pt`` if ``resume``) up to ``cfg.steps``.
+    """Train (or continue from ``out/checkpoint.pt`` if ``resume``) up to ``cfg.steps``,
+    on every rank of a torchrun job (see the module).
 
     ``stop_at`` ends the call after that step, once its checkpoint is written (an
-    interruption, as used by the resume test).
+    interruption: a job's time limit, or the resume test).
     """
+    rank, size, device = world()
+    if cfg.batch_size % size:
+        raise SystemExit(f"batch_size {cfg.batch_size} is not a multiple of the {size} ranks")
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     g = torch.Generator().manual_seed(cfg.seed)
@@ -325,7 +373,7 @@ def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: Sali
     step = 0
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.is_file():
-        state = torch.load(ckpt, weights_only=False)
+        state = torch.load(ckpt, weights_only=False, map_location="cpu")
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
@@ -333,38 +381,63 @@ def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: Sali
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(("MT19937", state["rng"]["numpy"], 624, 0, 0.0))
         step = state["step"]
-        print(f"resuming {out} at step {step}")
-    net.train()
-    log = (out / "log.jsonl").open("a")
-    bar = tqdm(total=cfg.steps, initial=step, desc="train salient", unit="step", disable=not progress)
+        was = state.get("world_size", 1)
+        if rank == 0:
+            print(f"resuming {out} at step {step}" + ("" if was == size else
+                  f" (checkpointed by {was} ranks, resumed by {size}: not an exact continuation)"))
+    net.to(device)
+    model = net
+    if size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        if device.type == "cuda":
+            net = torch.nn.SyncBatchNorm.convert_sync_batchnorm(net)
+        model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
+    model.train()
+    log = (out / "log.jsonl").open("a") if rank == 0 else None
+    bar = tqdm(total=cfg.steps, initial=step, desc="train salient", unit="step", disable=not progress or rank != 0)
     t0 = time.perf_counter()
     while step < cfg.steps:
-        depth, tips, visible, ignore = sample_batch(train_data, cfg, g)
+        depth, tips, visible, ignore = sample_batch(train_data, cfg, g, (rank, size))
         positive, weight, offset = targets(depth, tips, visible, ignore, cfg)
-        loss, cls, reg = loss_fn(net(depth), positive, weight, offset, cfg)
+        positive, weight, offset, depth = (x.to(device) for x in (positive, weight, offset, depth))
+        npos = positive.float().sum()
+        if size > 1:  # normalised by the whole batch; DDP averages the ranks' gradients, hence x size
+            dist.all_reduce(npos)
+        loss, cls, reg = loss_fn(model(depth), positive, weight, offset, cfg, npos)
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        (loss * size).backward()
         opt.step()
         sched.step()
         step += 1
+        parts = torch.stack([loss.detach(), cls, reg])
+        if size > 1:  # the whole batch's loss: the sum of the ranks' shares
+            dist.all_reduce(parts)
+        loss_v, cls_v, reg_v = parts.tolist()
         bar.update(1)
-        bar.set_postfix(loss=f"{loss.item():.3f}", cls=f"{cls.item():.3f}", off=f"{reg.item():.2f}")
+        bar.set_postfix(loss=f"{loss_v:.3f}", cls=f"{cls_v:.3f}", off=f"{reg_v:.2f}")
         if step % cfg.checkpoint_every == 0 or step == cfg.steps or step == stop_at:
-            rec = {"step": step, "loss": loss.item(), "cls": cls.item(), "offset": reg.item(),
-                   "lr": sched.get_last_lr()[0], "seconds": time.perf_counter() - t0}
-            if step % (4 * cfg.checkpoint_every) == 0 or step == cfg.steps:
-                rec["val_ap"] = evaluate_ap(net, val_data)
-            log.write(json.dumps(rec) + "\n")
-            log.flush()
-            tmp = out / "checkpoint.tmp.pt"
-            torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                        "rng": _rng_state(g), "step": step, "config": asdict(cfg)}, tmp)
-            tmp.replace(ckpt)  # atomic
+            if rank == 0:
+                rec = {"step": step, "loss": loss_v, "cls": cls_v, "offset": reg_v, "lr": sched.get_last_lr()[0],
+                       "seconds": time.perf_counter() - t0, "world_size": size}
+                if step % (4 * cfg.checkpoint_every) == 0 or step == cfg.steps:
+                    rec["val_ap"] = evaluate_ap(net, val_data)
+                log.write(json.dumps(rec) + "\n")
+                log.flush()
+                tmp = out / "checkpoint.tmp.pt"
+                torch.save({"model": {k: v.cpu() for k, v in net.state_dict().items()},
+                            "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": _rng_state(g),
+                            "step": step, "config": asdict(cfg), "world_size": size}, tmp)
+                tmp.replace(ckpt)  # atomic
+            _barrier(size)
         if stop_at is not None and step >= stop_at:
             break
     bar.close()
-    log.close()
-    return net.eval()
+    if log is not None:
+        log.close()
+    plain = SalientNet(SalientConfig(**cfg.network))
+    plain.load_state_dict({k: v.cpu() for k, v in net.state_dict().items()})  # SyncBatchNorm: same keys
+    return plain.eval()
 
 
 def main(argv=None) -> int:
@@ -375,11 +448,14 @@ def main(argv=None) -> int:
     ap.add_argument("--hia-root", type=Path, default=DEFAULT_HIA_ROOT, help="thesis data root")
     ap.add_argument("--force", action="store_true", help="replace an existing run")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    ap.add_argument("--stop-at", type=int, help="end after this step, checkpointed (a job's time limit); "
+                    "--resume continues")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     cfg = load_config(args.config)
     out: Path = args.out
     cfg_file = out / "config.json"
+    # every rank checks alike (so all stop on the same error); only rank 0 writes
     if args.resume and args.force:
         raise SystemExit("--resume and --force exclude each other")
     if args.resume:
@@ -396,34 +472,52 @@ def main(argv=None) -> int:
         if (out / "done.json").is_file():
             print(f"{out} is already finished; nothing to do")
             return 0
-    elif out.exists() and any(out.iterdir()):
-        if not args.force:
-            what = "a finished run" if (out / "done.json").is_file() else "not empty"
-            raise SystemExit(f"{out} is {what}; pass --force to replace it or --resume to continue it")
-        keep_cache = args.cache is None and (out / "cache").is_dir()
-        for p in out.iterdir():  # keep the render cache, it does not depend on the run
-            if keep_cache and p.name == "cache":
-                continue
-            shutil.rmtree(p) if p.is_dir() else p.unlink()
-    out.mkdir(parents=True, exist_ok=True)
-    if not args.resume:
-        cfg_file.write_text(json.dumps(asdict(cfg), indent=2))
+    elif out.exists() and any(out.iterdir()) and not args.force:
+        what = "a finished run" if (out / "done.json").is_file() else "not empty"
+        raise SystemExit(f"{out} is {what}; pass --force to replace it or --resume to continue it")
+    rank, size, _ = world()
+    if rank == 0:
+        if not args.resume and out.exists() and any(out.iterdir()):
+            keep_cache = args.cache is None and (out / "cache").is_dir()
+            for p in out.iterdir():  # keep the render cache, it does not depend on the run
+                if keep_cache and p.name == "cache":
+                    continue
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+        out.mkdir(parents=True, exist_ok=True)
+        if not args.resume:
+            cfg_file.write_text(json.dumps(asdict(cfg), indent=2))
     torch.set_num_threads(cfg.threads)
     t_start = time.perf_counter()
-    train_data, val_data = build_datasets(cfg, args.hia_root, args.cache or out / "cache")
+    if rank == 0:  # rank 0 renders (or finds) the frames, the others read its cache
+        train_data, val_data = build_datasets(cfg, args.hia_root, args.cache or out / "cache")
+    _barrier(size)
+    if rank != 0:
+        train_data, val_data = build_datasets(cfg, args.hia_root, args.cache or out / "cache")
     t_data = time.perf_counter() - t_start
-    print(f"frames: {len(train_data.depth)} train, {len(val_data.depth)} val ({t_data:.0f} s)")
-    net = train(cfg, out, train_data, val_data, args.resume, progress=not args.no_progress)
+    if rank == 0:
+        print(f"frames: {len(train_data.depth)} train, {len(val_data.depth)} val ({t_data:.0f} s)"
+              + (f"; {size} ranks of {cfg.batch_size // size} crops each" if size > 1 else ""))
+    net = train(cfg, out, train_data, val_data, args.resume, progress=not args.no_progress, stop_at=args.stop_at)
+    if args.stop_at is not None and args.stop_at < cfg.steps:
+        if rank == 0:
+            print(f"stopped after step {args.stop_at} of {cfg.steps}; --resume continues")
+        return 0
     t_total = time.perf_counter() - t_start
-    net.save(out / "salient_fingertips.pt")
-    export_onnx(net, out / "salient_fingertips.onnx")
-    val_ap = evaluate_ap(net, val_data)
-    done = {"steps": cfg.steps, "val_ap": val_ap, "seconds_data": t_data, "seconds_total": t_total,
-            "train_frames": int(len(train_data.depth)), "val_frames": int(len(val_data.depth))}
-    (out / "done.json").write_text(json.dumps(done, indent=2))
-    print(json.dumps(done, indent=2))
+    if rank == 0:
+        net.save(out / "salient_fingertips.pt")
+        export_onnx(net, out / "salient_fingertips.onnx")
+        val_ap = evaluate_ap(net, val_data)
+        done = {"steps": cfg.steps, "val_ap": val_ap, "seconds_data": t_data, "seconds_total": t_total,
+                "train_frames": int(len(train_data.depth)), "val_frames": int(len(val_data.depth)),
+                "world_size": size}
+        (out / "done.json").write_text(json.dumps(done, indent=2))
+        print(json.dumps(done, indent=2))
+    _barrier(size)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    if dist.is_initialized():
+        dist.destroy_process_group()
+    sys.exit(code)
