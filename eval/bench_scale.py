@@ -3,7 +3,8 @@ Ray (docs/benchmarks.md).
 
     python eval/bench_scale.py --json out/bench_scale.json [--sequences 8 --frames 20]
 
-The sequences are windows of the shipped demo motion (the right hand, kinect noise),
+The sequences are the shipped demo motion's right hand from frame 7k, back and forth
+over its 60 frames for as many frames as asked (kinect noise),
 one sequence per task (the CPU default). Timed side by side in one run:
 
 - ``sequential``: ``torchhand track`` with one worker (this process);
@@ -32,6 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -47,10 +49,13 @@ def make_sequences(root: Path, n: int, frames: int) -> list:
     scene = Scene.from_names(["hand_right"], dtype=demo.theta.dtype)
     right = demo.scene.slices["hand_right"]
     out = []
+    period = 2 * (len(demo.theta) - 1)
     for k in range(n):
-        start = (k * 7) % max(len(demo.theta) - frames, 1)
-        th = demo.theta[start : start + frames, right]
-        fr = SyntheticFrames(scene, th, demo.cameras, f"seq{k:02d}", {"format": "demo window", "start": start})
+        # from frame 7k of the motion, back and forth over it (as long as --frames asks)
+        t = (7 * k + np.arange(frames)) % period
+        idx = torch.as_tensor(np.where(t < len(demo.theta), t, period - t))
+        th = demo.theta[idx][:, right]
+        fr = SyntheticFrames(scene, th, demo.cameras, f"seq{k:02d}", {"format": "demo back and forth", "start": 7 * k})
         out.append(write_synthetic_sequence(fr, root / f"seq{k:02d}", noise="kinect", seed=k, rgb=False))
     return out
 
@@ -108,7 +113,7 @@ def main(argv=None) -> dict:
     seq = runs["sequential"]
     result["seconds_per_frame"] = seq["wall_s"] / (args.sequences * args.frames)
     def steady(r):  # frames/s once the workers run
-        return (args.sequences * args.frames) / (r["wall_s"] - r["first_start_s"])
+        return args.sequences * args.frames / (r["wall_s"] - r["first_start_s"])
 
     result["speedup_2_workers_local"] = seq["wall_s"] / runs["local_2"]["wall_s"]
     result["speedup_2_workers_local_after_start"] = steady(runs["local_2"]) / steady(seq)

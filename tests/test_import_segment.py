@@ -243,6 +243,38 @@ def test_automatic_initialisation_of_a_rendered_hand():
     assert err < 10.0 and res.cost < 0.2
 
 
+def test_detected_fingertips_seed_the_hand_axis():
+    """The fingertips the shipped detector finds on a rendered hand lie near the model's
+    fingertips, all on the fingers' side of the blob's centroid (the length axis' sign
+    that the initialisation then takes without a forearm)."""
+    from torchhand.data.layout import read_poses
+    from torchhand.model.scene import Scene
+    from torchhand.tracking.initialization import Initializer
+    from torchhand.tracking.tracker import Tracker, TrackerConfig
+
+    root = Path(__file__).resolve().parents[1] / "datasets" / "sample"
+    info = read_sequence_info(root)
+    full = Scene.from_names(info.models)
+    scene = Scene.from_names(["hand_right"])
+    truth = torch.as_tensor(read_poses(root / "gt").theta[0][full.slices["hand_right"]], dtype=torch.float32)[None]
+    tracker = Tracker(scene, TrackerConfig())
+    cam = info.cameras[0]
+    with torch.no_grad():
+        depth = tracker.renderer(scene(truth).vertices, cam, normals=False).depth[0].numpy()
+        kp = cam.to_camera(scene(truth).keypoints)[0].numpy()
+    seg = segment_hands(depth, cam, SegmentConfig())
+    tips = Initializer(tracker).fingertips(seg.apply(depth), seg.blobs[0], cam)
+    assert len(tips) >= 3
+    model_tips = kp[[4, 8, 12, 16, 20]]
+    nearest = np.linalg.norm(tips[:, None] - model_tips[None], axis=-1).min(1)
+    assert np.median(nearest) < 15.0
+    length = (kp[9] - kp[0]) / np.linalg.norm(kp[9] - kp[0])  # wrist -> middle finger base
+    centre = np.nonzero(seg.blobs[0])
+    z = depth[centre]
+    pts = np.stack([(centre[1] - cam.cx) * z / cam.fx, (centre[0] - cam.cy) * z / cam.fy, z], 1)
+    assert ((tips[nearest < 15.0] - pts.mean(0)) @ length > 0).mean() >= 0.75
+
+
 @pytest.mark.skipif(not SR305.is_dir(), reason="shared SR305 frames not available")
 def test_cli_init_on_a_real_frame(tmp_path, capsys):
     src = tmp_path / "rec"

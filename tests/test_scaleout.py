@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from torchhand.app.cli import main
-from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, connect_ray, read_list, track_many
+from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, connect_ray, evaluate_pairs, read_list, track_many
 from torchhand.data.layout import camera_dir, frame_name
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
 from torchhand.model.scene import Scene
@@ -187,3 +187,8 @@ def test_ray_equals_the_sequential_run_and_retries_a_killed_worker(ray_cluster, 
     run = track_many(sequences, tmp_path / "killed", JOB, ray="local", progress=False, on_event=_kill_once(state))
     assert state.get("killed") and run["failed"] == 0
     _assert_equal(tmp_path / "killed", sequential)
+    pairs = [(tmp_path / "ray" / s.name, s / "gt") for s in sequences] + [(tmp_path / "nothing", sequences[0] / "gt")]
+    scored = evaluate_pairs(pairs, ray="local", with_penetration=False, progress=False)
+    here = evaluate_pairs(pairs[:4], with_penetration=False, progress=False)
+    assert scored["mean_mm"] == here["mean_mm"] and scored["frames"] == 4 * FRAMES
+    assert [f["prediction"] for f in scored["failed"]] == [str((tmp_path / "nothing").resolve())]

@@ -407,7 +407,9 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job}
              for t in tasks]
     total = sum(infos[k].frames for t in tasks for k in t)
-    bar = tqdm(total=total, desc=f"track {len(tasks)} tasks", unit="frame", disable=not progress)
+    n_seq = sum(len(t) for t in tasks)
+    bar = tqdm(total=total, desc=f"track {n_seq} sequence{'s' if n_seq != 1 else ''}", unit="frame",
+               disable=not progress)
 
     def handle(event: tuple) -> None:
         if event[1] == "frames":
