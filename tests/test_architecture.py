@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 PKG = REPO / "torchhand"
 
 #: lowest first (docs/architecture.md)
-LAYERS = ["core", "optim", "io", "geometry", "model", "data", "salient", "tracking", "scoring", "app"]
+LAYERS = ["core", "optim", "io", "geometry", "model", "data", "salient", "tracking", "reconstruction", "scoring", "app"]
 
 
 def _module_name(path: Path) -> str:

@@ -44,6 +44,17 @@ def _frames_slice(text: str | None) -> slice | None:
 def _synth(args) -> int:
     from torchhand.data.synth import demo_motion, random_poses, thesis_motion, write_synthetic_sequence
 
+    if args.scan_object is not None:
+        from torchhand.data.scanning import write_scan_sequence
+
+        if args.frames is not None and (args.frames.start not in (None, 0) or args.frames.stop is None):
+            raise ValueError("with --scan-object, --frames is :N, the number of frames")
+        out = write_scan_sequence(args.scan_object, args.out, hand=args.hand,
+                                  frames=None if args.frames is None else args.frames.stop, noise=args.noise,
+                                  seed=args.seed, force=args.force, backend=args.backend)
+        print(f"wrote an in-hand scan of {args.scan_object} held by {args.hand} to {out} (noise: {args.noise}; the "
+              f"object's poses and mesh in {out / 'gt'})")
+        return 0
     if args.demo:
         frames = demo_motion(args.frames)
     elif args.random:
@@ -59,6 +70,23 @@ def _synth(args) -> int:
                                    rgb=not args.no_rgb, backend=args.backend)
     print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
           f"(noise: {args.noise}; ground truth in {out / 'gt'})")
+    return 0
+
+
+def _scan(args) -> int:
+    from torchhand.app.scan import scan_folder
+    from torchhand.reconstruction.in_hand import ScanConfig
+
+    config = ScanConfig()
+    if args.gamma_t is not None:
+        if not args.gamma_t >= 0:
+            raise ValueError(f"--gamma-t must be >= 0, got {args.gamma_t}")
+        config = config._replace(registration=config.registration._replace(gamma_t=args.gamma_t))
+    log = scan_folder(args.seq, args.out, hand=args.hand, force=args.force, config=config, baseline=args.baseline,
+                      near=args.near, far=args.far)
+    print(f"scanned {log['frames']} frames ({log['fused_frames']} fused) in {log['seconds']['per_frame']:.2f} s/frame: "
+          f"{log['faces']} faces, {'watertight' if log['watertight'] else 'NOT watertight'} -> "
+          f"{args.out / 'model.npz'}, {args.out / 'mesh.ply'}")
     return 0
 
 
@@ -285,9 +313,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default="kinect", choices=["none", "kinect"], help="depth noise model (docs/noise.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the random poses")
     p.add_argument("--no-rgb", action="store_true", help="write depth only")
+    p.add_argument("--scan-object", type=Path, default=None,
+                   help="an in-hand scan: the hand holds this closed mesh (.ply/.obj/.off, mm) and turns it twice "
+                        "in front of the camera (docs/scanning.md); --frames :N sets the length")
+    p.add_argument("--hand", default="hand_right", help="with --scan-object: the hand that holds it")
     _backend_option(p)
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
     p.set_defaults(func=_synth)
+
+    p = sub.add_parser("scan", help="in-hand scanning: track the hand, remove it, reconstruct the held object as a "
+                       "closed mesh and a rigid model for --models (thesis Ch. 5)", formatter_class=_Formatter)
+    p.add_argument("seq", type=Path, help="sequence folder with depth and rgb/ (the hand is found by skin colour)")
+    p.add_argument("--hand", default="hand_right", help="the hand model that holds the object")
+    p.add_argument("--out", type=Path, required=True, help="output folder (must be new or empty)")
+    p.add_argument("--baseline", action="store_true",
+                   help="the KinectFusion-style baseline: raw depth, ICP alone, no hand tracking")
+    p.add_argument("--gamma-t", type=float, default=None, help="weight of the contact term against ICP (Eq. 5.2)")
+    p.add_argument("--near", type=float, default=200.0, help="mm, nearer depth is ignored")
+    p.add_argument("--far", type=float, default=1500.0, help="mm, farther depth is ignored")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    p.set_defaults(func=_scan)
 
     p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)",
                        formatter_class=_Formatter)

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to_color, draw_chain, draw_colorbar,
                                    draw_hull, draw_legend, draw_mask_outline, draw_skeleton, write_video)
 from torchhand.data.layout import (Poses, SequenceError, SequenceInfo, camera_dir, frame_name, read_depth,
-                                   read_init_pose, read_poses, read_sequence_info, write_depth, write_poses)
+                                   read_init_pose, read_poses, read_rgb, read_sequence_info, write_depth, write_poses)
 from torchhand.io.assets import THESIS_MODEL_NAMES, save_assets
 from torchhand.io.output_dir import commit_dir, partial_dir
 from torchhand.io.thesis import write_motion
@@ -346,7 +346,9 @@ def _read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Segmen
     depth = read_depth(path, info.depth_unit_mm)
     if segment is None:
         return depth, None
-    seg = segment_hands(depth, info.cameras[0], segment, frame=str(path))
+    rgb_path = camera_dir(root, 0) / "rgb" / frame_name(f)
+    rgb = read_rgb(rgb_path) if segment.mode == "skin" and rgb_path.is_file() else None
+    seg = segment_hands(depth, info.cameras[0], segment, frame=str(path), rgb=rgb)
     return seg.apply(depth), seg
 
 

@@ -36,13 +36,17 @@ _COLORS = {"hand": (0.87, 0.67, 0.55), "ball": (0.85, 0.2, 0.15), "cube": (0.2, 
 
 @dataclass
 class SyntheticFrames:
-    """What to render: a scene, its poses (N, D), the cameras, provenance."""
+    """What to render: a scene, its poses (N, D), the cameras, provenance. ``hidden``:
+    models that are rendered but left out of the sequence's declared scene and its
+    ``gt/`` poses (an unknown object a scan must find; its ground truth is the caller's
+    to write); their ids in ``gt/ids`` follow the declared models'."""
 
     scene: Scene
     theta: torch.Tensor
     cameras: List[Camera]
     name: str
     source: dict
+    hidden: tuple = ()
 
 
 def thesis_motion(hia_root, sequence: str, frames: Optional[slice] = None, dtype=torch.float64) -> SyntheticFrames:
@@ -206,9 +210,14 @@ def write_synthetic_sequence(
                     cv2.imwrite(str(out / "gt" / "ids" / frame_name(k)), ids)
         bar.update(len(th))
     bar.close()
-    info = SequenceInfo(frames.name, cams, list(scene.names), N, has_rgb=rgb,
+    listed = [n for n in scene.names if n not in frames.hidden]
+    dofs = np.concatenate([np.arange(scene.slices[n].start, scene.slices[n].stop) for n in listed])
+    kps = np.concatenate([np.arange(scene.keypoint_slices[n].start, scene.keypoint_slices[n].stop, dtype=np.int64)
+                          for n in listed])
+    info = SequenceInfo(frames.name, cams, listed, N, has_rgb=rgb,
                         source={**frames.source, "noise": noise, "seed": seed})
-    write_sequence_info(out, info, init_theta=theta[0].cpu().numpy())
-    write_poses(out / "gt", Poses(theta.cpu().numpy(), kp3d, kp2d, list(scene.names), scene.dof_names,
-                                  scene.keypoint_names))
+    th = theta.cpu().numpy()[:, dofs]
+    write_sequence_info(out, info, init_theta=th[0])
+    write_poses(out / "gt", Poses(th, kp3d[:, :, kps], kp2d[:, :, kps], listed,
+                                  [scene.dof_names[d] for d in dofs], [scene.keypoint_names[k] for k in kps]))
     return out

@@ -45,6 +45,7 @@ __all__ = [
     "THESIS_MODEL_NAMES",
     "SYMMETRIES",
     "assets_from_thesis",
+    "rigid_assets",
     "save_assets",
     "load_assets",
     "model_dirs",
@@ -330,6 +331,23 @@ def _fingertip_groups(voi, fingertips, num_vertices, path) -> Dict[str, np.ndarr
         groups[f"{finger}_tip"] = tip
         groups[f"{finger}_tip_marks"] = marks[i].astype(np.int64)
     return groups
+
+
+def rigid_assets(name: str, vertices: np.ndarray, faces: np.ndarray, source: str = "",
+                 symmetry: Optional[str] = None) -> ModelAssets:
+    """A rigid object model (one bone, 6 DoF) of a triangle mesh (V, 3) mm, (F, 3).
+
+    The bone frame is the world frame of ``vertices`` (its root at their origin), so
+    the model's pose theta = (t, r) maps a mesh point x to ``so3_exp(r) x + t`` and the
+    vertices keep their order.
+    """
+    V = len(vertices)
+    return ModelAssets(
+        name=name, kind="object", side=None, bone_names=["object"], parents=np.array([-1], np.int64),
+        rest_transforms=np.eye(4)[None], bone_lengths=np.zeros(1), vertices=np.asarray(vertices, np.float64),
+        faces=np.asarray(faces, np.int64), skin_index=np.zeros((V, 1), np.int64), skin_weight=np.ones((V, 1)),
+        slot_axes=np.zeros((1, 3, 3)), slot_used=np.zeros((1, 3), bool), slot_limits=np.zeros((1, 3, 2)),
+        source=source, symmetry=symmetry)
 
 
 # ------------------------------------------------------------------ npz I/O

@@ -22,6 +22,11 @@ frame (:func:`segment_hands`):
    their palm centre (32 mm of forearm beyond the wrist), the default cut. No part
    reaching beyond ``reach_mm`` means no forearm in view: nothing is cut.
 
+``mode="skin"`` (in-hand scanning, thesis Sec. 5.3.1) needs the colour image: the
+hands are the skin-coloured pixels in the range (:func:`skin_mask`), their largest
+``hands`` connected blobs; the other valid pixels in the range (the held object) are
+*unknown* to the tracker (``cut``), not free space.
+
 With two hands the blobs are told apart by the image column of their palm centres
 (the right hand on the image's left for a camera facing the person, which is how the
 initialisation assigns them: :mod:`torchhand.tracking.initialization`).
@@ -40,10 +45,11 @@ import numpy as np
 
 from torchhand.geometry.camera import Camera
 
-__all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands", "SEGMENT_MODES"]
+__all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands", "skin_mask", "SEGMENT_MODES"]
 
-#: the segmentation modes: none (all valid data), range (the depth range only), auto
-SEGMENT_MODES = ("none", "range", "auto")
+#: the segmentation modes: none (all valid data), range (the depth range only), auto,
+#: skin (the skin-coloured pixels of the colour image)
+SEGMENT_MODES = ("none", "range", "auto", "skin")
 
 
 class SegmentationError(ValueError):
@@ -113,18 +119,49 @@ class Segmentation(NamedTuple):
         return out
 
 
+def skin_mask(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (H, W) bool skin-coloured pixels.
+
+    The explicit YCrCb rule of Chai and Ngan (1999), 133 <= Cr <= 173 and
+    77 <= Cb <= 127, a fixed box around skin tones that is independent of brightness;
+    the thesis uses the Gaussian mixtures of Jones and Rehg (2002), whose trained
+    parameters do not ship with it. Small specks are removed by a 3x3 opening.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"skin segmentation needs an (H, W, 3) uint8 RGB image, got {rgb.shape} {rgb.dtype}")
+    ycrcb = cv2.cvtColor(rgb, cv2.COLOR_RGB2YCrCb)
+    cr, cb = ycrcb[..., 1], ycrcb[..., 2]
+    mask = ((cr >= 133) & (cr <= 173) & (cb >= 77) & (cb <= 127)).astype(np.uint8)
+    return cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+
+
+def _skin_blobs(d: np.ndarray, valid: np.ndarray, rgb: Optional[np.ndarray], hands: int, where: str) -> list:
+    if rgb is None:
+        raise SegmentationError(f"{where}skin segmentation needs the colour frame, and the sequence has none")
+    skin = skin_mask(rgb) & valid
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(skin.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        raise SegmentationError(f"{where}no skin-coloured pixels with depth in range")
+    order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:hands] + 1
+    return [labels == k for k in order]
+
+
 def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = SegmentConfig(),
-                  frame: Optional[str] = None) -> Segmentation:
+                  frame: Optional[str] = None, rgb: Optional[np.ndarray] = None) -> Segmentation:
     """Segment the hands of one depth map (H, W) in mm (0 = no measurement).
 
-    ``frame`` names the frame in error messages. Raises :class:`SegmentationError` when
-    no hand-sized blob is in range, or (``strict``) when more blobs than hands stand in
+    ``frame`` names the frame in error messages; ``rgb``: the (H, W, 3) uint8 colour
+    frame, needed by ``mode="skin"``. Raises :class:`SegmentationError` when no
+    hand-sized blob is in range, or (``strict``) when more blobs than hands stand in
     front.
     """
     where = f"{frame}: " if frame else ""
     d = np.asarray(depth, np.float32)
     if d.shape != (camera.height, camera.width):
         raise ValueError(f"{where}depth has shape {d.shape}, the camera is {camera.height}x{camera.width}")
+    if rgb is not None and np.asarray(rgb).shape[:2] != d.shape:
+        raise ValueError(f"{where}colour frame has shape {np.asarray(rgb).shape}, the depth {d.shape}")
     valid = np.isfinite(d) & (d >= config.near) & (d <= config.far)
     d = np.where(valid, d, 0).astype(np.float32)
     if config.remove_plane and valid.any():
@@ -139,6 +176,8 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     fx, fy = camera.fx, camera.fy
     if config.mode in ("none", "range"):
         blobs = [valid]
+    elif config.mode == "skin":
+        blobs = _skin_blobs(d, valid, rgb, config.hands, where)
     else:
         blobs = _hand_blobs(d, valid, fx, fy, config, where)
     points = _points(d, camera)
@@ -152,6 +191,8 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
         out.append(keep)
         palms.append(palm)
         arms.append(arm)
+    if config.mode == "skin":  # the rest of the range is the held object: unknown, not free space
+        cut = valid & ~np.any(out, 0)
     order = np.argsort([_column(p, camera) for p in palms], kind="stable")
     out = [out[k] for k in order]
     mask = np.any(out, 0) if out else empty

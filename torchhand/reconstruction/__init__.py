@@ -1,0 +1,1 @@
+"""Reconstruction from depth: in-hand scanning of objects (thesis Ch. 5)."""

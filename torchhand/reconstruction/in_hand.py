@@ -1,0 +1,212 @@
+"""In-hand scanning (thesis Ch. 5): the object's motion from its data and the tracked
+hand, its depth fused into one closed surface.
+
+Per frame (:func:`scan`), given the object's depth (the tracked hand's pixels removed)
+and the tracked hand's vertices:
+
+1. contacts (Sec. 5.4.1, :func:`~torchhand.reconstruction.registration.contact_vertices`);
+2. the start pose: the frame moves as the contact vertices moved since the previous
+   frame (their rigid fit, the minimiser of Eq. 5.6 alone), so the grasp carries the
+   object across the frames where its own shape says nothing (a sphere, a cylinder);
+   where no end-effector touches the object's *visible* points (the fingers often hold
+   it on the side the camera does not see, and the hand's dilated silhouette is cut
+   from the data), the whole hand's vertices stand in for the contacts: the object
+   moves with the hand (its palm is the part the tracker sees best);
+3. refinement against the reconstruction so far (frame-to-model ICP, point-to-plane,
+   pairs within 5 mm, Eq. 5.7) together with the contact term (Eq. 5.6, weight
+   ``gamma_t``), one least-squares problem, from three starts: the grasp's motion,
+   the previous pose and a constant-velocity prediction; the result that fits the
+   reconstruction best (truncated point-to-plane cost) is kept, so a jump of the tracked
+   hand does not throw the object off where its shape holds it. The thesis refines by ICP alone after a
+   pairwise sparse alignment (SIFT and ISS/CSHOT features and contacts, Eq. 5.3-5.5);
+   keeping the contact term in the refinement holds a symmetric object where ICP has
+   no say, and the feature terms are left out: the objects to scan here are textureless
+   and smooth, where those features find nothing to match (thesis Fig. 5.4);
+4. the frame's points join the reconstruction's point cloud (voxel-downsampled) and its
+   depth the TSDF (:mod:`torchhand.reconstruction.fusion`).
+
+Without hand vertices (the KinectFusion-style baseline), every frame starts from the
+previous pose and is aligned by ICP alone.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Iterable, List, NamedTuple, Optional
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from torchhand.geometry.camera import depth_to_points_and_normals
+from torchhand.geometry.neighbors import PointIndex
+from torchhand.reconstruction.fusion import TSDF, FusionConfig, SurfaceMesh
+from torchhand.reconstruction.registration import (ContactConfig, RegistrationConfig, contact_vertices, kabsch,
+                                                   register_frame)
+
+__all__ = ["ScanConfig", "ScanResult", "ScanError", "scan"]
+
+
+class ScanError(ValueError):
+    """The sequence cannot be scanned (the object is never seen, or leaves the view);
+    the message names the frame."""
+
+
+class ScanConfig(NamedTuple):
+    """points: the most object points per frame used for registration (a random
+    subset); model_voxel: mm, the reconstruction's point spacing; min_points: a frame
+    with fewer object points is not registered nor fused (the hand covers the object);
+    lost_frames: that many such frames in a row end the scan with an error."""
+
+    registration: RegistrationConfig = RegistrationConfig()
+    contacts: ContactConfig = ContactConfig()
+    fusion: FusionConfig = FusionConfig()
+    points: int = 3000
+    model_voxel: float = 1.5
+    min_points: int = 150
+    lost_frames: int = 30
+
+
+class ScanResult(NamedTuple):
+    """mesh: the closed surface in the object frame; poses: (N, 4, 4) object ->
+    camera per frame (the object frame is frame 0's camera frame moved to the
+    centroid of frame 0's object points); fused: (N,) bool the frames fused;
+    contacts: (N,) contact vertices per frame; icp_pairs: (N,); seconds: (N,) per frame
+    (registration and fusion)."""
+
+    mesh: SurfaceMesh
+    poses: np.ndarray
+    fused: np.ndarray
+    contacts: np.ndarray
+    icp_pairs: np.ndarray
+    seconds: np.ndarray
+
+
+def _points(depth: np.ndarray, K: torch.Tensor):
+    d = torch.as_tensor(np.nan_to_num(np.asarray(depth, np.float64), nan=0.0))[None]
+    p, n = depth_to_points_and_normals(d, K.double())
+    keep = (d[0] > 0) & (n[0].norm(dim=-1) > 0.5)
+    return p[0][keep], n[0][keep]
+
+
+def _voxel_merge(points: torch.Tensor, normals: torch.Tensor, voxel: float):
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.numpy()))
+    pc.normals = o3d.utility.Vector3dVector(normals.numpy())
+    pc = pc.voxel_down_sample(voxel)
+    n = torch.as_tensor(np.asarray(pc.normals))
+    return torch.as_tensor(np.asarray(pc.points)), n / n.norm(dim=1, keepdim=True).clamp_min(1e-9)
+
+
+def _fit_cost(points, X, index, model_p, model_n, radius) -> float:
+    """The truncated point-to-plane cost of a frame at pose X: mean of min(d, radius)^2
+    over its points, unpaired points charged radius^2 (the robust fit measure that
+    chooses between registration starts)."""
+    q = points @ X[:3, :3].T + X[:3, 3]
+    nn = index.nearest(q[None], torch.zeros(1, dtype=torch.int64), torch.zeros(1, len(q), dtype=torch.int64))[0]
+    d = ((q - model_p[nn.clamp_min(0)]) * model_n[nn.clamp_min(0)]).sum(1).abs().clamp_max(radius)
+    d = torch.where(nn >= 0, d, torch.full_like(d, radius))
+    return float(d.pow(2).mean())
+
+
+def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Optional[Iterable[torch.Tensor]] = None,
+         effectors: Optional[List[torch.Tensor]] = None, config: ScanConfig = ScanConfig(), frames: Optional[int] = None,
+         seed: int = 0, progress: bool = True, desc: str = "scan") -> ScanResult:
+    """Reconstruct the object seen in ``depths``.
+
+    Args:
+        depths: per frame, the object's depth (H, W) mm (0 or NaN where not the object).
+        K: (3, 3) intrinsics; width, height: of the depth maps.
+        hands: per frame, the tracked hand's (V, 3) vertices in the camera frame (None:
+            the baseline without the hand).
+        effectors: vertex ids (k_e,) of each end-effector (distal bone) of the hand.
+        frames: the number of frames (for the progress bar).
+    Returns:
+        :class:`ScanResult`. Raises :class:`ScanError` when the object is never seen
+        apart from the hand, or is lost for ``config.lost_frames`` frames in a row.
+    """
+    K = torch.as_tensor(np.asarray(K, np.float64))
+    g = torch.Generator().manual_seed(seed)
+    tsdf = TSDF(K.numpy(), width, height, config.fusion)
+    hands_it = iter(hands) if hands is not None else None
+    poses, fused, n_contacts, n_pairs, secs = [], [], [], [], []
+    X = None  # camera -> object of the last registered frame
+    X_before = None  # and of the one before it
+    model_p = model_n = None
+    prev_hand = None
+    missing = 0
+    bar = tqdm(total=frames, desc=desc, unit="frame", disable=not progress)
+    for f, depth in enumerate(depths):
+        t0 = time.perf_counter()
+        hand = next(hands_it).detach().double().cpu() if hands_it is not None else None
+        p, n = _points(depth, K)
+        if len(p) > config.points:
+            pick = torch.randperm(len(p), generator=g)[: config.points]
+            ps = p[pick]
+        else:
+            ps = p
+        ok = len(p) >= config.min_points
+        contacts = torch.zeros(0, dtype=torch.int64)
+        if ok and hand is not None and effectors is not None:
+            contacts = contact_vertices(hand, effectors, p, config.contacts)
+        pairs = 0
+        if not ok:
+            missing += 1
+            if X is None and missing >= config.lost_frames:
+                bar.close()
+                raise ScanError(f"frame {f}: the object is not seen apart from the hand in the first {missing} "
+                                "frames (it never leaves the hand's silhouette, or the depth range cuts it)")
+            if missing >= config.lost_frames:
+                bar.close()
+                raise ScanError(f"frame {f}: the object has not been seen for {missing} frames in a row "
+                                "(it left the view or the hand covers it)")
+        elif X is None:  # frame 0 of the reconstruction: the object frame
+            X = torch.eye(4, dtype=torch.float64)
+            X[:3, 3] = -p.mean(0)
+            model_p, model_n = _voxel_merge(p + X[:3, 3], n, config.model_voxel)
+            missing = 0
+        else:
+            start, ids = X, contacts[:0]
+            if hand is not None and prev_hand is not None:
+                # the contact vertices, or the whole hand's when none touches the data
+                # seen (the fingers hold the object where the camera does not see it)
+                ids = contacts if len(contacts) >= 3 else torch.arange(len(hand))
+                # x_prev = A x_now for those vertices: the grasp's motion
+                start = X @ kabsch(hand[ids], prev_hand[ids])
+            c_now = hand[ids] if len(ids) else p[:0]
+            c_model = (prev_hand[ids] @ X[:3, :3].T + X[:3, 3]) if len(ids) else p[:0]
+            index = PointIndex(model_p, torch.zeros(len(model_p), dtype=torch.int64),
+                               torch.zeros(len(model_p), dtype=torch.int64), 1, 1, config.registration.icp_distance)
+            starts = [start, X] if start is not X else [X]
+            if X_before is not None:  # constant velocity
+                starts.append(X @ torch.linalg.inv(X_before) @ X)
+            regs = [register_frame(ps, s0, index, model_p, model_n, c_now, c_model, config.registration)
+                    for s0 in starts]
+            costs = [_fit_cost(ps, r.X, index, model_p, model_n, config.registration.icp_distance) for r in regs]
+            reg = regs[int(np.argmin(costs))]
+            X_before = X
+            X, pairs = reg.X, reg.icp_pairs
+            R = X[:3, :3]
+            model_p, model_n = _voxel_merge(torch.cat([model_p, p @ R.T + X[:3, 3]]),
+                                            torch.cat([model_n, n @ R.T]), config.model_voxel)
+            missing = 0
+        if ok and X is not None:
+            tsdf.integrate(depth, torch.linalg.inv(X).numpy())
+        if hand is not None:
+            prev_hand = hand
+        poses.append(torch.linalg.inv(X).numpy() if X is not None else np.full((4, 4), np.nan))
+        fused.append(bool(ok and X is not None))
+        n_contacts.append(len(contacts))
+        n_pairs.append(pairs)
+        secs.append(time.perf_counter() - t0)
+        bar.update(1)
+    bar.close()
+    if X is None:
+        raise ScanError("no frame shows the object apart from the hand")
+    t0 = time.perf_counter()
+    mesh = tsdf.surface()
+    secs[-1] += time.perf_counter() - t0
+    # frames before the first registered one keep NaN poses
+    return ScanResult(mesh, np.stack(poses), np.array(fused), np.array(n_contacts), np.array(n_pairs),
+                      np.array(secs))

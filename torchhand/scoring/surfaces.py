@@ -1,0 +1,126 @@
+"""Scores of a reconstructed surface and of an estimated object trajectory against the
+truth (in-hand scanning, thesis Ch. 5).
+
+The reconstruction is first aligned rigidly to the true mesh (from a given start, then
+point-to-point ICP on dense surface samples: the error of the shape, not of where its
+frame happens to lie); the errors are then distances between uniform samples of the
+two surfaces: each sample to the nearest point of the *other surface* (not to its
+samples), both ways.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["SurfaceErrors", "surface_errors", "trajectory_errors", "score_scan"]
+
+
+class SurfaceErrors(NamedTuple):
+    """mean_mm: the symmetric mean surface distance (mean of the two directions);
+    hausdorff95_mm: the larger of the two directions' 95th percentiles;
+    to_truth_mm / from_truth_mm: mean of each direction (accuracy / completeness);
+    watertight: of the reconstruction; alignment: (4, 4) reconstruction -> truth."""
+
+    mean_mm: float
+    hausdorff95_mm: float
+    to_truth_mm: float
+    from_truth_mm: float
+    watertight: bool
+    alignment: np.ndarray
+
+
+def _tmesh(v, f):
+    import trimesh
+
+    return trimesh.Trimesh(np.asarray(v, np.float64), np.asarray(f, np.int64), process=False)
+
+
+def _distance(points: np.ndarray, mesh) -> np.ndarray:
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
+
+
+def surface_errors(vertices: np.ndarray, faces: np.ndarray, truth_vertices: np.ndarray, truth_faces: np.ndarray,
+                   start: np.ndarray = np.eye(4), samples: int = 20000, seed: int = 0,
+                   icp_distance: float = 10.0) -> SurfaceErrors:
+    """Score a reconstruction (V, 3), (F, 3) against the truth (mm).
+
+    ``start``: (4, 4) initial reconstruction -> truth transform (e.g. from the first
+    frame's poses), refined by point-to-point ICP (open3d, pairs within
+    ``icp_distance`` mm) on ``samples`` surface samples.
+    """
+    import open3d as o3d
+    import trimesh
+
+    rec, tru = _tmesh(vertices, faces), _tmesh(truth_vertices, truth_faces)
+    watertight = bool(rec.is_watertight)
+    rs = np.asarray(trimesh.sample.sample_surface(rec, samples, seed=seed)[0])
+    ts = np.asarray(trimesh.sample.sample_surface(tru, samples, seed=seed + 1)[0])
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rs))
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ts))
+    T = np.asarray(start, np.float64)
+    for d in (icp_distance, icp_distance / 3):
+        T = o3d.pipelines.registration.registration_icp(
+            src, dst, d, T, o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)).transformation
+    moved = rs @ T[:3, :3].T + T[:3, 3]
+    rec_moved = _tmesh(np.asarray(vertices) @ T[:3, :3].T + T[:3, 3], faces)
+    a = _distance(moved, tru)  # reconstruction -> truth
+    b = _distance(ts, rec_moved)  # truth -> reconstruction
+    return SurfaceErrors(float((a.mean() + b.mean()) / 2), float(max(np.percentile(a, 95), np.percentile(b, 95))),
+                         float(a.mean()), float(b.mean()), watertight, T)
+
+
+def trajectory_errors(poses: np.ndarray, truth: np.ndarray, centre: np.ndarray) -> dict:
+    """Errors of an object's motion relative to frame 0.
+
+    Args:
+        poses: (N, 4, 4) estimated object -> camera (NaN rows: not estimated).
+        truth: (N, 4, 4) true object -> camera (any object frame: only motion counts).
+        centre: (3,) a point of the object in frame 0's camera coordinates (its centre).
+    Returns:
+        ``rotation_deg`` and ``translation_mm`` (of ``centre``): mean, max; ``frames``.
+    """
+    ok = np.isfinite(poses).all((1, 2))
+    k0 = int(np.argmax(ok))
+    rot, tra = [], []
+    for k in np.nonzero(ok)[0]:
+        Me = poses[k] @ np.linalg.inv(poses[k0])
+        Mg = truth[k] @ np.linalg.inv(truth[k0])
+        dR = Me[:3, :3] @ Mg[:3, :3].T
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        tra.append(np.linalg.norm((Me[:3, :3] @ centre + Me[:3, 3]) - (Mg[:3, :3] @ centre + Mg[:3, 3])))
+    rot, tra = np.array(rot), np.array(tra)
+    return {"rotation_deg": {"mean": float(rot.mean()), "max": float(rot.max())},
+            "translation_mm": {"mean": float(tra.mean()), "max": float(tra.max())}, "frames": int(ok.sum())}
+
+
+def score_scan(scan_dir, sequence_dir) -> dict:
+    """Score the output of ``torchhand scan`` (``model.npz``, ``object_pose.npy``)
+    against a synthetic scan's ``gt/object.ply`` and ``gt/object_pose.npy``: the
+    surface (:func:`surface_errors`, started from frame 0's poses) and the motion
+    (:func:`trajectory_errors`)."""
+    from pathlib import Path
+
+    from torchhand.io.assets import load_assets
+    from torchhand.io.mesh_files import read_object_mesh
+
+    scan_dir, gt = Path(scan_dir), Path(sequence_dir) / "gt"
+    model = load_assets(scan_dir / "model.npz")
+    truth = read_object_mesh(gt / "object.ply")
+    poses = np.load(scan_dir / "object_pose.npy")
+    true_poses = np.load(gt / "object_pose.npy")
+    ok = np.isfinite(poses).all((1, 2))
+    k0 = int(np.argmax(ok))
+    start = np.linalg.inv(true_poses[k0]) @ poses[k0]
+    surf = surface_errors(model.vertices, model.faces, truth.vertices, truth.faces, start)
+    centre = true_poses[k0][:3, :3] @ truth.vertices.mean(0) + true_poses[k0][:3, 3]
+    return {"mean_mm": surf.mean_mm, "hausdorff95_mm": surf.hausdorff95_mm, "to_truth_mm": surf.to_truth_mm,
+            "from_truth_mm": surf.from_truth_mm, "watertight": surf.watertight,
+            "trajectory": trajectory_errors(poses, true_poses, centre)}
