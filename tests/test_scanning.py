@@ -148,8 +148,10 @@ def test_scan_with_the_true_hand_follows_the_object(scan_seq):
     from torchhand.scoring.surfaces import trajectory_errors
 
     mesh = read_object_mesh(scan_seq / "gt" / "object.ply")
-    centre = truth[0, :3, :3] @ mesh.vertices.mean(0) + truth[0, :3, 3]
-    err = trajectory_errors(res.poses, truth, centre)
+    err = trajectory_errors(res.poses, truth, mesh.vertices)
+    assert err["add_s_mm"]["max"] <= err["add_mm"]["max"] + 1e-9
+    exact = trajectory_errors(truth, truth, mesh.vertices)
+    assert exact["add_mm"]["max"] < 1e-9 and exact["rotation_deg"]["max"] < 1e-5
     assert err["rotation_deg"]["max"] < 2.5 and err["translation_mm"]["max"] < 3.0
     assert res.mesh.watertight and res.fused.all()
 

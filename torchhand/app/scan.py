@@ -54,7 +54,7 @@ def _effectors(hand: ArticulatedModel) -> list:
 
 
 def scan_folder(root, out, hand: str = "hand_right", force: bool = False, config: ScanConfig = ScanConfig(),
-                baseline: bool = False, near: float = 200.0, far: float = 1500.0, dilation: int = 5,
+                baseline: bool = False, near: float = 200.0, far: float = 1500.0, dilation: int = 5, erode: int = 0, reinit_iou: float = 0.0,
                 overlay_every: int = 10, progress: bool = True) -> dict:
     """Scan the object of the sequence folder ``root`` into the new folder ``out``
     (module docstring). Returns the scan log (also written as ``scan_log.json``)."""
@@ -75,7 +75,7 @@ def scan_folder(root, out, hand: str = "hand_right", force: bool = False, config
             raise ScanError(f"{root}: in-hand scanning segments the hand by skin colour and needs rgb/ frames")
         segment = SegmentConfig(mode="skin", near=near, far=far)
         summary = track_sequences([root], work, segment=segment, models=[hand], names=["hand"], progress=progress,
-                                  reinit_iou=0.0)[0]
+                                  reinit_iou=reinit_iou)[0]
         if summary["status"] != "ok":
             raise ScanError(f"{root}: the hand could not be tracked: {summary.get('error')}")
         track_seconds = time.perf_counter() - t0
@@ -101,6 +101,8 @@ def scan_folder(root, out, hand: str = "hand_right", force: bool = False, config
             if not baseline:
                 rgb = read_rgb(camera_dir(root, 0) / "rgb" / frame_name(f))
                 d[hand_masks[f] | skin_mask(rgb)] = 0
+                if erode:  # the object's outline: mixed and noisy pixels of the sensor
+                    d[cv2.erode((d > 0).astype(np.uint8), np.ones((2 * erode + 1,) * 2, np.uint8)) == 0] = 0
                 _check_in_view(d, f, root)
             yield d
 

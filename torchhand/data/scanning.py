@@ -6,10 +6,12 @@ the palm, then every finger (the thumb along the path that brings its tip to the
 object) flexes until it touches the surface or its joints reach their limits; the
 fingers that stopped on the surface are the grasp's contacts. :func:`scan_motion` turns
 the hand and object as one rigid unit about the object's centre: two full turns about
-the camera's vertical axis while the object tilts by up to ``tilt`` degrees towards
-and away from the camera, so that its top and bottom come into view as well (a
-turntable's views, held by a hand; a wrist cannot turn 720 degrees, a person regrasps,
-which the synthetic sequence leaves out). :func:`write_scan_sequence` renders it with
+the camera's vertical axis while the object tilts by up to ``tilt`` degrees towards and
+away from the camera, so that its top and bottom come into view as well (a turntable's
+views, held by a hand; a wrist cannot turn 720 degrees, a person regrasps, which the
+synthetic sequence leaves out). A spin about the palm's normal, which keeps the object
+in front of the hand, was tried: the hand seen palm-on with curled fingers was lost by
+the tracker after 80 frames (docs/scanning.md). :func:`write_scan_sequence` renders it with
 the sensor noise into the sequence layout: ``sequence.json`` lists the hand only
 (the object is what the scan must find), ``gt/`` holds the hand's poses as usual plus
 ``gt/object_pose.npy`` (N, 4, 4), the transform from the mesh's own coordinates to
@@ -48,12 +50,16 @@ _PROFILE = (0.75, 1.0, 0.8)
 class Grasp(NamedTuple):
     """theta: (D,) the hand's pose with its root at the identity; object_to_hand: (4, 4)
     the transform from the mesh's coordinates to the hand's (root) frame; contacts: the
-    fingers resting on the surface; gap: mm between the palm and the object."""
+    fingers resting on the surface; gap: mm between the palm and the object; normal,
+    length: (3,) the palm's normal (towards the object) and the wrist-to-fingers axis,
+    in the hand's frame."""
 
     theta: np.ndarray
     object_to_hand: np.ndarray
     contacts: List[str]
     gap: float
+    normal: np.ndarray
+    length: np.ndarray
 
 
 def _occupancy(mesh: ObjectMesh):
@@ -69,8 +75,13 @@ def _occupancy(mesh: ObjectMesh):
     return inside
 
 
-def grasp(hand: ArticulatedModel, mesh: ObjectMesh, gap: float = 5.0, seed: int = 0, steps: int = 12) -> Grasp:
+def grasp(hand: ArticulatedModel, mesh: ObjectMesh, gap: Optional[float] = None, seed: int = 0,
+          steps: int = 12) -> Grasp:
     """Close ``hand`` (a shipped hand model) around ``mesh``.
+
+    ``gap`` None: the largest of 20, 12 and 5 mm at which the thumb and at least one
+    finger touch the object (a grasp held by the finger tips leaves more of the object in
+    view than one that wraps it); the 5 mm grasp when none does.
 
     The object, turned by a random rotation drawn from ``seed``, is placed in front of
     the palm at ``gap`` mm from it, its centre over the bases of the middle fingers;
@@ -80,6 +91,12 @@ def grasp(hand: ArticulatedModel, mesh: ObjectMesh, gap: float = 5.0, seed: int 
     path in its joint space towards the posture that brings its tip nearest to the
     object's centre, until it touches.
     """
+    if gap is None:
+        for g in (20.0, 12.0, 5.0):
+            best = grasp(hand, mesh, g, seed, steps)
+            if "thumb" in best.contacts and len(best.contacts) >= 2:
+                break
+        return best
     inside = _occupancy(mesh)
     theta = hand.zero_pose(1)[0].clone()
     fingers = {f: [int(b) for b in bones] for f, bones in finger_bones(hand).items()}
@@ -130,7 +147,7 @@ def grasp(hand: ArticulatedModel, mesh: ObjectMesh, gap: float = 5.0, seed: int 
     theta = theta + s * (thumb_path - theta)
     if s < 1.0:
         contacts.append("thumb")
-    return Grasp(theta.double().numpy(), to_hand, contacts, float(gap))
+    return Grasp(theta.double().numpy(), to_hand, contacts, float(gap), normal, length)
 
 
 class _ObjectInHand:
@@ -205,6 +222,12 @@ def _quat(q: np.ndarray) -> torch.Tensor:
                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]], dtype=torch.float64)
 
 
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
 def _rot(axis: int, angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     R = np.eye(3)
@@ -243,13 +266,15 @@ def scan_motion(mesh: ObjectMesh, hand_name: str = "hand_right", frames: Optiona
     scene = Scene([hand, obj], [hand_name, OBJECT_NAME])
     centre_mesh = mesh.vertices.mean(0)
     centre_hand = g.object_to_hand[:3, :3] @ centre_mesh + g.object_to_hand[:3, 3]
-    # start: palm towards the camera's right, the object in front of the hand
+    # start: palm towards the camera's right, the object in front of the hand; then two
+    # turns about the camera's vertical axis while tilting about its horizontal axis
     R0 = _rot(1, -math.pi / 2)
     root = hand.rest_transforms[0, :3, 3].double().numpy()
     theta = np.zeros((frames, scene.num_dofs))
     poses = np.zeros((frames, 4, 4))
     for k in range(frames):
-        R = _rot(1, 2 * math.pi * turns * k / frames) @ _rot(0, math.radians(tilt) * math.sin(3 * math.pi * k / frames)) @ R0
+        R = (_rot(1, 2 * math.pi * turns * k / frames) @ _rot(0, math.radians(tilt) * math.sin(3 * math.pi * k / frames))
+             @ R0)
         # hand frame -> camera: x -> R (x - centre_hand) + P
         A_R, A_t = R, np.array([0.0, 0.0, distance]) - R @ centre_hand
         th_hand = g.theta.copy()

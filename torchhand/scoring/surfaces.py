@@ -77,28 +77,47 @@ def surface_errors(vertices: np.ndarray, faces: np.ndarray, truth_vertices: np.n
                          float(a.mean()), float(b.mean()), watertight, T)
 
 
-def trajectory_errors(poses: np.ndarray, truth: np.ndarray, centre: np.ndarray) -> dict:
-    """Errors of an object's motion relative to frame 0.
+def trajectory_errors(poses: np.ndarray, truth: np.ndarray, vertices: np.ndarray, max_points: int = 2000) -> dict:
+    """Errors of an object's motion relative to frame 0 (the first estimated frame).
 
     Args:
         poses: (N, 4, 4) estimated object -> camera (NaN rows: not estimated).
-        truth: (N, 4, 4) true object -> camera (any object frame: only motion counts).
-        centre: (3,) a point of the object in frame 0's camera coordinates (its centre).
+        truth: (N, 4, 4) true mesh -> camera.
+        vertices: (M, 3) the true mesh's vertices (its own coordinates).
     Returns:
-        ``rotation_deg`` and ``translation_mm`` (of ``centre``): mean, max; ``frames``.
+        per frame and summarised (mean, max): ``rotation_deg`` and ``translation_mm`` (of
+        the mesh's centre) of the estimated motion against the true one; ``add_mm``: the
+        mean distance between the mesh's vertices moved by the two motions; ``add_s_mm``:
+        from each truly moved vertex to the nearest vertex moved by the estimate (ADD-S:
+        a symmetric object's motion counts up to its symmetry, as for the tracker's
+        scores); ``frames``.
     """
+    from scipy.spatial import cKDTree
+
     ok = np.isfinite(poses).all((1, 2))
     k0 = int(np.argmax(ok))
-    rot, tra = [], []
+    V = np.asarray(vertices, np.float64)
+    if len(V) > max_points:
+        V = V[np.random.default_rng(0).choice(len(V), max_points, replace=False)]
+    pts0 = V @ truth[k0][:3, :3].T + truth[k0][:3, 3]
+    centre = pts0.mean(0)
+    rot, tra, add, adds = [], [], [], []
     for k in np.nonzero(ok)[0]:
         Me = poses[k] @ np.linalg.inv(poses[k0])
         Mg = truth[k] @ np.linalg.inv(truth[k0])
         dR = Me[:3, :3] @ Mg[:3, :3].T
         rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
         tra.append(np.linalg.norm((Me[:3, :3] @ centre + Me[:3, 3]) - (Mg[:3, :3] @ centre + Mg[:3, 3])))
-    rot, tra = np.array(rot), np.array(tra)
-    return {"rotation_deg": {"mean": float(rot.mean()), "max": float(rot.max())},
-            "translation_mm": {"mean": float(tra.mean()), "max": float(tra.max())}, "frames": int(ok.sum())}
+        pe, pg = pts0 @ Me[:3, :3].T + Me[:3, 3], pts0 @ Mg[:3, :3].T + Mg[:3, 3]
+        add.append(np.linalg.norm(pe - pg, axis=1).mean())
+        adds.append(cKDTree(pe).query(pg)[0].mean())
+
+    def summary(x):
+        x = np.array(x)
+        return {"mean": float(x.mean()), "max": float(x.max())}
+
+    return {"rotation_deg": summary(rot), "translation_mm": summary(tra), "add_mm": summary(add),
+            "add_s_mm": summary(adds), "frames": int(ok.sum())}
 
 
 def score_scan(scan_dir, sequence_dir) -> dict:
@@ -120,7 +139,6 @@ def score_scan(scan_dir, sequence_dir) -> dict:
     k0 = int(np.argmax(ok))
     start = np.linalg.inv(true_poses[k0]) @ poses[k0]
     surf = surface_errors(model.vertices, model.faces, truth.vertices, truth.faces, start)
-    centre = true_poses[k0][:3, :3] @ truth.vertices.mean(0) + true_poses[k0][:3, 3]
     return {"mean_mm": surf.mean_mm, "hausdorff95_mm": surf.hausdorff95_mm, "to_truth_mm": surf.to_truth_mm,
             "from_truth_mm": surf.from_truth_mm, "watertight": surf.watertight,
-            "trajectory": trajectory_errors(poses, true_poses, centre)}
+            "alignment": surf.alignment.tolist(), "trajectory": trajectory_errors(poses, true_poses, truth.vertices)}

@@ -136,15 +136,26 @@ def skin_mask(rgb: np.ndarray) -> np.ndarray:
     return cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
 
 
-def _skin_blobs(d: np.ndarray, valid: np.ndarray, rgb: Optional[np.ndarray], hands: int, where: str) -> list:
+def _skin_blobs(d: np.ndarray, valid: np.ndarray, rgb: Optional[np.ndarray], hands: int, where: str,
+                min_pixels: int = 20) -> list:
     if rgb is None:
         raise SegmentationError(f"{where}skin segmentation needs the colour frame, and the sequence has none")
     skin = skin_mask(rgb) & valid
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(skin.astype(np.uint8), connectivity=8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(skin.astype(np.uint8), connectivity=8)
     if n <= 1:
         raise SegmentationError(f"{where}no skin-coloured pixels with depth in range")
-    order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:hands] + 1
-    return [labels == k for k in order]
+    # the hand's skin falls apart where the held object covers it: every fragment of at
+    # least min_pixels goes to the nearest of the ``hands`` largest blobs
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(-areas) + 1
+    seeds = order[:hands]
+    blobs = [labels == k for k in seeds]
+    for k in order[hands:]:
+        if stats[k, cv2.CC_STAT_AREA] < min_pixels:
+            continue
+        d2 = [np.sum((centroids[k] - centroids[j]) ** 2) for j in seeds]
+        blobs[int(np.argmin(d2))] |= labels == k
+    return blobs
 
 
 def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = SegmentConfig(),
