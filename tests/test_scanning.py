@@ -206,3 +206,16 @@ def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
         cv2.imwrite(str(seq / "rgb" / f"{f:06d}.png"), cv2.cvtColor(skin, cv2.COLOR_RGB2BGR))
     assert main(["scan", str(seq), "--out", str(tmp_path / "o")]) == 2
     assert "apart from the hand" in capsys.readouterr().err
+
+
+def test_synth_scan_object_command(tmp_path, box_path, capsys):
+    out = tmp_path / "s"
+    assert main(["synth", "--scan-object", str(box_path), "--out", str(out), "--frames", ":4", "--noise", "none"]) == 0
+    assert "in-hand scan" in capsys.readouterr().out
+    assert np.load(out / "gt" / "object_pose.npy").shape == (4, 4, 4)
+    metres = tmp_path / "m.obj"
+    trimesh.creation.box((0.05, 0.04, 0.07)).export(metres)
+    assert main(["synth", "--scan-object", str(metres), "--out", str(tmp_path / "m")]) == 2
+    assert "metres" in capsys.readouterr().err
+    assert main(["synth", "--scan-object", str(box_path), "--out", str(out), "--frames", ":4"]) == 2  # not empty
+    assert "not empty" in capsys.readouterr().err

@@ -242,11 +242,13 @@ def scan_frames(turns: float = 2.0, degrees_per_frame: float = DEGREES_PER_FRAME
 
 
 def scan_motion(mesh: ObjectMesh, hand_name: str = "hand_right", frames: Optional[int] = None, seed: int = 0,
-                distance: float = 550.0, tilt: float = 40.0, turns: float = 2.0,
+                distance: Optional[float] = None, tilt: float = 40.0, turns: float = 2.0,
                 dtype=torch.float64) -> SyntheticFrames:
     """The grasp of :func:`grasp` turned in front of the thesis camera.
 
-    The object's centre stays ``distance`` mm in front of the camera; at frame k the
+    The object's centre stays ``distance`` mm in front of the camera (None: 550 mm, or
+    450 mm plus half the object's largest extent for a long one, so that no part of it
+    comes nearer than the Kinect's 400 mm minimum range as it turns); at frame k the
     unit has turned by ``turns * 360 * k / frames`` degrees about the camera's vertical
     axis and is tilted by ``tilt * sin(3 pi k / frames)`` degrees about its horizontal
     axis. Returns frames of the scene ``[hand_name, "object"]`` with the object hidden
@@ -261,6 +263,8 @@ def scan_motion(mesh: ObjectMesh, hand_name: str = "hand_right", frames: Optiona
     if hand.kind != "hand":
         raise ValueError(f"--hand {hand_name!r} is not a hand model")
     g = grasp(hand, mesh, seed=seed)
+    if distance is None:
+        distance = max(550.0, 450.0 + float(mesh.extent.max()) / 2)
     obj = ArticulatedModel(rigid_assets(OBJECT_NAME, mesh.vertices, mesh.faces, source=str(mesh.path or "")),
                            dtype=dtype)
     scene = Scene([hand, obj], [hand_name, OBJECT_NAME])
