@@ -11,13 +11,16 @@ and the tracked hand's vertices:
    where no end-effector touches the object's *visible* points (the fingers often hold
    it on the side the camera does not see, and the hand's dilated silhouette is cut
    from the data), the whole hand's vertices stand in for the contacts: the object
-   moves with the hand (its palm is the part the tracker sees best);
+   moves with the hand (its palm is the part the tracker sees best); a frame where the
+   hand hides the object moves it with the whole hand;
 3. refinement against the reconstruction so far (frame-to-model ICP, point-to-plane,
    pairs within 5 mm, Eq. 5.7) together with the contact term (Eq. 5.6, weight
    ``gamma_t``), one least-squares problem, from three starts: the grasp's motion,
-   the previous pose and a constant-velocity prediction; the result that fits the
-   reconstruction best (truncated point-to-plane cost) is kept, so a jump of the tracked
-   hand does not throw the object off where its shape holds it. The thesis refines by ICP alone after a
+   the previous pose and a constant-velocity prediction; the result with the lowest
+   objective (truncated point-to-plane cost plus ``gamma_t`` times the contact cost) is
+   kept, so a jump of the tracked hand does not throw the object off where its shape
+   holds it, and where its shape says nothing (a turn about a symmetry axis) the
+   hand decides; The thesis refines by ICP alone after a
    pairwise sparse alignment (SIFT and ISS/CSHOT features and contacts, Eq. 5.3-5.5);
    keeping the contact term in the refinement holds a symmetric object where ICP has
    no say, and the feature terms are left out: the objects to scan here are textureless
@@ -56,7 +59,10 @@ class ScanConfig(NamedTuple):
     """points: the most object points per frame used for registration (a random
     subset); model_voxel: mm, the reconstruction's point spacing; min_points: a frame
     with fewer object points is not registered nor fused (the hand covers the object);
-    lost_frames: that many such frames in a row end the scan with an error."""
+    lost_frames: that many such frames in a row end the scan with an error;
+    refine_passes: passes that align every fused frame again to the reconstruction of
+    all frames (ICP alone, from its pose) before the depth is fused (0: fuse as the
+    frames come)."""
 
     registration: RegistrationConfig = RegistrationConfig()
     contacts: ContactConfig = ContactConfig()
@@ -65,6 +71,7 @@ class ScanConfig(NamedTuple):
     model_voxel: float = 1.5
     min_points: int = 150
     lost_frames: int = 30
+    refine_passes: int = 1
 
 
 class ScanResult(NamedTuple):
@@ -110,6 +117,32 @@ def _fit_cost(points, X, index, model_p, model_n, radius) -> float:
     return float(d.pow(2).mean())
 
 
+def _refine(kept: dict, Xs: dict, model_p, model_n, K, width: int, height: int, config: "ScanConfig"):
+    """One refinement pass: every fused frame aligned again, by ICP alone from its pose,
+    to the reconstruction of all frames (no longer only the frames before it), and
+    fused into a new TSDF. Returns the new poses and the TSDF."""
+    index = PointIndex(model_p, torch.zeros(len(model_p), dtype=torch.int64),
+                       torch.zeros(len(model_p), dtype=torch.int64), 1, 1, config.registration.icp_distance)
+    tsdf = TSDF(K.numpy(), width, height, config.fusion)
+    out = {}
+    none = model_p[:0]
+    for f, (ps, flat, vals) in kept.items():
+        reg = register_frame(ps, Xs[f], index, model_p, model_n, none, none, config.registration)
+        out[f] = reg.X
+        d = np.zeros(height * width, np.float32)
+        d[flat] = vals
+        tsdf.integrate(d.reshape(height, width), torch.linalg.inv(reg.X).numpy())
+    return out, tsdf
+
+
+def _contact_cost(X, contacts_now, contacts_model) -> float:
+    """Mean squared distance of the contact vertices moved by X to where the grasp puts
+    them (the contact term per vertex; 0 without contacts)."""
+    if len(contacts_now) == 0:
+        return 0.0
+    return float((contacts_now @ X[:3, :3].T + X[:3, 3] - contacts_model).pow(2).sum(1).mean())
+
+
 def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Optional[Iterable[torch.Tensor]] = None,
          effectors: Optional[List[torch.Tensor]] = None, config: ScanConfig = ScanConfig(), frames: Optional[int] = None,
          seed: int = 0, progress: bool = True, desc: str = "scan") -> ScanResult:
@@ -136,6 +169,7 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
     model_p = model_n = None
     prev_hand = None
     missing = 0
+    kept, Xs = {}, {}  # per fused frame: (points, depth pixels, depth values); its pose
     bar = tqdm(total=frames, desc=desc, unit="frame", disable=not progress)
     for f, depth in enumerate(depths):
         t0 = time.perf_counter()
@@ -161,6 +195,9 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
                 bar.close()
                 raise ScanError(f"frame {f}: the object has not been seen for {missing} frames in a row "
                                 "(it left the view or the hand covers it)")
+            if X is not None and hand is not None and prev_hand is not None:
+                # unseen (the hand covers it): the object moves with the whole hand
+                X = X @ kabsch(hand, prev_hand)
         elif X is None:  # frame 0 of the reconstruction: the object frame
             X = torch.eye(4, dtype=torch.float64)
             X[:3, 3] = -p.mean(0)
@@ -183,7 +220,8 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
                 starts.append(X @ torch.linalg.inv(X_before) @ X)
             regs = [register_frame(ps, s0, index, model_p, model_n, c_now, c_model, config.registration)
                     for s0 in starts]
-            costs = [_fit_cost(ps, r.X, index, model_p, model_n, config.registration.icp_distance) for r in regs]
+            costs = [_fit_cost(ps, r.X, index, model_p, model_n, config.registration.icp_distance)
+                     + config.registration.gamma_t * _contact_cost(r.X, c_now, c_model) for r in regs]
             reg = regs[int(np.argmin(costs))]
             X_before = X
             X, pairs = reg.X, reg.icp_pairs
@@ -192,7 +230,12 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
                                             torch.cat([model_n, n @ R.T]), config.model_voxel)
             missing = 0
         if ok and X is not None:
-            tsdf.integrate(depth, torch.linalg.inv(X).numpy())
+            if config.refine_passes:  # kept for the refinement: the subset and the depth's pixels
+                flat = np.flatnonzero(np.nan_to_num(np.asarray(depth, np.float32)) > 0)
+                kept[f] = (ps, flat, np.asarray(depth, np.float32).ravel()[flat])
+            else:
+                tsdf.integrate(depth, torch.linalg.inv(X).numpy())
+            Xs[f] = X
         if hand is not None:
             prev_hand = hand
         poses.append(torch.linalg.inv(X).numpy() if X is not None else np.full((4, 4), np.nan))
@@ -205,6 +248,11 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
     if X is None:
         raise ScanError("no frame shows the object apart from the hand")
     t0 = time.perf_counter()
+    for _ in range(config.refine_passes):
+        Xs, tsdf = _refine(kept, Xs, model_p, model_n, K, width, height, config)
+    if config.refine_passes:
+        for f, X_f in Xs.items():
+            poses[f] = torch.linalg.inv(X_f).numpy()
     mesh = tsdf.surface()
     secs[-1] += time.perf_counter() - t0
     # frames before the first registered one keep NaN poses
