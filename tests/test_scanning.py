@@ -206,6 +206,7 @@ def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
         cv2.imwrite(str(seq / "rgb" / f"{f:06d}.png"), cv2.cvtColor(skin, cv2.COLOR_RGB2BGR))
     assert main(["scan", str(seq), "--out", str(tmp_path / "o")]) == 2
     assert "apart from the hand" in capsys.readouterr().err
+    assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]  # nothing half-written is left
 
 
 def test_synth_scan_object_command(tmp_path, box_path, capsys):

@@ -10,7 +10,8 @@ complete:
 - ``model.npz``: a rigid torchhand model of the closed surface (its origin at the
   surface's centroid), for ``torchhand track --models hand_right,OUT/model.npz``;
 - ``mesh.ply``: the same surface; ``object_pose.npy``: (N, 4, 4) model -> camera per
-  frame; ``init_pose.json``-style ``object_theta.npy`` (N, 6), the model's theta;
+  frame (camera 0's coordinates); ``object_theta.npy`` (N, 6), the model's theta as
+  ``init_pose.json`` and the tracker take it (world frame; NaN where not registered);
 - ``hand/``: the hand's tracking (the runner's outputs);
 - ``overlays/NNNNNN.png``: every ``overlay_every``-th frame: the depth, the removed hand
   pixels, and the outline of the reconstruction at the frame's estimated pose;
@@ -24,6 +25,7 @@ hand and all, aligned frame to model by ICP alone, no hand tracking.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -64,6 +66,16 @@ def scan_folder(root, out, hand: str = "hand_right", force: bool = False, config
         raise ScanError(f"{root}: a scan needs at least 2 frames, the sequence has {info.frames}")
     final = prepare_output_dir(out, force)
     work = partial_dir(final)
+    try:
+        return _scan_into(work, final, root, info, hand, config, baseline, near, far, dilation, erode, reinit_iou,
+                          overlay_every, progress)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)  # nothing half-written stays behind
+        raise
+
+
+def _scan_into(work: Path, final: Path, root: Path, info, hand: str, config: ScanConfig, baseline: bool, near: float,
+               far: float, dilation: int, erode: int, reinit_iou: float, overlay_every: int, progress: bool) -> dict:
     cam = info.cameras[0]
     t0 = time.perf_counter()
     hands = None
@@ -91,7 +103,7 @@ def scan_folder(root, out, hand: str = "hand_right", force: bool = False, config
             res = renderer(verts[s:s + 16], camd, normals=False)
             for m in (res.model_id >= 0).numpy():
                 hand_masks.append(cv2.dilate(m.astype(np.uint8), kernel) > 0)
-        hands = list(verts)
+        hands = list(camd.to_camera(verts))  # the scan works in camera coordinates
         effectors = _effectors(scene.models[0])
 
     def object_depths():
@@ -138,8 +150,11 @@ def _write_outputs(work: Path, root: Path, info, result: ScanResult, baseline: b
     to_model[:3, 3] = centre  # model coords -> object frame
     poses = result.poses @ to_model  # model -> camera
     np.save(work / "object_pose.npy", poses)
-    th = np.concatenate([poses[:, :3, 3], so3_log(torch.as_tensor(np.nan_to_num(poses[:, :3, :3])))
-                         .numpy()], 1)
+    # theta as the tracker's scene takes it (world frame: camera 0's T_cw undone); NaN
+    # rows where the object was not registered
+    world = np.linalg.inv(info.cameras[0].T_cw.double().numpy()) @ np.nan_to_num(poses)
+    th = np.concatenate([world[:, :3, 3], so3_log(torch.as_tensor(world[:, :3, :3])).numpy()], 1)
+    th[~np.isfinite(poses).all((1, 2))] = np.nan
     np.save(work / "object_theta.npy", th)
     if len(mesh.faces):
         write_mesh(work / "mesh.ply", verts, mesh.faces)
@@ -155,13 +170,15 @@ def _write_outputs(work: Path, root: Path, info, result: ScanResult, baseline: b
             "scan_seconds_per_frame": sec.tolist(),
             "settings": {"registration": config.registration._asdict(), "contacts": config.contacts._asdict(),
                          "fusion": config.fusion._asdict(), "points": config.points,
-                         "model_voxel": config.model_voxel}}
+                         "model_voxel": config.model_voxel, "min_points": config.min_points,
+                         "lost_frames": config.lost_frames, "refine_passes": config.refine_passes}}
 
 
 def _write_overlays(work: Path, root: Path, info, verts, faces, poses, fused, hand_masks, every: int) -> None:
     out = work / "overlays"
     out.mkdir()
     cam = info.cameras[0].to(dtype=torch.float64)
+    to_world = torch.linalg.inv(cam.T_cw)  # the poses are model -> camera; the renderer takes world points
     renderer = Renderer(torch.as_tensor(faces))
     V = torch.as_tensor(verts)
     for f in range(0, len(poses), max(1, every)):
@@ -170,7 +187,7 @@ def _write_overlays(work: Path, root: Path, info, verts, faces, poses, fused, ha
         if hand_masks is not None:
             img[hand_masks[f]] = (0.5 * img[hand_masks[f]] + 0.5 * np.array([120, 160, 230])).astype(np.uint8)
         if fused[f] and np.isfinite(poses[f]).all():
-            P = torch.as_tensor(poses[f])
+            P = to_world @ torch.as_tensor(poses[f])
             res = renderer((V @ P[:3, :3].T + P[:3, 3])[None], cam, normals=False)
             draw_mask_outline(img, (res.model_id[0] >= 0).numpy(), (60, 220, 60))
         cv2.imwrite(str(out / frame_name(f)), img)

@@ -247,7 +247,7 @@ def scan_motion(mesh: ObjectMesh, hand_name: str = "hand_right", frames: Optiona
     """The grasp of :func:`grasp` turned in front of the thesis camera.
 
     The object's centre stays ``distance`` mm in front of the camera (None: 550 mm, or
-    450 mm plus half the object's largest extent for a long one, so that no part of it
+    450 mm plus the object's largest distance from its centre, so that no part of it
     comes nearer than the Kinect's 400 mm minimum range as it turns); at frame k the
     unit has turned by ``turns * 360 * k / frames`` degrees about the camera's vertical
     axis and is tilted by ``tilt * sin(3 pi k / frames)`` degrees about its horizontal
@@ -264,7 +264,8 @@ def scan_motion(mesh: ObjectMesh, hand_name: str = "hand_right", frames: Optiona
         raise ValueError(f"--hand {hand_name!r} is not a hand model")
     g = grasp(hand, mesh, seed=seed)
     if distance is None:
-        distance = max(550.0, 450.0 + float(mesh.extent.max()) / 2)
+        reach = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=1).max())  # about its centre
+        distance = max(550.0, 450.0 + reach)
     obj = ArticulatedModel(rigid_assets(OBJECT_NAME, mesh.vertices, mesh.faces, source=str(mesh.path or "")),
                            dtype=dtype)
     scene = Scene([hand, obj], [hand_name, OBJECT_NAME])

@@ -169,17 +169,26 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
     model_p = model_n = None
     prev_hand = None
     missing = 0
-    kept, Xs = {}, {}  # per fused frame: (points, depth pixels, depth values); its pose
+    kept, Xs, kept_normals = {}, {}, {}  # per fused frame: (points, depth pixels, depth values); its pose
     bar = tqdm(total=frames, desc=desc, unit="frame", disable=not progress)
     for f, depth in enumerate(depths):
         t0 = time.perf_counter()
-        hand = next(hands_it).detach().double().cpu() if hands_it is not None else None
+        hand = None
+        if hands_it is not None:
+            hand = next(hands_it, None)
+            if hand is None:
+                bar.close()
+                raise ValueError(f"frame {f}: the hand vertices end before the depth frames")
+            hand = hand.detach().double().cpu()
+            if not torch.isfinite(hand).all():
+                bar.close()
+                raise ValueError(f"frame {f}: the hand vertices contain NaN or inf")
         p, n = _points(depth, K)
         if len(p) > config.points:
             pick = torch.randperm(len(p), generator=g)[: config.points]
-            ps = p[pick]
+            ps, ns = p[pick], n[pick]
         else:
-            ps = p
+            ps, ns = p, n
         ok = len(p) >= config.min_points
         contacts = torch.zeros(0, dtype=torch.int64)
         if ok and hand is not None and effectors is not None:
@@ -197,7 +206,7 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
                                 "(it left the view or the hand covers it)")
             if X is not None and hand is not None and prev_hand is not None:
                 # unseen (the hand covers it): the object moves with the whole hand
-                X = X @ kabsch(hand, prev_hand)
+                X_before, X = X, X @ kabsch(hand, prev_hand)
         elif X is None:  # frame 0 of the reconstruction: the object frame
             X = torch.eye(4, dtype=torch.float64)
             X[:3, 3] = -p.mean(0)
@@ -222,7 +231,7 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
                     for s0 in starts]
             costs = [_fit_cost(ps, r.X, index, model_p, model_n, config.registration.icp_distance)
                      + config.registration.gamma_t * _contact_cost(r.X, c_now, c_model) for r in regs]
-            reg = regs[int(np.argmin(costs))]
+            reg = regs[int(np.nanargmin(costs))] if np.isfinite(costs).any() else regs[0]
             X_before = X
             X, pairs = reg.X, reg.icp_pairs
             R = X[:3, :3]
@@ -233,6 +242,7 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
             if config.refine_passes:  # kept for the refinement: the subset and the depth's pixels
                 flat = np.flatnonzero(np.nan_to_num(np.asarray(depth, np.float32)) > 0)
                 kept[f] = (ps, flat, np.asarray(depth, np.float32).ravel()[flat])
+                kept_normals[f] = ns
             else:
                 tsdf.integrate(depth, torch.linalg.inv(X).numpy())
             Xs[f] = X
@@ -248,7 +258,11 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
     if X is None:
         raise ScanError("no frame shows the object apart from the hand")
     t0 = time.perf_counter()
-    for _ in range(config.refine_passes):
+    for k in range(config.refine_passes):
+        if k:  # a further pass aligns to the reconstruction rebuilt from the refined poses
+            model_p, model_n = _voxel_merge(torch.cat([ps @ Xs[f][:3, :3].T + Xs[f][:3, 3] for f, (ps, _, _) in kept.items()]),
+                                            torch.cat([ns @ Xs[f][:3, :3].T for f, ns in kept_normals.items()]),
+                                            config.model_voxel)
         Xs, tsdf = _refine(kept, Xs, model_p, model_n, K, width, height, config)
     if config.refine_passes:
         for f, X_f in Xs.items():

@@ -95,6 +95,8 @@ def trajectory_errors(poses: np.ndarray, truth: np.ndarray, vertices: np.ndarray
     from scipy.spatial import cKDTree
 
     ok = np.isfinite(poses).all((1, 2))
+    if not ok.any():
+        raise ValueError("trajectory_errors: no frame has an estimated pose")
     k0 = int(np.argmax(ok))
     V = np.asarray(vertices, np.float64)
     if len(V) > max_points:
