@@ -211,7 +211,7 @@ def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
 
 def test_synth_scan_object_command(tmp_path, box_path, capsys):
     out = tmp_path / "s"
-    assert main(["synth", "--scan-object", str(box_path), "--out", str(out), "--frames", ":4", "--noise", "none"]) == 0
+    assert main(["synth", "--scan-object", str(box_path), "--out", str(out), "--frames", "4", "--noise", "none"]) == 0
     assert "in-hand scan" in capsys.readouterr().out
     assert np.load(out / "gt" / "object_pose.npy").shape == (4, 4, 4)
     metres = tmp_path / "m.obj"

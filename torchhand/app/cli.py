@@ -35,9 +35,11 @@ def _frames_slice(text: str | None) -> slice | None:
     if not text:
         return None
     try:
+        if ":" not in text:  # N: the first N frames
+            return slice(None, int(text))
         a, b = (int(x) if x else None for x in text.split(":"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--frames must look like A:B (e.g. 0:100), got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"--frames must look like A:B (e.g. 0:100) or N, got {text!r}") from None
     return slice(a, b)
 
 
@@ -48,7 +50,7 @@ def _synth(args) -> int:
         from torchhand.data.scanning import write_scan_sequence
 
         if args.frames is not None and (args.frames.start not in (None, 0) or args.frames.stop is None):
-            raise ValueError("with --scan-object, --frames is :N, the number of frames")
+            raise ValueError("with --scan-object, --frames is N (or :N), the number of frames")
         out = write_scan_sequence(args.scan_object, args.out, hand=args.hand,
                                   frames=None if args.frames is None else args.frames.stop, noise=args.noise,
                                   seed=args.seed, force=args.force, backend=args.backend)
@@ -309,13 +311,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", default="hand_right", help="with --random: comma-separated model names")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write (must be new or empty)")
     p.add_argument("--frames", type=_frames_slice, default=None,
-                   help="A:B frame range (with --random: :N frames; None: the whole motion, or 100 random)")
+                   help="A:B frame range, or N for the first N (with --random and --scan-object: the number of "
+                        "frames; None: the whole motion, 100 random, or two turns of a scan)")
     p.add_argument("--noise", default="kinect", choices=["none", "kinect"], help="depth noise model (docs/noise.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the random poses")
     p.add_argument("--no-rgb", action="store_true", help="write depth only")
     p.add_argument("--scan-object", type=Path, default=None,
                    help="an in-hand scan: the hand holds this closed mesh (.ply/.obj/.off, mm) and turns it twice "
-                        "in front of the camera (docs/scanning.md); --frames :N sets the length")
+                        "in front of the camera (docs/scanning.md); --frames N sets the length")
     p.add_argument("--hand", default="hand_right", help="with --scan-object: the hand that holds it")
     _backend_option(p)
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")

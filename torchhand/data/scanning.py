@@ -35,7 +35,7 @@ from torchhand.model.articulated import ArticulatedModel, load_model
 from torchhand.model.kinematics import so3_log
 from torchhand.model.scene import Scene
 from torchhand.model.shape import finger_bones
-from torchhand.data.synth import SyntheticFrames, write_synthetic_sequence
+from torchhand.data.synth import SyntheticFrames, quat_to_matrix, write_synthetic_sequence
 
 __all__ = ["Grasp", "grasp", "scan_motion", "write_scan_sequence", "scan_frames", "OBJECT_NAME"]
 
@@ -112,7 +112,7 @@ def grasp(hand: ArticulatedModel, mesh: ObjectMesh, gap: Optional[float] = None,
     normal /= np.linalg.norm(normal)
     rng = np.random.default_rng(seed)
     q = rng.normal(size=4)
-    R = _quat(q / np.linalg.norm(q)).numpy()
+    R = quat_to_matrix(torch.as_tensor(q / np.linalg.norm(q))).numpy()
     centred = mesh.vertices - mesh.vertices.mean(0)
     turned = centred @ R.T
     base = (at["index_mcp"] + at["middle_mcp"] + at["ring_mcp"] + at["little_mcp"]) / 4
@@ -213,19 +213,6 @@ def _thumb_path(hand: ArticulatedModel, theta: torch.Tensor, bones: List[int], t
         best = th[k]
         centre, half = cand[k], half / 3
     return best
-
-
-def _quat(q: np.ndarray) -> torch.Tensor:
-    w, x, y, z = q
-    return torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]], dtype=torch.float64)
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
 def _rot(axis: int, angle: float) -> np.ndarray:

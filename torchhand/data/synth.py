@@ -27,7 +27,8 @@ from torchhand.io.output_dir import prepare_output_dir
 from torchhand.data.layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
 from torchhand.data.noise import apply_kinect_noise, noise_model
 
-__all__ = ["SyntheticFrames", "thesis_motion", "demo_motion", "random_poses", "write_synthetic_sequence", "shade_rgb"]
+__all__ = ["SyntheticFrames", "thesis_motion", "demo_motion", "random_poses", "write_synthetic_sequence", "shade_rgb",
+           "quat_to_matrix"]
 
 # Albedo per model kind (RGB, 0..1): skin for hands, the thesis objects' colours.
 _COLORS = {"hand": (0.87, 0.67, 0.55), "ball": (0.85, 0.2, 0.15), "cube": (0.2, 0.45, 0.85),
@@ -119,7 +120,7 @@ def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(40
         s = scene.slices[name]
         q = torch.randn(frames, 4, generator=g, dtype=dtype)
         q = q / q.norm(dim=1, keepdim=True)
-        rotvec = so3_log(_quat_to_matrix(q))
+        rotvec = so3_log(quat_to_matrix(q))
         # Place the model's vertex centroid (not its root joint) at its target position.
         offset = torch.tensor([(k - (len(models) - 1) / 2) * 120.0, 0.0, 0.0], dtype=dtype)
         c_rest = model.vertices_rest.mean(0)
@@ -133,7 +134,8 @@ def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(40
     return SyntheticFrames(scene, theta, [cam], f"random_{seed}", source)
 
 
-def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices."""
     w, x, y, z = q.unbind(-1)
     return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
                         2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
