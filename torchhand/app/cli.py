@@ -7,6 +7,7 @@ printed; the others are written), 2 for bad arguments or unusable input.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -92,6 +93,31 @@ def _scan(args) -> int:
     return 0
 
 
+def _rig(args) -> int:
+    from torchhand.app.rig import rig_folder
+    from torchhand.reconstruction.deformable import DeformConfig
+    from torchhand.reconstruction.rigging import RigConfig
+
+    pose = None
+    if args.template_pose is not None:
+        try:
+            pose = json.loads(Path(args.template_pose).read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"--template-pose {args.template_pose}: not a readable JSON 4x4 matrix ({err})") from None
+    deform = DeformConfig(gamma_def=args.gamma_def)
+    if args.rigidity is not None:
+        deform = dataclasses.replace(deform, rigidity=args.rigidity)
+    log = rig_folder(args.seq, args.template, args.out, hands=[h for h in args.hands.split(",") if h],
+                     name=args.name, template_pose=pose, deform=deform, lambda_thr=args.lambda_thr,
+                     use_normals=not args.no_normals, config=RigConfig(skin_width=args.skin_width),
+                     near=args.near, far=args.far, frames=args.frames, force=args.force, track=not args.no_track)
+    joints = ", ".join(f"{d} DoF" for d in log["joint_dofs"]) or "none"
+    print(f"rigged {log['frames']} frames: {log['parts']} parts, joints: {joints}; {log['seconds']['total']:.0f} s -> "
+          f"{args.out / 'model.npz'}, {args.out / 'skeleton.png'}"
+          + (f", {args.out / 'track'}" if "track" in log else ""))
+    return 0
+
+
 def _eval(args) -> int:
     from torchhand.app.scaleout import evaluate_pairs, read_list
     from torchhand.scoring.sequences import fit_report
@@ -168,7 +194,8 @@ def _track(args) -> int:
     segment = _segment_config(args, "none") if args.segment else None
     dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
     job = TrackJob(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
-                   reinit_iou=args.reinit_iou, models=tuple(args.models.split(",")) if args.models else None,
+                   write_vertices=args.write_vertices, reinit_iou=args.reinit_iou,
+                   models=tuple(args.models.split(",")) if args.models else None,
                    threads=args.threads)
     run = track_many(dirs, args.out, job, workers=args.workers, ray=args.ray, batch=args.batch, resume=args.resume,
                      force=args.force, retries=args.retries)
@@ -337,6 +364,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
     p.set_defaults(func=_scan)
 
+    p = sub.add_parser("rig", help="a rigged model (mesh, skeleton, skinning weights) of an articulated object from a "
+                       "depth sequence of it being bent, then the sequence tracked with it (thesis Ch. 6)",
+                       formatter_class=_Formatter)
+    p.add_argument("seq", type=Path, help="sequence folder with the object being bent (depth; several cameras: "
+                   "multi-view depth)")
+    p.add_argument("--template", required=True, help="the object's closed mesh in mm (PLY, OFF, OBJ, STL) or a model "
+                   "(name or .npz, e.g. the model.npz of torchhand scan)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (must be new or empty)")
+    p.add_argument("--hands", default="", help="comma-separated hands of the sequence to track first and remove "
+                   "(their first pose from init_pose.json)")
+    p.add_argument("--template-pose", help="JSON file with the 4x4 template-to-world transform on frame 0 (default: "
+                   "from init_pose.json when the sequence lists a model with the template's mesh)")
+    p.add_argument("--name", help="the rigged model's name (default rig_<sequence>)")
+    p.add_argument("--gamma-def", type=float, default=0.005, help="weight of the data terms in the deformable "
+                   "tracking (Eq. 6.1; thesis: 0.005 for small triangles, 0.05 for large)")
+    p.add_argument("--lambda-thr", type=float, default=0.7, help="eigenvalue threshold of the spectral clustering: "
+                   "higher finds more, smaller parts (thesis: 0.7, 0.98 for small parts)")
+    p.add_argument("--rigidity", type=float, default=None, help="weight of the as-rigid-as-possible term added "
+                   "to the deformable tracking (default 0.005; 0: the thesis' Laplacian alone, docs/rigging.md)")
+    p.add_argument("--no-normals", action="store_true", help="segment by distance changes alone (no d^n, Eq. 6.10)")
+    p.add_argument("--skin-width", type=float, default=5.0, help="mm, width of the skinning blend across joints")
+    p.add_argument("--frames", type=int, help="rig from the first N frames only")
+    p.add_argument("--no-track", action="store_true", help="build the model, do not track the sequence with it")
+    p.add_argument("--near", type=float, default=200.0, help="mm, nearer depth is ignored")
+    p.add_argument("--far", type=float, default=1500.0, help="mm, farther depth is ignored")
+    p.add_argument("--force", action="store_true", help="replace the content of a non-empty --out")
+    p.set_defaults(func=_rig)
+
     p = sub.add_parser("eval", help="score predictions against ground truth (px, mm, PCK/AUC, penetration)",
                        formatter_class=_Formatter)
     p.add_argument("pred", nargs="*", type=Path, help="prediction folder(s) in the gt/ layout")
@@ -394,6 +449,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(particle swarm seeded from the frame's blobs and the pose tracked; 0: never)")
     p.add_argument("--write-render", action="store_true",
                    help="also write each frame's rendered model depth (OUT/<sequence>/render/NNNNNN.png, 16-bit mm)")
+    p.add_argument("--write-vertices", action="store_true",
+                   help="also write each model's posed vertices per frame (OUT/<sequence>/vertices/<model>.npy, "
+                        "(N, V, 3) float32 mm in camera 0's coordinates), to score any model against ground-truth "
+                        "vertices")
     _segment_options(p, None)
     p.set_defaults(func=_track)
 

@@ -12,7 +12,8 @@ import numpy as np
 from torchhand.io.assets import FINGER_NAMES, HAND_KEYPOINT_NAMES
 
 __all__ = ["HAND_SKELETON", "GT_COLOR", "OBJECT_COLOR", "depth_range", "depth_to_color", "draw_skeleton", "draw_chain",
-           "draw_hull", "draw_mask_outline", "draw_colorbar", "draw_legend", "write_video", "plot_curves"]
+           "draw_hull", "draw_mask_outline", "draw_colorbar", "draw_legend", "write_video", "plot_curves",
+           "part_colors", "draw_rig"]
 
 #: Bones of the 21-keypoint hand skeleton as index pairs into HAND_KEYPOINT_NAMES.
 HAND_SKELETON: Tuple[Tuple[int, int], ...] = tuple(
@@ -178,3 +179,46 @@ def plot_curves(curves: dict, path, xlabel: str, ylabel: str, size=(640, 480)) -
     if not cv2.imwrite(str(path), img):
         raise OSError(f"cannot write {path}")
     return path
+
+
+def part_colors(count: int) -> np.ndarray:
+    """(count, 3) uint8 RGB, distinct hues for the parts of a segmented mesh."""
+    hue = (np.arange(count) * 0.618034 % 1.0 * 179).astype(np.uint8)
+    hsv = np.stack([hue, np.full(count, 200, np.uint8), np.full(count, 230, np.uint8)], 1)[None]
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
+
+
+def draw_rig(vertices: np.ndarray, parts: np.ndarray, nodes: np.ndarray, edges: np.ndarray, joints: np.ndarray,
+             ends: np.ndarray, branches: np.ndarray, size=(900, 600)) -> np.ndarray:
+    """A BGR picture of a rig: the mesh's vertices coloured by part, seen along its
+    least extended axis, the curve skeleton (white), the joints with DoF (red), the
+    auxiliary joints at the skeleton's ends (cyan) and branches (yellow)."""
+    W, H = size
+    c = vertices.mean(0)
+    axes = np.linalg.svd(vertices - c, full_matrices=False)[2][:2]  # the two main directions
+
+    def to_px(p):
+        q = (np.asarray(p).reshape(-1, 3) - c) @ axes.T
+        return q
+
+    q = to_px(vertices)
+    scale = 0.9 * min(W / max(np.ptp(q[:, 0]), 1e-6), H / max(np.ptp(q[:, 1]), 1e-6))
+    mid = (q.max(0) + q.min(0)) / 2
+
+    def px(p):
+        r = (to_px(p) - mid) * scale + [W / 2, H / 2]
+        return np.round(r).astype(np.int32)
+
+    img = np.full((H, W, 3), 32, np.uint8)
+    colors = part_colors(int(parts.max()) + 1)[:, ::-1]
+    for (x, y), k in zip(px(vertices), parts):
+        if 0 <= x < W and 0 <= y < H:
+            img[y, x] = colors[k]
+    n = px(nodes) if len(nodes) else np.zeros((0, 2), np.int32)
+    for a, b in edges:
+        cv2.line(img, tuple(int(v) for v in n[a]), tuple(int(v) for v in n[b]), (255, 255, 255), 1, cv2.LINE_AA)
+    for pts, color in ((ends, (255, 255, 0)), (branches, (0, 255, 255)), (joints, (0, 0, 255))):
+        for p in px(pts) if len(pts) else []:
+            cv2.circle(img, (int(p[0]), int(p[1])), 5, color, -1, cv2.LINE_AA)
+    return draw_legend(img, "rig", [("joint (DoF)", (0, 0, 255)), ("skeleton end", (255, 255, 0)),
+                                    ("branch", (0, 255, 255))])

@@ -50,7 +50,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     segment: Optional[SegmentConfig] = None, write_render: bool = False,
                     reinit_iou: float = REINIT_IOU, init_config: InitConfig = InitConfig(),
                     models: Optional[Sequence[str]] = None, names: Optional[Sequence[str]] = None,
-                    on_frames: Optional[Callable[[int], None]] = None) -> List[dict]:
+                    on_frames: Optional[Callable[[int], None]] = None, init_poses: Optional[Sequence] = None,
+                    write_vertices: bool = False) -> List[dict]:
     """Track sequence folders and write their results.
 
     Sequences with the same models are solved as one batch, frame by frame; the
@@ -94,7 +95,12 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     (:func:`track_settings`), against which ``--resume`` checks a finished folder.
     ``names``: the output folder names (default: each ``sequence.json``'s name, made
     unique); ``on_frames(n)`` is called as frames are tracked (progress of a caller
-    that runs many calls, :mod:`torchhand.app.scaleout`).
+    that runs many calls, :mod:`torchhand.app.scaleout`). ``init_poses``: one theta of
+    frame 0 per sequence (the scene's DoF) instead of ``init_pose.json`` (a caller that
+    found the first pose itself, e.g. ``torchhand rig`` with a model it just built).
+    ``write_vertices``: also ``vertices/<model>.npy`` per model, its posed vertices per
+    frame in camera 0's coordinates ((N, V, 3) float32 mm), for scoring any model against
+    ground-truth vertices.
 
     Returns:
         one dict per sequence, in the order of ``roots``: ``sequence``, ``status``
@@ -107,6 +113,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     if models is not None:
         infos = [dataclasses.replace(i, models=list(models)) for i in infos]
     names = list(names) if names is not None else output_names(infos)
+    if init_poses is not None and len(init_poses) != len(roots):
+        raise ValueError(f"init_poses: one theta per sequence, got {len(init_poses)} for {len(roots)} sequences")
     if len(names) != len(roots) or len(set(names)) != len(names):
         raise ValueError(f"names: one distinct output name per sequence, got {names} for {len(roots)} sequences")
     settings = track_settings(config, segment, reinit_iou, init_config, models, device)
@@ -133,7 +141,13 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         initializer = Initializer(tracker, init_config) if hands_only else None
         starts, init_notes = [], []
         for i, k in enumerate(members):
-            th, note = _init_pose(roots[k], infos[k], scene, models, initializer, cams[i], segs[i])
+            if init_poses is not None:
+                th, note = np.asarray(init_poses[k], np.float64), ""
+                if th.shape != (scene.num_dofs,):
+                    raise ValueError(f"init_poses[{k}]: {th.size} values, the scene {list(models)} has "
+                                     f"{scene.num_dofs} DoF")
+            else:
+                th, note = _init_pose(roots[k], infos[k], scene, models, initializer, cams[i], segs[i])
             starts.append(th)
             init_notes.append(note)
             if note:
@@ -163,7 +177,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         for i, k in enumerate(members):
             summaries[k] = _write_sequence(targets[k], roots[k], infos[k], names[k], scene, cams[i], results, i,
                                            len(members), settings, viz, force, frames, refit, tracker.renderer,
-                                           write_render)
+                                           write_render, write_vertices)
     return [summaries[k] for k in range(len(roots))]
 
 
@@ -447,7 +461,7 @@ class _Refit:
 
 def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
                     batch: int, settings: dict, viz: bool, force: bool, frames: _Frames, refit: _Refit,
-                    renderer=None, write_render: bool = False) -> dict:
+                    renderer=None, write_render: bool = False, write_vertices: bool = False) -> dict:
     """Write one sequence's outputs from the batch's frame results (problem ``i``), into
     a partial folder renamed to ``final`` when complete."""
     N = info.frames
@@ -465,6 +479,13 @@ def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scen
     try:
         summary = _write_outputs(target, root, info, name, scene, cam, results, i, batch, settings, viz, frames,
                                  refit, renderer, write_render, TH, th, posed, kp3, kp2, valid)
+        if write_vertices:
+            (target / "vertices").mkdir()
+            with torch.no_grad():
+                verts = cam.to_camera(posed.vertices)
+            for model_name in scene.names:
+                np.save(target / "vertices" / f"{model_name}.npy",
+                        verts[:, scene.vertex_slices[model_name]].cpu().numpy().astype(np.float32))
     except BaseException:
         shutil.rmtree(target, ignore_errors=True)
         raise

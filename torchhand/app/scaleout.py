@@ -69,6 +69,7 @@ class TrackJob:
     viz: bool = False
     segment: Optional[SegmentConfig] = None
     write_render: bool = False
+    write_vertices: bool = False
     reinit_iou: Optional[float] = None  # None: the runner's default
     init_config: InitConfig = field(default_factory=InitConfig)
     models: Optional[tuple] = None
@@ -305,7 +306,8 @@ def _track_task(spec: dict, report: _Report) -> List[dict]:
     extra = {} if job.reinit_iou is None else {"reinit_iou": job.reinit_iou}
     return track_sequences(spec["roots"], spec["out"], job.config, device=job.device, viz=job.viz,
                            force=spec["force"], progress=False, segment=job.segment, write_render=job.write_render,
-                           init_config=job.init_config, models=job.models, names=spec["names"],
+                           write_vertices=job.write_vertices, init_config=job.init_config, models=job.models,
+                           names=spec["names"],
                            on_frames=lambda n: report("frames", n), **extra)
 
 

@@ -36,7 +36,7 @@ import torch
 from torchhand.app.drawing import depth_to_color, depth_range, draw_mask_outline
 from torchhand.app.runner import track_sequences
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_rgb, read_sequence_info
-from torchhand.geometry.render import Renderer
+from torchhand.geometry.render import Renderer, model_masks
 from torchhand.io.assets import rigid_assets, save_assets
 from torchhand.io.mesh_files import write_mesh
 from torchhand.io.output_dir import commit_dir, partial_dir, prepare_output_dir
@@ -95,14 +95,8 @@ def _scan_into(work: Path, final: Path, root: Path, info, hand: str, config: Sca
         theta = torch.as_tensor(read_poses(work / "hand").theta)
         with torch.no_grad():
             verts = scene(theta).vertices
-        renderer = Renderer(scene.faces)
         camd = cam.to(dtype=torch.float64)
-        hand_masks = []
-        kernel = np.ones((2 * dilation + 1, 2 * dilation + 1), np.uint8)
-        for s in range(0, len(verts), 16):
-            res = renderer(verts[s:s + 16], camd, normals=False)
-            for m in (res.model_id >= 0).numpy():
-                hand_masks.append(cv2.dilate(m.astype(np.uint8), kernel) > 0)
+        hand_masks = model_masks(Renderer(scene.faces), verts, camd, dilation)
         hands = list(camd.to_camera(verts))  # the scan works in camera coordinates
         effectors = _effectors(scene.models[0])
 

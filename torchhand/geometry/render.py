@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from typing import NamedTuple, Optional, Sequence, Union
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -28,8 +29,8 @@ from torchhand.geometry.mesh import face_corners, face_normals
 from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, _box_of, _listify, check_vertices_faces,
                                        views_of)
 
-__all__ = ["RenderResult", "Renderer", "render", "silhouette_edges", "visible_vertices", "DEFAULT_EDGE_THRESHOLD_MM",
-           "BACKENDS"]
+__all__ = ["RenderResult", "Renderer", "render", "silhouette_edges", "visible_vertices", "model_masks",
+           "DEFAULT_EDGE_THRESHOLD_MM", "BACKENDS"]
 
 #: Depth jump (mm) between neighbouring pixels that counts as a silhouette edge.
 DEFAULT_EDGE_THRESHOLD_MM = 10.0
@@ -303,3 +304,20 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     for c in range(3):  # the three corners of every face
         visible.scatter_reduce_(1, faces[:, c].expand(B, num_faces), hit_faces, "amax")
     return visible.bool()
+
+
+def model_masks(renderer: "Renderer", vertices: torch.Tensor, camera: Camera, dilation: int = 0,
+                batch: int = 16) -> np.ndarray:
+    """(N, H, W) bool: where the (N, V, 3) posed vertices cover each frame's image,
+    grown by ``dilation`` px (OpenCV), rendered ``batch`` frames at a time; what a
+    caller removes from the depth when it takes tracked models out of the data."""
+    import cv2
+
+    kernel = np.ones((2 * dilation + 1, 2 * dilation + 1), np.uint8)
+    masks = []
+    for s in range(0, len(vertices), batch):
+        res = renderer(vertices[s:s + batch], camera, normals=False)
+        for m in (res.model_id >= 0).cpu().numpy():
+            masks.append(cv2.dilate(m.astype(np.uint8), kernel) > 0 if dilation else m)
+    return np.stack(masks) if masks else np.zeros((0, camera.height, camera.width), bool)
+

@@ -1,5 +1,6 @@
 """Scores of a reconstructed surface and of an estimated object trajectory against the
-truth (in-hand scanning, thesis Ch. 5).
+truth (in-hand scanning, thesis Ch. 5), and of tracked vertices against true ones
+(rigging, thesis Ch. 6: :func:`vertex_errors`).
 
 The reconstruction is first aligned rigidly to the true mesh (from a given start, then
 point-to-point ICP on dense surface samples: the error of the shape, not of where its
@@ -14,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["SurfaceErrors", "surface_errors", "trajectory_errors", "score_scan"]
+__all__ = ["SurfaceErrors", "surface_errors", "trajectory_errors", "score_scan", "vertex_errors"]
 
 
 class SurfaceErrors(NamedTuple):
@@ -144,3 +145,27 @@ def score_scan(scan_dir, sequence_dir) -> dict:
     return {"mean_mm": surf.mean_mm, "hausdorff95_mm": surf.hausdorff95_mm, "to_truth_mm": surf.to_truth_mm,
             "from_truth_mm": surf.from_truth_mm, "watertight": surf.watertight,
             "alignment": surf.alignment.tolist(), "trajectory": trajectory_errors(poses, true_poses, truth.vertices)}
+
+
+def vertex_errors(vertices: np.ndarray, truth: np.ndarray) -> dict:
+    """Per-frame errors of tracked (N, V, 3) vertices against the true (N, V', 3) ones (mm).
+
+    ``closest_mm`` (N,): the thesis' measure of Table 6.2 (Eq. 6.13 read as distances):
+    the mean over both vertex sets of each vertex's distance to the nearest vertex of the
+    other set, which does not see a surface sliding along itself (a tube's roll);
+    ``same_order_mm`` (N,) (when V == V'): the mean distance of corresponding vertices.
+    Also their means over the frames.
+    """
+    from scipy.spatial import cKDTree
+
+    P, G = np.asarray(vertices, np.float64), np.asarray(truth, np.float64)
+    if P.ndim != 3 or G.ndim != 3 or P.shape[0] != G.shape[0] or P.shape[2] != 3 or G.shape[2] != 3:
+        raise ValueError(f"vertices and truth must be (N, V, 3) with the same N, got {P.shape} and {G.shape}")
+    closest = np.array([(cKDTree(g).query(p)[0].sum() + cKDTree(p).query(g)[0].sum()) / (len(p) + len(g))
+                        for p, g in zip(P, G)])
+    out = {"closest_mm": closest, "mean_closest_mm": float(closest.mean())}
+    if P.shape[1] == G.shape[1]:
+        same = np.linalg.norm(P - G, axis=-1).mean(1)
+        out.update(same_order_mm=same, mean_same_order_mm=float(same.mean()))
+    return out
+

@@ -1,0 +1,198 @@
+"""Rigged models of articulated objects (thesis Ch. 6): the cotangent Laplacian, the
+motion segmentation, the kinematic topology, the deformable tracking and ``torchhand rig``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("pygel3d")
+
+from torchhand.data.chains import chain_joints, chain_motion, chain_object  # noqa: E402
+from torchhand.io.assets import save_assets  # noqa: E402
+from torchhand.io.thesis import FormatError  # noqa: E402
+from torchhand.model.articulated import ArticulatedModel  # noqa: E402
+from torchhand.reconstruction.deformable import DeformConfig, cotangent_laplacian, embed  # noqa: E402
+from torchhand.reconstruction.motion_segments import segment_motion  # noqa: E402
+from torchhand.reconstruction.rigging import build_rig, fit_rig  # noqa: E402
+from torchhand.scoring.surfaces import vertex_errors  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def chain3():
+    return chain_object((100.0, 90.0, 90.0), ("z", "y"), name="chain3")
+
+
+def _trajectories(assets, frames=40, seed=3):
+    """The first ``frames`` of a 200-frame chain motion (joint 1 bends to 60 degrees, joint
+    2 bends and straightens again over frames 0-100)."""
+    model = ArticulatedModel(assets, dtype=torch.float64)
+    th = chain_motion(assets, 200, seed=seed).theta.double()[:100:100 // frames]
+    with torch.no_grad():
+        return model(th).vertices.numpy(), th
+
+
+def test_cotangent_laplacian_of_a_sphere():
+    import trimesh
+
+    r = 50.0
+    s = trimesh.creation.icosphere(subdivisions=4, radius=r)
+    L = cotangent_laplacian(s.vertices, s.faces)
+    assert np.abs(L @ np.ones(len(s.vertices))).max() < 1e-9  # constants are harmonic
+    LV = L @ s.vertices
+    # mean curvature normal 2H n = 2/r n, scaled by 2/3: the thesis' |A_i| is half the
+    # one-ring's area, the Voronoi area about a third
+    mag = np.linalg.norm(LV, axis=1)
+    assert abs(mag.mean() - (2 / 3) * 2 / r) < 0.03 * 2 / r
+    outward = (LV * s.vertices).sum(1) / (mag * r)
+    assert outward.min() > 0.99  # along the normal (L = D - W: a vertex minus its neighbours' mean)
+
+
+def test_embedding_carries_the_fine_mesh(chain3):
+    emb = embed(chain3.vertices, chain3.faces, 800)
+    assert len(emb.coarse_vertices) <= 820
+    err = np.linalg.norm(emb.apply(emb.coarse_vertices) - chain3.vertices, axis=1)
+    assert err.max() < 0.25 and err.mean() < 0.01  # open3d's closest points are float32
+    # a rigid motion of the coarse mesh moves the fine one rigidly
+    R = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])
+    moved = emb.apply(emb.coarse_vertices @ R.T + [5, 0, 0])
+    assert np.linalg.norm(moved - (chain3.vertices @ R.T + [5, 0, 0]), axis=1).max() < 0.25
+
+
+def test_motion_segmentation_finds_the_links(chain3):
+    traj, _ = _trajectories(chain3)
+    seg = segment_motion(traj, chain3.vertices, chain3.faces, lambda_thr=0.9)
+    assert seg.parts == 3
+    # each link's vertices (away from the blend zones) in one part
+    x = chain3.vertices[:, 0]
+    for lo, hi in ((-140, -50), (-30, 40), (60, 140)):
+        sel = (x > lo) & (x < hi)
+        assert np.bincount(seg.labels[sel]).max() > 0.98 * sel.sum()
+    # an object that only moves rigidly is one part
+    model = ArticulatedModel(chain3, dtype=torch.float64)
+    _, th = _trajectories(chain3)
+    th[:, 6:] = 0
+    with torch.no_grad():
+        rigid = model(th).vertices.numpy()
+    assert segment_motion(rigid, chain3.vertices, chain3.faces).parts == 1
+
+
+def test_rig_from_true_trajectories(chain3):
+    traj, th = _trajectories(chain3)
+    seg = segment_motion(traj, chain3.vertices, chain3.faces, lambda_thr=0.9)
+    rig = build_rig(chain3.vertices, chain3.faces, traj, seg.labels, "learned")
+    assert rig.assets.num_bones == 3 and list(rig.assets.parents) in ([-1, 0, 1], [-1, 0, 0])
+    true = chain_joints(chain3)
+    d = np.linalg.norm(rig.joints[:, None] - true[None], axis=-1).min(0)
+    assert d.max() < 5.0
+    assert list(rig.joint_dofs) == [1, 1]  # hinges
+    assert np.array_equal(rig.assets.vertices, chain3.vertices) and np.array_equal(rig.assets.faces, chain3.faces)
+    model = ArticulatedModel(rig.assets, dtype=torch.float64)
+    for f in (0, 20, 39):
+        pose = fit_rig(model, traj[f])
+        with torch.no_grad():
+            v = model(pose[None]).vertices[0].numpy()
+        assert np.linalg.norm(v - traj[f], axis=1).mean() < 1.5
+
+
+def test_vertex_errors_known_shift():
+    v = np.random.default_rng(0).normal(size=(3, 50, 3)) * 40
+    e = vertex_errors(v + [0, 0, 2.0], v)
+    assert abs(e["mean_same_order_mm"] - 2.0) < 1e-9
+    assert e["mean_closest_mm"] <= 2.0 + 1e-9
+    assert vertex_errors(v, v)["mean_closest_mm"] == 0
+    with pytest.raises(ValueError, match="same N"):
+        vertex_errors(v, v[:2])
+
+
+@pytest.fixture(scope="module")
+def chain_sequence(tmp_path_factory):
+    from torchhand.data.synth import write_synthetic_sequence
+
+    root = tmp_path_factory.mktemp("rig")
+    assets = chain_object((110.0, 110.0), ("z",), name="chain2")
+    models = root / "models"
+    models.mkdir()
+    save_assets(assets, models / "chain2.npz")
+    fr = chain_motion(assets, 20, seed=2)
+    fr.theta[:, :6] = fr.theta[:1, :6]  # held in place
+    fr.theta[:, 6] = torch.linspace(0, 0.8, 20)  # bends by 46 degrees, 2.3 a frame
+    seq = write_synthetic_sequence(fr, root / "seq", noise="none", rgb=False, progress=False)
+    return root, seq, assets
+
+
+def test_rig_folder_end_to_end(chain_sequence, monkeypatch):
+    from torchhand.app.rig import rig_folder
+
+    root, seq, assets = chain_sequence
+    monkeypatch.setenv("TORCHHAND_MODELS", str(root / "models"))
+    out = root / "rigged"
+    # a small, short motion: the thesis' higher threshold
+    log = rig_folder(seq, "chain2", out, deform=DeformConfig(max_vertices=800), lambda_thr=0.9, progress=False)
+    assert log["parts"] == 2, log["notes"]
+    # the boundary centroid alone was 15 mm off here (the part near a small bend moves little)
+    assert np.linalg.norm(np.asarray(log["joints_mm"])[0] - chain_joints(assets)[0]) < 8.0
+    for name in ("model.npz", "segments.ply", "skeleton.png", "skeleton.json", "rig_log.json",
+                 "deformable/vertices.npy", "track/theta.npy"):
+        assert (out / name).is_file(), name
+    tracked = np.load(out / "track" / "vertices" / f"{log['name']}.npy")
+    assert tracked.shape == (20, len(assets.vertices), 3) and tracked.dtype == np.float32
+    # scored against the truth in camera 0's coordinates
+    from torchhand.data.layout import read_poses, read_sequence_info
+
+    cam = read_sequence_info(seq).cameras[0].to(dtype=torch.float64)
+    model = ArticulatedModel(assets, dtype=torch.float64)
+    with torch.no_grad():
+        truth = cam.to_camera(model(torch.as_tensor(read_poses(seq / "gt").theta)).vertices).numpy()
+    assert vertex_errors(tracked, truth)["mean_closest_mm"] < 3.0
+    assert json.loads((out / "skeleton.json").read_text())["parts"] == 2
+
+
+def test_rig_bad_input(chain_sequence, monkeypatch, tmp_path):
+    import trimesh
+
+    from torchhand.app.rig import RigError, rig_folder
+
+    root, seq, assets = chain_sequence
+    monkeypatch.setenv("TORCHHAND_MODELS", str(root / "models"))
+    with pytest.raises(RigError, match="at least 10 frames"):
+        rig_folder(seq, "chain2", tmp_path / "a", frames=5)
+    holed = trimesh.Trimesh(assets.vertices, assets.faces[:-10], process=False)
+    holed.export(tmp_path / "holed.ply")
+    with pytest.raises(FormatError, match="not closed"):
+        rig_folder(seq, tmp_path / "holed.ply", tmp_path / "b")
+    metres = trimesh.Trimesh(assets.vertices / 1000, assets.faces, process=False)
+    metres.export(tmp_path / "metres.ply")
+    with pytest.raises(FormatError, match="metres"):
+        rig_folder(seq, tmp_path / "metres.ply", tmp_path / "c")
+    other = trimesh.creation.icosphere(radius=30)
+    other.export(tmp_path / "ball.ply")
+    with pytest.raises(RigError, match="template-pose"):
+        rig_folder(seq, tmp_path / "ball.ply", tmp_path / "d")
+    with pytest.raises(RigError, match="rigid"):
+        rig_folder(seq, "chain2", tmp_path / "e", template_pose=np.eye(4) * 2)
+    with pytest.raises(RigError, match="not in the sequence"):
+        rig_folder(seq, "chain2", tmp_path / "f", hands=["hand_right"])
+    assert not any((tmp_path / n).exists() for n in "abcdef")
+
+
+def test_rigid_object_gives_a_rigid_model(tmp_path, monkeypatch):
+    from torchhand.app.rig import rig_folder
+    from torchhand.data.synth import write_synthetic_sequence
+
+    assets = chain_object((110.0, 110.0), ("z",), name="stiff")
+    (tmp_path / "models").mkdir()
+    save_assets(assets, tmp_path / "models" / "stiff.npz")
+    monkeypatch.setenv("TORCHHAND_MODELS", str(tmp_path / "models"))
+    fr = chain_motion(assets, 12, seed=4, amplitude_deg=0.0)
+    seq = write_synthetic_sequence(fr, tmp_path / "seq", noise="none", rgb=False, progress=False)
+    log = rig_folder(seq, "stiff", tmp_path / "out", deform=DeformConfig(max_vertices=600), progress=False,
+                     track=False)
+    assert log["parts"] == 1 and "rigid" in log["notes"][0]
+    from torchhand.io.assets import load_assets
+
+    model = load_assets(tmp_path / "out" / "model.npz")
+    assert model.num_bones == 1 and not model.slot_used.any()
