@@ -196,3 +196,20 @@ def test_rigid_object_gives_a_rigid_model(tmp_path, monkeypatch):
 
     model = load_assets(tmp_path / "out" / "model.npz")
     assert model.num_bones == 1 and not model.slot_used.any()
+
+
+def test_rig_command_line(chain_sequence, monkeypatch, tmp_path, capsys):
+    from torchhand.app.cli import main
+
+    root, seq, _ = chain_sequence
+    monkeypatch.setenv("TORCHHAND_MODELS", str(root / "models"))
+    assert main(["rig", str(seq), "--template", str(tmp_path / "none.ply"), "--out", str(tmp_path / "o")]) == 2
+    assert "none.ply not found" in capsys.readouterr().err
+    assert main(["rig", str(seq), "--template", "chain2", "--out", str(tmp_path / "o"), "--frames", "4"]) == 2
+    assert "at least 10 frames" in capsys.readouterr().err
+    pose = tmp_path / "pose.json"
+    pose.write_text("[[1, 0, 0]]")
+    assert main(["rig", str(seq), "--template", "chain2", "--out", str(tmp_path / "o"), "--template-pose",
+                 str(pose)]) == 2
+    assert "rigid (4, 4)" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -2,7 +2,8 @@
 it being bent (thesis Ch. 6, Algorithm 2).
 
 1. With ``hands``, the hands are tracked first (:func:`~torchhand.app.runner.
-   track_sequences`, their first pose from ``init_pose.json``) and their rendered
+   track_sequences`, their first pose from ``init_pose.json``, else the automatic
+   initialisation) and their rendered
    silhouettes (dilated) are removed from the depth.
 2. The template is placed on frame 0 (``template_pose``, else the rigid fit of the
    template onto the frame-0 pose of a model of the sequence with the same mesh) and
@@ -152,14 +153,17 @@ def rig_folder(root, template, out, hands: Sequence[str] = (), name: Optional[st
 
 
 def _hand_masks(root: Path, work: Path, info, hands: list, n: int, dilation: int, progress: bool) -> tuple:
-    """Track the hands, then (theta (n, D_hands), masks per camera (n, H, W))."""
-    full = Scene.from_names(info.models, dtype=torch.float64)
-    th0 = read_init_pose(root)
-    if th0.shape != (full.num_dofs,):
-        raise RigError(f"{root / 'init_pose.json'}: {th0.size} values, the sequence's models {info.models} have "
-                       f"{full.num_dofs} DoF")
-    start = np.concatenate([th0[full.slices[h]] for h in hands])
-    summary = track_sequences([root], work, models=hands, names=["hands"], init_poses=[start], progress=progress,
+    """Track the hands (in camera 0, as the runner does), then (theta (n, D_hands), their
+    masks in every camera (n, H, W))."""
+    starts = None  # without init_pose.json: the runner's automatic initialisation of the hands
+    if (root / "init_pose.json").is_file():
+        full = Scene.from_names(info.models, dtype=torch.float64)
+        th0 = read_init_pose(root)
+        if th0.shape != (full.num_dofs,):
+            raise RigError(f"{root / 'init_pose.json'}: {th0.size} values, the sequence's models {info.models} have "
+                           f"{full.num_dofs} DoF")
+        starts = [np.concatenate([th0[full.slices[h]] for h in hands])]
+    summary = track_sequences([root], work, models=hands, names=["hands"], init_poses=starts, progress=progress,
                               reinit_iou=0.0)[0]
     if summary["status"] != "ok":
         raise RigError(f"{root}: the hands could not be tracked: {summary.get('error')}")

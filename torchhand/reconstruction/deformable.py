@@ -68,7 +68,7 @@ class DeformConfig:
     edge_radius_px: float = 15.0
     iterations: int = 4
     eps: float = 1e-6
-    max_vertices: int = 1500
+    max_vertices: int = 2500
     point_to_plane: bool = False
     predict: bool = True
     rigidity: float = 0.005
