@@ -152,7 +152,29 @@ def main(argv=None) -> int:
         seq = rope_from_pipe_sequence(args.hia_root, args.frames, args.work, "none")
         result["rows"] += table_62(args, "rope", seq, "rope")
     _dump(args, result)
+    print(markdown(result))
     return 0
+
+
+def markdown(result: dict) -> str:
+    """The tables of docs/results.md from the JSON of a run."""
+    lines = ["| object | gamma_def | lambda_thr | d^n | parts | deformable (mm) | tracked with the rig (mm) "
+             "| worst frame (mm) | s per 200 frames |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        if "gamma_def" in r:
+            dn = "yes" if r["d_n"] else "no"
+            lines.append(f"| {r['object']} | {r['gamma_def']:g} | {r['lambda_thr']:g} | {dn} | "
+                         f"{r['parts']} | {r['deformable_mm']:.2f} | {r.get('tracked_mm', float('nan')):.2f} | "
+                         f"{r.get('tracked_worst_frame_mm', float('nan')):.1f} | {r['seconds']['total']:.0f} |")
+    lines += ["", "| object | parts (true) | joint error (mm) | deformable (mm) | tracked, learned rig (mm) | "
+              "tracked, true rig (mm) | s |", "|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        if "true_parts" in r:
+            joints = ", ".join(f"{e:.1f}" for e in r["joint_error_mm"] or [])
+            lines.append(f"| {r['object']} | {r['parts']} ({r['true_parts']}) | {joints} | {r['deformable_mm']:.2f} | "
+                         f"{r.get('tracked_mm', float('nan')):.2f} | {r['true_rig_tracked_mm']:.2f} | "
+                         f"{r['seconds']['total']:.0f} |")
+    return "\n".join(lines)
 
 
 def _dump(args, result: dict) -> None:

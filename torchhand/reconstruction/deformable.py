@@ -48,6 +48,7 @@ from torchhand.geometry.camera import Camera, unproject_pixels
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.geometry.neighbors import PointIndex, nearest_marked_pixel
 from torchhand.geometry.render import Renderer, visible_vertices
+from torchhand.reconstruction.registration import nearest_rotation
 from torchhand.tracking.preprocess import DepthFrame
 
 __all__ = ["DeformConfig", "DeformResult", "Embedding", "cotangent_laplacian", "cotangent_weights", "embed",
@@ -230,10 +231,7 @@ def _arap_rhs(problem: _Problem, current: torch.Tensor) -> np.ndarray:
     e0, e1 = T[i] - T[j], X[i] - X[j]
     S = torch.zeros(len(T), 3, 3, dtype=T.dtype)
     S.index_add_(0, torch.as_tensor(i), w[:, None, None] * e0[:, :, None] * e1[:, None, :])
-    U, _, Vt = torch.linalg.svd(S)
-    d = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
-    R = Vt.transpose(1, 2) @ D @ U.transpose(1, 2)  # (V, 3, 3) template -> current
+    R = nearest_rotation(S)  # (V, 3, 3) template -> current
     rhs = torch.zeros_like(T)
     rhs.index_add_(0, torch.as_tensor(i), (w[:, None, None] * 0.5 * (R[i] + R[j]) @ e0[..., None])[..., 0])
     return rhs.numpy()

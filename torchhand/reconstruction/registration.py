@@ -17,8 +17,8 @@ from torchhand.geometry.neighbors import PointIndex
 from torchhand.model.kinematics import so3_exp
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 
-__all__ = ["contact_vertices", "ContactConfig", "RegistrationConfig", "register_frame", "kabsch",
-           "Registration"]
+__all__ = ["contact_vertices", "ContactConfig", "RegistrationConfig", "register_frame", "kabsch", "kabsch_batch",
+           "nearest_rotation", "Registration"]
 
 
 class ContactConfig(NamedTuple):
@@ -68,19 +68,31 @@ def contact_vertices(hand_vertices: torch.Tensor, effector_vertices: List[torch.
     return torch.cat([effector_vertices[int(b)] for b in bones])
 
 
+def nearest_rotation(H: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) covariances sum source target^T -> (..., 3, 3) the rotations R that
+    maximise trace(R H) (Kabsch's SVD with the reflection removed), batched."""
+    U, _, Vt = torch.linalg.svd(H)
+    d = torch.sign(torch.linalg.det(Vt.transpose(-1, -2) @ U.transpose(-1, -2)))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    return Vt.transpose(-1, -2) @ D @ U.transpose(-1, -2)
+
+
+def kabsch_batch(source: torch.Tensor, targets: torch.Tensor) -> tuple:
+    """(n, 3) source, (T, n, 3) targets -> R (T, 3, 3), t (T, 3) minimising
+    sum |R source + t - target|^2 per target."""
+    ms, mt = source.mean(0), targets.mean(1)
+    R = nearest_rotation((source - ms).T[None] @ (targets - mt[:, None]))
+    return R, mt - (R @ ms[:, None])[..., 0]
+
+
 def kabsch(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(n, 3), (n, 3) -> (4, 4) the rigid transform minimising sum |T source - target|^2
     (Umeyama without scale); the identity for fewer than 3 points."""
     T = torch.eye(4, dtype=source.dtype)
     if len(source) < 3:
         return T
-    ms, mt = source.mean(0), target.mean(0)
-    H = (source - ms).T @ (target - mt)
-    U, _, Vt = torch.linalg.svd(H)
-    d = torch.sign(torch.linalg.det(Vt.T @ U.T))
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    R = Vt.T @ D @ U.T
-    T[:3, :3], T[:3, 3] = R, mt - R @ ms
+    R, t = kabsch_batch(source, target[None])
+    T[:3, :3], T[:3, 3] = R[0], t[0]
     return T
 
 

@@ -46,6 +46,7 @@ from torchhand.model.kinematics import so3_log
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.reconstruction.deformable import cotangent_weights
 from torchhand.reconstruction.motion_segments import mesh_edges
+from torchhand.reconstruction.registration import kabsch_batch
 
 __all__ = ["RigConfig", "Rig", "Skeleton", "curve_skeleton", "part_transforms", "build_rig", "fit_rig"]
 
@@ -163,17 +164,6 @@ def _skeleton_points(skeleton: Skeleton, centre: np.ndarray, radius: float, step
     return near if len(near) else centre[None]
 
 
-def _kabsch_batch(src: torch.Tensor, dst: torch.Tensor) -> tuple:
-    """(n, 3) source, (T, n, 3) targets -> R (T, 3, 3), t (T, 3) minimising |R src + t - dst|."""
-    ms, md = src.mean(0), dst.mean(1)
-    H = (src - ms).T[None] @ (dst - md[:, None])
-    U, _, Vt = torch.linalg.svd(H)
-    d = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
-    R = Vt.transpose(1, 2) @ D @ U.transpose(1, 2)
-    return R, md - (R @ ms[:, None])[..., 0]
-
-
 def part_transforms(trajectories: np.ndarray, template: np.ndarray, parts: np.ndarray) -> tuple:
     """Per part and frame the rigid motion rest -> frame: R (T, P, 3, 3), t (T, P, 3)."""
     X = torch.as_tensor(np.asarray(trajectories, np.float64))
@@ -181,7 +171,7 @@ def part_transforms(trajectories: np.ndarray, template: np.ndarray, parts: np.nd
     Rs, ts = [], []
     for p in range(int(parts.max()) + 1):
         ids = torch.as_tensor(np.nonzero(parts == p)[0])
-        R, t = _kabsch_batch(rest[ids], X[:, ids])
+        R, t = kabsch_batch(rest[ids], X[:, ids])
         Rs.append(R)
         ts.append(t)
     return torch.stack(Rs, 1).numpy(), torch.stack(ts, 1).numpy()
@@ -366,7 +356,7 @@ def fit_rig(model, vertices: np.ndarray, parts: Optional[np.ndarray] = None, ite
     rest = model.vertices_rest.double()
     V = len(rest)
     root_ids = torch.nonzero(model.vertex_bone == 0)[:, 0]
-    R, t = _kabsch_batch(rest[root_ids], target[root_ids][None])
+    R, t = kabsch_batch(rest[root_ids], target[root_ids][None])
     th = model.zero_pose(1).double()
     th[0, 3:6] = so3_log(R[0])
     # the root rotates about the rigging-pose origin of bone 0: x' = R (x - o) + o + t_theta
