@@ -164,6 +164,12 @@ def test_rig_bad_input(chain_sequence, monkeypatch, tmp_path):
     holed.export(tmp_path / "holed.ply")
     with pytest.raises(FormatError, match="not closed"):
         rig_folder(seq, tmp_path / "holed.ply", tmp_path / "b")
+    import dataclasses
+
+    holed_model = dataclasses.replace(assets, name="holed", faces=assets.faces[:-10])
+    save_assets(holed_model, tmp_path / "holed.npz")
+    with pytest.raises(FormatError, match="template .*holed.npz: the mesh is not closed"):
+        rig_folder(seq, tmp_path / "holed.npz", tmp_path / "b")
     metres = trimesh.Trimesh(assets.vertices / 1000, assets.faces, process=False)
     metres.export(tmp_path / "metres.ply")
     with pytest.raises(FormatError, match="metres"):

@@ -46,9 +46,8 @@ from torchhand.app.runner import track_sequences
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_init_pose, read_poses, read_sequence_info
 from torchhand.geometry.render import Renderer, model_masks
 from torchhand.io.assets import find_model, load_assets, save_assets
-from torchhand.io.mesh_files import read_object_mesh, write_mesh
+from torchhand.io.mesh_files import check_mesh, read_object_mesh, write_mesh
 from torchhand.io.output_dir import commit_dir, partial_dir, prepare_output_dir
-from torchhand.io.thesis import FormatError
 from torchhand.model.articulated import ArticulatedModel
 from torchhand.model.scene import Scene
 from torchhand.reconstruction.deformable import DeformConfig, track_deformable
@@ -77,23 +76,12 @@ def read_template(template) -> tuple:
     if p.suffix.lower() == ".npz" or (not p.suffix and not p.exists()):
         assets = load_assets(find_model(str(template)))
         v, f = assets.vertices, assets.faces
-        _check_closed(v, f, str(template))
+        import trimesh
+
+        check_mesh(trimesh.Trimesh(v, f, process=False), f"template {template}", closed=True, size_mm=ARTICULATED_MM)
         return v, f, f"model {assets.name}"
     mesh = read_object_mesh(p, closed=True, size_mm=ARTICULATED_MM)
     return mesh.vertices, mesh.faces, str(p)
-
-
-def _check_closed(v: np.ndarray, f: np.ndarray, what: str) -> None:
-    import trimesh
-
-    m = trimesh.Trimesh(v, f, process=False)
-    if not (m.is_watertight and m.is_winding_consistent):
-        raise FormatError(f"{what}: the template is not closed (watertight: {m.is_watertight}, consistent winding: "
-                          f"{m.is_winding_consistent}); rigging tracks a closed surface")
-    extent = float(np.ptp(v, 0).max())
-    if extent < ARTICULATED_MM[0]:
-        raise FormatError(f"{what}: largest extent {extent:.4g} units; templates are in mm, and one under "
-                          f"{ARTICULATED_MM[0]:g} mm looks like metres: scale it by 1000")
 
 
 def _template_placement(root: Path, info, template: np.ndarray, template_pose) -> np.ndarray:
@@ -232,8 +220,8 @@ def _rig_into(work: Path, root: Path, info, n: int, tv, tf, what: str, T0: np.nd
            "settings": {"deform": dataclasses.asdict(deform), "lambda_thr": lambda_thr, "use_normals": use_normals,
                         "samples": samples, "rig": dataclasses.asdict(config), "near": near, "far": far,
                         "dilation": dilation}}
-    for note in rig.notes[:1] if seg.parts == 1 else []:
-        print(f"{info.name}: {note}")
+    if seg.parts == 1:
+        print(f"{info.name}: {rig.notes[0]}")
     if track:
         model = ArticulatedModel(rig.assets, dtype=torch.float64)
         th_obj = fit_rig(model, res.vertices[0]).numpy()  # the rig's pose on the deformable frame 0 (world)

@@ -12,7 +12,7 @@ import numpy as np
 
 from torchhand.io.thesis import FormatError
 
-__all__ = ["ObjectMesh", "read_object_mesh", "write_mesh", "MESH_SUFFIXES", "HAND_HELD_MM"]
+__all__ = ["check_mesh", "ObjectMesh", "read_object_mesh", "write_mesh", "MESH_SUFFIXES", "HAND_HELD_MM"]
 
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl")
 #: the largest extent (mm) of an object a hand can hold and turn, and the smallest that
@@ -55,20 +55,28 @@ def read_object_mesh(path, closed: bool = True, size_mm=HAND_HELD_MM) -> ObjectM
         raise FormatError(f"{path}: not a readable mesh ({err})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise FormatError(f"{path}: holds no triangles")
-    extent = float((mesh.vertices.max(0) - mesh.vertices.min(0)).max())
-    lo, hi = size_mm
-    if extent < lo:
-        raise FormatError(f"{path}: largest extent {extent:.4g} units; meshes are read in mm, and an object "
-                          f"under {lo:g} mm looks like a mesh in metres: scale it by 1000")
-    if extent > hi:
-        raise FormatError(f"{path}: largest extent {extent:.4g} mm; a hand-held object is at most {hi:g} mm")
-    if closed and not (mesh.is_watertight and mesh.is_winding_consistent):
-        raise FormatError(f"{path}: the mesh is not closed (watertight: {mesh.is_watertight}, consistent "
-                          f"winding: {mesh.is_winding_consistent}); close its holes first, e.g. with "
-                          "trimesh.repair.fill_holes or a Poisson reconstruction")
+    check_mesh(mesh, path, closed, size_mm)
     if closed and mesh.volume < 0:
         mesh.invert()  # inward-facing triangles: the same solid
     return ObjectMesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), path)
+
+
+def check_mesh(mesh, what, closed: bool = True, size_mm=HAND_HELD_MM) -> None:
+    """Raise FormatError naming ``what`` when a trimesh mesh has a largest extent outside
+    ``size_mm`` (below: most likely metres) or, with ``closed``, is not watertight with a
+    consistent winding."""
+    extent = float((mesh.vertices.max(0) - mesh.vertices.min(0)).max())
+    lo, hi = size_mm
+    if extent < lo:
+        raise FormatError(f"{what}: largest extent {extent:.4g} units; meshes are read in mm, and an object "
+                          f"under {lo:g} mm looks like a mesh in metres: scale it by 1000")
+    if extent > hi:
+        kind = "a hand-held object" if hi == HAND_HELD_MM[1] else "an object here"
+        raise FormatError(f"{what}: largest extent {extent:.4g} mm; {kind} is at most {hi:g} mm")
+    if closed and not (mesh.is_watertight and mesh.is_winding_consistent):
+        raise FormatError(f"{what}: the mesh is not closed (watertight: {mesh.is_watertight}, consistent "
+                          f"winding: {mesh.is_winding_consistent}); close its holes first, e.g. with "
+                          "trimesh.repair.fill_holes or a Poisson reconstruction")
 
 
 def write_mesh(path, vertices: np.ndarray, faces: np.ndarray, colors: Optional[np.ndarray] = None) -> Path:

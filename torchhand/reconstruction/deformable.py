@@ -214,12 +214,10 @@ def _pair_blocks(V: int, ids: np.ndarray, weights: np.ndarray, H: np.ndarray):
     vertices of each pair, weights (n, c) their coefficients, H (n, 3, 3) -> (3V, 3V)."""
     import scipy.sparse as sp
 
-    c = ids.shape[1]
     blk = weights[:, :, None, None, None] * weights[:, None, :, None, None] * H[:, None, None]  # (n, c, c, 3, 3)
     r = 3 * ids[:, :, None, None, None] + np.arange(3)[None, None, None, :, None]
     q = 3 * ids[:, None, :, None, None] + np.arange(3)[None, None, None, None, :]
     r, q = np.broadcast_to(r, blk.shape), np.broadcast_to(q, blk.shape)
-    del c
     return sp.coo_matrix((blk.ravel(), (r.ravel(), q.ravel())), shape=(3 * V, 3 * V)).tocsr()
 
 
