@@ -11,8 +11,10 @@ with joints at known places.
   0.7), then tracked with the learned rig; the average vertex error against the true
   motion, per frame and averaged (Eq. 6.13's closest-vertex distance, and the distance
   of corresponding vertices), of the deformable tracking and of the articulated tracking.
+  ``--grid defaults`` runs the defaults only.
 - ``chain2``, ``chain3``: tubes of two and three links (:mod:`torchhand.data.chains`)
-  bending in front of the camera, no hands: the parts found, the joint position error
+  bending in front of the camera, no hands, noise-free; ``chain2_kinect``: links of 80
+  and 140 mm, radius 12 mm, another motion, with Kinect noise. The parts found, the joint position error
   (each true joint to the nearest learned one), the tracking error with the learned rig
   and, in the same run, with the true rig.
 """
@@ -40,6 +42,10 @@ from torchhand.model.scene import Scene  # noqa: E402
 from torchhand.reconstruction.deformable import DeformConfig  # noqa: E402
 from torchhand.scoring.surfaces import vertex_errors  # noqa: E402
 
+#: the generated objects: name, link lengths (mm), joint axes, radius (mm), noise, motion seed
+CHAINS = [("chain2", (120.0, 120.0), ("z",), 15.0, "none", 1),
+          ("chain3", (100.0, 90.0, 90.0), ("z", "y"), 15.0, "none", 1),
+          ("chain2_kinect", (80.0, 140.0), ("z",), 12.0, "kinect", 3)]
 GRID = [(0.005, 0.7, True), (0.005, 0.98, True), (0.05, 0.7, True), (0.05, 0.98, True), (0.005, 0.7, False)]
 
 
@@ -57,7 +63,7 @@ def _truth(seq: Path, model: str, frames: int) -> tuple:
 def _score(out: Path, log: dict, world: np.ndarray, camera: np.ndarray) -> dict:
     dv = np.load(out / "deformable" / "vertices.npy")
     d = vertex_errors(dv, world[:len(dv)])
-    row = {"parts": log["parts"], "joint_dofs": log["joint_dofs"], "eigenvalues": log["eigenvalues"][:8],
+    row = {"parts": log["parts"], "clusters": log["clusters"], "joint_dofs": log["joint_dofs"], "eigenvalues": log["eigenvalues"][:8],
            "deformable_mm": d["mean_closest_mm"], "deformable_same_order_mm": d["mean_same_order_mm"],
            "seconds": log["seconds"]}
     tv = out / "track" / "vertices" / f"{log['name']}.npy"
@@ -72,7 +78,7 @@ def _score(out: Path, log: dict, world: np.ndarray, camera: np.ndarray) -> dict:
 def table_62(args, name: str, seq: Path, template: str) -> list:
     world, camera = _truth(seq, template, args.frames)
     rows = []
-    for gamma, lam, normals in GRID:
+    for gamma, lam, normals in (GRID if args.grid == "thesis" else GRID[:1]):
         tag = f"{name}_g{gamma:g}_l{lam:g}{'' if normals else '_nodn'}"
         out = args.work / tag
         t0 = time.perf_counter()
@@ -94,16 +100,16 @@ def chains(args) -> list:
     models.mkdir(parents=True, exist_ok=True)
     os.environ["TORCHHAND_MODELS"] = str(models)
     rows = []
-    for name, lengths, axes in (("chain2", (120.0, 120.0), ("z",)), ("chain3", (100.0, 90.0, 90.0), ("z", "y"))):
-        assets = chain_object(lengths, axes, name=name)
+    for name, lengths, axes, radius, noise, seed in CHAINS:
+        assets = chain_object(lengths, axes, radius=radius, name=name)
         save_assets(assets, models / f"{name}.npz", overwrite=True)
-        seq = write_synthetic_sequence(chain_motion(assets, args.frames, seed=1), args.work / f"{name}_seq",
-                                       noise="none", rgb=False, force=True, progress=False)
+        seq = write_synthetic_sequence(chain_motion(assets, args.frames, seed=seed), args.work / f"{name}_seq",
+                                       noise=noise, rgb=False, force=True, progress=False)
         world, camera = _truth(seq, name, args.frames)
         t0 = time.perf_counter()
         out = args.work / f"{name}_rig"
         log = rig_folder(seq, name, out, name=f"rig_{name}", force=True, progress=False)
-        row = {"object": name, "true_parts": len(lengths), **_score(out, log, world, camera),
+        row = {"object": name, "noise": noise, "true_parts": len(lengths), **_score(out, log, world, camera),
                "wall_s": time.perf_counter() - t0}
         learned = np.asarray(log["joints_mm"]).reshape(-1, 3)
         true = chain_joints(assets)
@@ -128,6 +134,8 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--work", type=Path, default=Path("out/exp_rig"))
     p.add_argument("--only", default="pipe,rope,chains", help="comma-separated: pipe, rope, chains")
+    p.add_argument("--grid", choices=["thesis", "defaults"], default="thesis",
+                   help="the pipe and the rope over the thesis' grid, or at the defaults only")
     p.add_argument("--json", type=Path, required=True)
     args = p.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ from torchhand.io.assets import save_assets  # noqa: E402
 from torchhand.io.thesis import FormatError  # noqa: E402
 from torchhand.model.articulated import ArticulatedModel  # noqa: E402
 from torchhand.reconstruction.deformable import DeformConfig, cotangent_laplacian, embed  # noqa: E402
-from torchhand.reconstruction.motion_segments import segment_motion  # noqa: E402
+from torchhand.reconstruction.motion_segments import merge_rigid_parts, segment_motion  # noqa: E402
 from torchhand.reconstruction.rigging import build_rig, fit_rig  # noqa: E402
 from torchhand.scoring.surfaces import vertex_errors  # noqa: E402
 
@@ -78,6 +78,25 @@ def test_motion_segmentation_finds_the_links(chain3):
     with torch.no_grad():
         rigid = model(th).vertices.numpy()
     assert segment_motion(rigid, chain3.vertices, chain3.faces).parts == 1
+
+
+def test_redundant_parts_are_joined(chain3):
+    traj, _ = _trajectories(chain3)
+    x = chain3.vertices[:, 0]
+    links = np.digitize(x, chain_joints(chain3)[:, 0])  # the true links, cut at the joints
+    # the middle link cut in two (a false joint), with a tracking-like error on top
+    labels = np.where((links == 1) & (x > 5), 3, links)
+    noisy = traj + np.random.default_rng(0).normal(0, 0.5, traj.shape)
+    merged, lines = merge_rigid_parts(noisy, chain3.vertices, chain3.faces, labels)
+    assert len(lines) == 1 and int(merged.max()) + 1 == 3
+    for link in range(3):  # one part per link again
+        assert len(np.unique(merged[links == link])) == 1
+    assert len(np.unique(merged)) == 3 and len({merged[links == k][0] for k in range(3)}) == 3
+    # the true joints are never joined, however small the ratio allowed
+    kept, none = merge_rigid_parts(noisy, chain3.vertices, chain3.faces, links, merge_ratio=1.0)
+    assert none == () and int(kept.max()) + 1 == 3
+    with pytest.raises(ValueError, match="merge_ratio"):
+        segment_motion(traj, chain3.vertices, chain3.faces, merge_ratio=-1)
 
 
 def test_rig_from_true_trajectories(chain3):
