@@ -45,7 +45,7 @@ def _frames_slice(text: str | None) -> slice | None:
 
 
 def _synth(args) -> int:
-    from torchhand.data.synth import demo_motion, random_poses, thesis_motion, write_synthetic_sequence
+    from torchhand.data.synth import demo_motion, random_poses, thesis_motion, with_camera_ring, write_synthetic_sequence
 
     if args.scan_object is not None:
         from torchhand.data.scanning import write_scan_sequence
@@ -69,10 +69,23 @@ def _synth(args) -> int:
         if not (args.hia_root and args.sequence):
             raise ValueError("give --hia-root and --sequence (or --random, or --demo)")
         frames = thesis_motion(args.hia_root, args.sequence, args.frames)
+    if args.views is None:
+        if args.depth or args.protocol != "none":
+            raise ValueError("--depth and --protocol go with --views N (colour cameras)")
+        out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
+                                       rgb=not args.no_rgb, backend=args.backend)
+        print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
+              f"(noise: {args.noise}; ground truth in {out / 'gt'})")
+        return 0
+    if args.no_rgb:
+        raise ValueError("--views renders colour cameras: --no-rgb does not apply")
+    frames = with_camera_ring(frames, args.views)
     out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
-                                   rgb=not args.no_rgb, backend=args.backend)
-    print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
-          f"(noise: {args.noise}; ground truth in {out / 'gt'})")
+                                   backend=args.backend, colour="shaded", depth=args.depth,
+                                   protocol=args.protocol)
+    what = "colour and depth" if args.depth else "colour"
+    print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} in {args.views} {what} views to "
+          f"{out} (protocol: {args.protocol}; ground truth in {out / 'gt'})")
     return 0
 
 
@@ -110,6 +123,7 @@ def _rig(args) -> int:
     log = rig_folder(args.seq, args.template, args.out, hands=[h for h in args.hands.split(",") if h],
                      name=args.name, template_pose=pose, deform=deform, lambda_thr=args.lambda_thr,
                      use_normals=not args.no_normals, config=RigConfig(skin_width=args.skin_width),
+                     merge_ratio=args.merge_ratio,
                      near=args.near, far=args.far, frames=args.frames, force=args.force, track=not args.no_track)
     joints = ", ".join(f"{d} DoF" for d in log["joint_dofs"]) or "none"
     print(f"rigged {log['frames']} frames: {log['parts']} parts, joints: {joints}; {log['seconds']['total']:.0f} s -> "
@@ -343,6 +357,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default="kinect", choices=["none", "kinect"], help="depth noise model (docs/noise.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the random poses")
     p.add_argument("--no-rgb", action="store_true", help="write depth only")
+    p.add_argument("--views", type=int, default=None,
+                   help="N colour cameras around the scene (camera 0 the thesis' view; docs/multicam.md): shaded "
+                        "colour with nails and a textured background in cam<k>/rgb, no depth unless --depth")
+    p.add_argument("--depth", action="store_true", help="with --views: also write each view's depth (RGB-D rig)")
+    p.add_argument("--protocol", default="none", choices=["none", "ballan"],
+                   help="with --views: Ballan et al.'s noise (100 circles per image, salient detections deleted, "
+                        "outliers within 200 px, 5 px jitter) and simulated nail detections in salient.json")
     p.add_argument("--scan-object", type=Path, default=None,
                    help="an in-hand scan: the hand holds this closed mesh (.ply/.obj/.off, mm) and turns it twice "
                         "in front of the camera (docs/scanning.md); --frames N sets the length")
@@ -384,6 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rigidity", type=float, default=None, help="weight of the as-rigid-as-possible term added "
                    "to the deformable tracking (default 0.005; 0: the thesis' Laplacian alone, docs/rigging.md)")
     p.add_argument("--no-normals", action="store_true", help="segment by distance changes alone (no d^n, Eq. 6.10)")
+    p.add_argument("--merge-ratio", type=float, default=1.5, help="join neighbouring parts that one rigid motion "
+                   "fits within this factor of their own residual (redundant bones; 0: keep every cluster)")
     p.add_argument("--skin-width", type=float, default=5.0, help="mm, width of the skinning blend across joints")
     p.add_argument("--frames", type=int, help="rig from the first N frames only")
     p.add_argument("--no-track", action="store_true", help="build the model, do not track the sequence with it")

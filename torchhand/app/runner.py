@@ -126,6 +126,11 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     summaries: Dict[int, dict] = {}
     groups: Dict[tuple, List[int]] = {}
     for k, info in enumerate(infos):
+        if not info.has_depth:
+            summaries[k] = _failed(names[k], f"{roots[k]}: colour views only (sequence.json has_depth false, no "
+                                   "depth/): the tracker's energies read depth; synthesise the views with --depth "
+                                   "for an RGB-D rig")
+            continue
         try:  # a sequence whose first frame is unusable fails before any tracking
             read_depth(camera_dir(roots[k], 0) / "depth" / frame_name(0), info.depth_unit_mm)
         except SequenceError as err:

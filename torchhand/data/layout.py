@@ -8,12 +8,18 @@
       depth/000000.png         16-bit depth in millimetres, camera 0 (0 = no measurement)
       rgb/000000.png           optional 8-bit colour, camera 0
       cam1/depth/000000.png    further cameras (multi-view) use cam<k>/ sub-folders
+      salient.json             optional, per camera folder: salient point detections
+                               per frame (``torchhand synth --protocol ballan``)
+      occluders/000000.png     optional, per camera folder: 255 where the protocol's
+                               circles cover the colour image
       gt/                      ground truth, kept apart (a tracker must not read it)
         meta.json              models, dof_names, keypoint_names, cameras
         theta.npy              (N, D) float64 poses
         keypoints_3d.npy       (N, C, P, 3) float64 mm, in each camera's frame
         keypoints_2d.npy       (N, C, P, 2) float64 px
         ids/000000.png         8-bit per-pixel model id of camera 0: 0 background, k+1 model k
+        salient_2d.npy         (N, C, P, 2) float64 px: the nail centres in each camera
+        salient_visible.npy    (N, C, P) bool: the nail centre is seen (colour renders)
 
 A tracker's output folder uses the ``gt/`` layout (without ``ids/``), so ground
 truth scored against itself gives 0.
@@ -68,6 +74,8 @@ class SequenceInfo:
     segmentation: optional hand-segmentation settings for real scenes
         (:class:`torchhand.tracking.segmentation.SegmentConfig` as a dict), written by
         ``torchhand import``; None: the data is the hands and objects alone.
+    has_depth: False for colour views only (``torchhand synth --views N`` without
+        ``--depth``): no ``depth/`` folders.
     """
 
     name: str
@@ -79,10 +87,12 @@ class SequenceInfo:
     has_rgb: bool = False
     source: Dict = field(default_factory=dict)
     segmentation: Optional[Dict] = None
+    has_depth: bool = True
 
     def to_dict(self) -> Dict:
         d = {"format": FORMAT, "name": self.name, "frames": self.frames, "fps": self.fps,
-             "depth_unit_mm": self.depth_unit_mm, "has_rgb": self.has_rgb, "models": self.models,
+             "depth_unit_mm": self.depth_unit_mm, "has_rgb": self.has_rgb, "has_depth": self.has_depth,
+             "models": self.models,
              "cameras": [c.to_dict() for c in self.cameras], "source": self.source}
         if self.segmentation is not None:
             d["segmentation"] = self.segmentation
@@ -125,7 +135,7 @@ def read_sequence_info(root) -> SequenceInfo:
         raise SequenceError(f"{path}: bad camera entry ({err})") from None
     return SequenceInfo(d["name"], cams, list(d["models"]), int(d["frames"]), float(d.get("fps", 30.0)),
                         float(d.get("depth_unit_mm", 1.0)), bool(d.get("has_rgb", False)), d.get("source", {}),
-                        d.get("segmentation"))
+                        d.get("segmentation"), bool(d.get("has_depth", True)))
 
 
 def read_init_pose(root) -> np.ndarray:

@@ -7,6 +7,8 @@ truth (theta, keypoints, per-pixel ids) is exact for the rendered images.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Sequence
@@ -26,13 +28,12 @@ from torchhand.model.scene import Scene
 from torchhand.io.output_dir import prepare_output_dir
 from torchhand.data.layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
 from torchhand.data.noise import apply_kinect_noise, noise_model
+from torchhand.data.appearance import background_texture, face_albedo, model_albedo, shade
+from torchhand.data.ballan_protocol import protocol as noise_protocol, simulate_detections, structural_noise
 
 __all__ = ["SyntheticFrames", "thesis_motion", "demo_motion", "random_poses", "write_synthetic_sequence", "shade_rgb",
-           "quat_to_matrix"]
+           "quat_to_matrix", "with_camera_ring"]
 
-# Albedo per model kind (RGB, 0..1): skin for hands, the thesis objects' colours.
-_COLORS = {"hand": (0.87, 0.67, 0.55), "ball": (0.85, 0.2, 0.15), "cube": (0.2, 0.45, 0.85),
-           "pipe": (0.55, 0.55, 0.55), "rope": (0.2, 0.7, 0.3)}
 
 
 @dataclass
@@ -134,6 +135,23 @@ def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(40
     return SyntheticFrames(scene, theta, [cam], f"random_{seed}", source)
 
 
+def with_camera_ring(frames: SyntheticFrames, views: int) -> SyntheticFrames:
+    """``frames`` seen by :func:`~torchhand.geometry.camera.camera_ring` of ``views``
+    cameras, centred at the depth of the scene's first frame on camera 0's axis (camera
+    0 keeps its place, so world coordinates are unchanged)."""
+    from torchhand.geometry.camera import camera_ring
+
+    if isinstance(views, bool) or not isinstance(views, int) or views < 1:
+        raise ValueError(f"--views must be a positive number of cameras, got {views!r}")
+    with torch.no_grad():
+        v = frames.scene(frames.theta[:1].to(frames.scene.lower.dtype)).vertices[0]
+    cam0 = frames.cameras[0]
+    distance = float(cam0.to(dtype=v.dtype).to_camera(v[None])[0, :, 2].median())
+    cams = camera_ring(views, distance, like=cam0)
+    return dataclasses.replace(frames, cameras=[c.to(dtype=cam0.dtype) for c in cams],
+                               source={**frames.source, "views": views, "ring_distance_mm": round(distance, 1)})
+
+
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices."""
     w, x, y, z = q.unbind(-1)
@@ -157,6 +175,21 @@ def shade_rgb(result: RenderResult, albedo: torch.Tensor, light=(0.3, -0.4, -1.0
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8)
 
 
+def _salient_in_view(points: torch.Tensor, camera: Camera, depth: torch.Tensor, tolerance_mm: float = 4.0) -> tuple:
+    """((B, P, 2) pixels, (B, P) seen) of (B, P, 3) world points in one camera's render:
+    seen where the point is in the image and the rendered surface there is not nearer
+    than ``tolerance_mm`` (the point is on the visible surface)."""
+    uv = camera.project(points)
+    z = camera.to_camera(points)[..., 2]
+    H, W = depth.shape[-2:]
+    u, v = uv[..., 0].round().long(), uv[..., 1].round().long()
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H) & (z > 0)
+    b = torch.arange(points.shape[0], device=points.device)[:, None].expand_as(u)
+    d = depth[b, v.clamp(0, H - 1), u.clamp(0, W - 1)]
+    seen = inside & (d > 0) & (d >= z - tolerance_mm)
+    return uv.cpu().numpy(), seen.cpu().numpy()
+
+
 def write_synthetic_sequence(
     frames: SyntheticFrames,
     out,
@@ -167,22 +200,50 @@ def write_synthetic_sequence(
     batch_size: int = 8,
     progress: bool = True,
     backend: Optional[str] = None,
+    colour: str = "flat",
+    depth: bool = True,
+    protocol: Optional[str] = None,
 ) -> Path:
     """Render ``frames`` into a new sequence folder (see datasets/README.md).
 
-    Depth (with the named noise model), optional shaded RGB, and ground truth under
-    ``gt/``. An existing non-empty ``out`` is refused unless ``force``. ``backend``: of
-    the renders (:mod:`torchhand.geometry.raycast`; None: Warp when installed).
+    Depth (with the named noise model; none with ``depth=False``), optional RGB, and
+    ground truth under ``gt/``. An existing non-empty ``out`` is refused unless
+    ``force``. ``backend``: of the renders (:mod:`torchhand.geometry.raycast`; None:
+    Warp when installed). ``colour``: ``"flat"`` (one colour per model, face normals,
+    grey background) or ``"shaded"`` (:mod:`torchhand.data.appearance`: smooth shading,
+    nails, a textured background per camera; also writes the nail centres to
+    ``gt/salient_2d.npy`` and ``gt/salient_visible.npy``). ``protocol``: ``"ballan"``
+    adds :mod:`torchhand.data.ballan_protocol`'s noise to the colour images (their
+    circles in ``occluders/``) and writes simulated salient detections per camera
+    (``salient.json``).
     """
-    params = noise_model(noise)  # validates the name before anything is written
+    params = noise_model(noise)  # validates the names before anything is written
+    proto = noise_protocol(protocol)
+    if colour not in ("flat", "shaded"):
+        raise ValueError(f"colour must be 'flat' or 'shaded', got {colour!r}")
+    if not (depth or rgb):
+        raise ValueError("nothing to write: depth and rgb are both off")
+    if proto is not None and not (rgb and colour == "shaded"):
+        raise ValueError(f"protocol {protocol!r} perturbs colour images and nail detections: it needs rgb and "
+                         "colour='shaded'")
     out = prepare_output_dir(out, force)
     scene, theta, cams = frames.scene, frames.theta, frames.cameras
     N = len(theta)
     g = torch.Generator().manual_seed(seed)
-    kinds = [m.name if m.kind == "object" else "hand" for m in scene.models]
-    albedo = torch.tensor([_COLORS.get(k, (0.7, 0.7, 0.7)) for k in kinds])
+    rng = np.random.default_rng(seed)
+    shaded = rgb and colour == "shaded"
+    albedo = face_albedo(scene) if shaded else model_albedo(scene)
+    backgrounds = [torch.as_tensor(background_texture(c.height, c.width, seed=1000 * seed + k))
+                   for k, c in enumerate(cams)] if shaded else None
+    if shaded:
+        from torchhand.model.fingertips import fingertip_faces, nail_vertices
+
+        salient = nail_vertices(scene) if fingertip_faces(scene).names else torch.zeros(0, dtype=torch.int64)
+        sal2d = np.zeros((N, len(cams), len(salient), 2))
+        sal_vis = np.zeros((N, len(cams), len(salient)), bool)
+        detections = [[] for _ in cams]
     for c in range(len(cams)):
-        for sub in ["depth"] + (["rgb"] if rgb else []):
+        for sub in (["depth"] if depth else []) + (["rgb"] if rgb else []) + (["occluders"] if proto else []):
             (camera_dir(out, c) / sub).mkdir(parents=True, exist_ok=True)
     (out / "gt" / "ids").mkdir(parents=True)
     kp3d = np.zeros((N, len(cams), len(scene.keypoint_names), 3))
@@ -196,17 +257,31 @@ def write_synthetic_sequence(
         for c, cam in enumerate(cams):
             camd = cam.to(dtype=posed.vertices.dtype)
             res = renderer(posed.vertices, camd)
-            depth = res.depth
-            if params is not None:
-                depth = apply_kinect_noise(depth, res.normals, camd.K.float(), params, generator=g)
+            dmap = res.depth
+            if params is not None and depth:
+                dmap = apply_kinect_noise(dmap, res.normals, camd.K.float(), params, generator=g)
             kp3d[s : s + len(th), c] = camd.to_camera(posed.keypoints).cpu().numpy()
             kp2d[s : s + len(th), c] = camd.project(posed.keypoints).cpu().numpy()
-            colour = shade_rgb(res, albedo) if rgb else None
+            if shaded:
+                image = shade(res, posed.vertices, scene.faces, albedo, camd, backgrounds[c])
+                sal2d[s : s + len(th), c], sal_vis[s : s + len(th), c] = _salient_in_view(
+                    posed.vertices[:, salient], camd, res.depth)
+            else:
+                image = shade_rgb(res, albedo) if rgb else None
             for b in range(len(th)):
                 k = s + b
-                write_depth(camera_dir(out, c) / "depth" / frame_name(k), depth[b].cpu().numpy())
+                if depth:
+                    write_depth(camera_dir(out, c) / "depth" / frame_name(k), dmap[b].cpu().numpy())
                 if rgb:
-                    write_rgb(camera_dir(out, c) / "rgb" / frame_name(k), colour[b].cpu().numpy())
+                    img = image[b].cpu().numpy()
+                    if proto is not None:
+                        img, circles = structural_noise(img, rng, proto)
+                        cv2.imwrite(str(camera_dir(out, c) / "occluders" / frame_name(k)),
+                                    circles.astype(np.uint8) * 255)
+                        seen = sal2d[k, c][sal_vis[k, c]]
+                        detections[c].append(simulate_detections(seen, rng, proto, (cam.width, cam.height))
+                                             .round(2).tolist())
+                    write_rgb(camera_dir(out, c) / "rgb" / frame_name(k), img)
                 if c == 0:
                     ids = (res.model_id[b] + 1).clamp(0, 255).to(torch.uint8).cpu().numpy()
                     cv2.imwrite(str(out / "gt" / "ids" / frame_name(k)), ids)
@@ -216,8 +291,19 @@ def write_synthetic_sequence(
     dofs = np.concatenate([np.arange(scene.slices[n].start, scene.slices[n].stop) for n in listed])
     kps = np.concatenate([np.arange(scene.keypoint_slices[n].start, scene.keypoint_slices[n].stop, dtype=np.int64)
                           for n in listed])
-    info = SequenceInfo(frames.name, cams, listed, N, has_rgb=rgb,
-                        source={**frames.source, "noise": noise, "seed": seed})
+    source = {**frames.source, "noise": noise if depth else None, "seed": seed}
+    if rgb:
+        source["colour"] = colour
+    if proto is not None:
+        source["protocol"] = {"name": protocol, **dataclasses.asdict(proto)}
+        for c in range(len(cams)):
+            (camera_dir(out, c) / "salient.json").write_text(json.dumps(
+                {"format": "torchhand-salient/1", "source": f"simulated detections of the nail centres, protocol "
+                 f"{protocol} (torchhand.data.ballan_protocol)", "frames": detections[c]}))
+    if shaded:
+        np.save(out / "gt" / "salient_2d.npy", sal2d)
+        np.save(out / "gt" / "salient_visible.npy", sal_vis)
+    info = SequenceInfo(frames.name, cams, listed, N, has_rgb=rgb, source=source, has_depth=depth)
     th = theta.cpu().numpy()[:, dofs]
     write_sequence_info(out, info, init_theta=th[0])
     write_poses(out / "gt", Poses(th, kp3d[:, :, kps], kp2d[:, :, kps], listed,

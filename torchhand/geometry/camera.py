@@ -16,6 +16,7 @@ containers around them.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -40,6 +41,8 @@ __all__ = [
     "Camera",
     "CameraRig",
     "kinect_camera",
+    "look_at",
+    "camera_ring",
 ]
 
 
@@ -529,6 +532,57 @@ def kinect_camera(
     return Camera.from_intrinsics(
         525.0, 525.0, 319.5, 239.5, 640, 480, T_cw=T_cw, name="kinect", dtype=dtype, device=device
     )
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> torch.Tensor:
+    """(4, 4) float64 world-to-camera transform of a camera at ``eye`` looking at
+    ``target`` (OpenCV: z forward, y down), ``up`` the world direction that appears up
+    in the image (camera 0's -y by default)."""
+    eye = torch.as_tensor(eye, dtype=torch.float64)
+    z = torch.as_tensor(target, dtype=torch.float64) - eye
+    if float(z.norm()) < 1e-9:
+        raise ValueError(f"look_at: eye and target coincide at {eye.tolist()}")
+    z = z / z.norm()
+    x = torch.linalg.cross(-torch.as_tensor(up, dtype=torch.float64), z)
+    if float(x.norm()) < 1e-9:
+        raise ValueError(f"look_at: the viewing direction {z.tolist()} is parallel to up {list(up)}")
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])  # rows: the camera axes in world coordinates
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ eye
+    return T
+
+
+def camera_ring(count: int = 8, distance: float = 650.0, like: Camera | None = None,
+                elevations_deg: Sequence[float] = (25.0, -15.0)) -> list:
+    """``count`` cameras around the point ``(0, 0, distance)`` of camera 0's axis, all
+    at ``distance`` from it and looking at it (a studio rig as in Ballan et al.: the
+    scene seen from all sides). Camera 0 is ``like`` (the thesis' Kinect by default) at
+    the origin, so world coordinates stay camera 0's; camera k sits at azimuth
+    360 k / count degrees about the vertical through the centre, alternately raised and
+    lowered by ``elevations_deg``. All share ``like``'s intrinsics and size."""
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"count must be a positive int (cameras), got {count!r}")
+    if not distance > 0:
+        raise ValueError(f"distance must be > 0 mm, got {distance}")
+    base = kinect_camera(dtype=torch.float64) if like is None else like.to(dtype=torch.float64)
+    centre = torch.tensor([0.0, 0.0, float(distance)], dtype=torch.float64)
+    cams = []
+    for k in range(count):
+        if k == 0:
+            T = base.T_cw
+        else:
+            az = 2 * math.pi * k / count
+            el = math.radians(elevations_deg[(k - 1) % len(elevations_deg)]) if elevations_deg else 0.0
+            # from the centre back towards camera 0 (-z), turned about the vertical (y)
+            # by az and raised (towards -y) by el
+            d = torch.tensor([-math.sin(az) * math.cos(el), -math.sin(el), -math.cos(az) * math.cos(el)],
+                             dtype=torch.float64)
+            T = look_at(centre + distance * d, centre)
+        cams.append(dataclasses.replace(base, T_cw=T, name=f"{base.name}{k}" if count > 1 else base.name))
+    return cams
 
 
 # --------------------------------------------------------------------------- CameraRig
