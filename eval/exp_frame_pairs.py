@@ -22,6 +22,7 @@ truth (mm), per gap, as the thesis' Table 3.1; and the share of pairs below each
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -163,14 +164,18 @@ def main(argv=None) -> int:
     seconds = {k: 0.0 for k, _ in distances}
     scenes = {}
     for s, start, test, gap in tqdm(pairs, desc="frame pairs", unit="pair"):
-        first = thesis_motion(args.hia_root, s, slice(start, start + 1), dtype=torch.float64)
-        last = thesis_motion(args.hia_root, s, slice(test, test + 1), dtype=torch.float64)
-        if s not in scenes:  # one rig per sequence, around its first pair's test frame
-            ring = with_camera_ring(last, args.views)
-            scene = last.scene
+        if s not in scenes:  # each sequence's frames of its pairs, loaded once; one rig around its first test frame
+            lo = min(a for q, a, _, _ in pairs if q == s)
+            hi = max(b for q, _, b, _ in pairs if q == s)
+            motion = thesis_motion(args.hia_root, s, slice(lo, hi + 1), dtype=torch.float64)
+            scene = motion.scene
+            ring = with_camera_ring(dataclasses.replace(motion, theta=motion.theta[test - lo : test - lo + 1]),
+                                    args.views)
             scenes[s] = (scene, Renderer(scene.faces, scene.face_model_id, scene.face_bone_id),
-                         [c.to(dtype=torch.float64) for c in ring.cameras])
-        scene, renderer, cams = scenes[s]
+                         [c.to(dtype=torch.float64) for c in ring.cameras], motion.theta, lo)
+        scene, renderer, cams, theta, lo = scenes[s]
+        first = SimpleNamespace(theta=theta[start - lo : start - lo + 1])
+        last = SimpleNamespace(theta=theta[test - lo : test - lo + 1])
         with torch.no_grad():
             truth = scene(last.theta)
             targets = [silhouette_contour((renderer(truth.vertices, c).face_id[0] >= 0).numpy()) for c in cams]
