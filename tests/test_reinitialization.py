@@ -44,7 +44,9 @@ def test_a_hand_back_in_view_is_reinitialised_within_five_frames(tmp_path):
     assert flagged and 20 <= flagged[0] <= 24 and summary["reinitialized_frames"] == len(flagged)
     assert "re-initialised" in log[flagged[0]]["notes"]
     assert all(log[f]["iou"] is None and "no valid depth" in log[f]["notes"] for f in range(10, 20))
-    # without it, the tracker stays on the stale pose: the test measures the re-initialisation
+    # without it, the tracker starts the first frame back from the stale pose and is far
+    # off there (it may find the hand again a few frames later, by local search): the
+    # test measures the re-initialisation
     [off] = track_sequences([seq], tmp_path / "off", progress=False, reinit_iou=0.0)
     err_off = np.linalg.norm(read_poses(tmp_path / "off" / "gap").keypoints_3d - gt.keypoints_3d, axis=-1).mean((1, 2))
-    assert off["reinitialized_frames"] == 0 and err_off[25:].min() > 10.0
+    assert off["reinitialized_frames"] == 0 and err_off[flagged[0]] > 10.0 and err[flagged[0]] < 6.0
