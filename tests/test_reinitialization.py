@@ -14,11 +14,11 @@ from torchhand.model.scene import Scene
 
 def _gap_sequence(root):
     """32 frames of the demo's right hand; frames 10-19 blanked (out of view), after which
-    the hand is back 80 mm away and turned by 0.5 rad."""
+    the hand is back 134 mm away and turned by 0.5 rad."""
     demo = demo_motion(slice(0, 32))
     theta = demo.theta[:, demo.scene.slices["hand_right"]].clone()
-    theta[10:, 0] += 70.0
-    theta[10:, 1] -= 40.0
+    theta[10:, 0] += 120.0
+    theta[10:, 1] -= 60.0
     theta[10:, 5] += 0.5
     frames = SyntheticFrames(Scene.from_names(["hand_right"]), theta, demo.cameras, "gap", {"format": "test"})
     seq = write_synthetic_sequence(frames, root, noise="kinect", rgb=False, progress=False)
@@ -44,9 +44,10 @@ def test_a_hand_back_in_view_is_reinitialised_within_five_frames(tmp_path):
     assert flagged and 20 <= flagged[0] <= 24 and summary["reinitialized_frames"] == len(flagged)
     assert "re-initialised" in log[flagged[0]]["notes"]
     assert all(log[f]["iou"] is None and "no valid depth" in log[f]["notes"] for f in range(10, 20))
-    # without it, the tracker starts the first frame back from the stale pose and is far
-    # off there (it may find the hand again a few frames later, by local search): the
-    # test measures the re-initialisation
+    # without it, the tracker starts the first frame back from the stale pose and stays
+    # off (the jump is beyond what local search recovers from: 80 mm was not, with some
+    # package versions): the test measures the re-initialisation
     [off] = track_sequences([seq], tmp_path / "off", progress=False, reinit_iou=0.0)
     err_off = np.linalg.norm(read_poses(tmp_path / "off" / "gap").keypoints_3d - gt.keypoints_3d, axis=-1).mean((1, 2))
     assert off["reinitialized_frames"] == 0 and err_off[flagged[0]] > 10.0 and err[flagged[0]] < 6.0
+    assert err_off[25:].min() > 10.0
