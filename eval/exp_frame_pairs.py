@@ -99,8 +99,9 @@ def fit_silhouettes(scene, renderer, cams, start, targets, config: ChamferConfig
     """The pose fitted to the target silhouettes from ``start`` (module docstring)."""
     theta = start.clone()
     shape = (cams[0].height, cams[0].width)
-    marks = [torch.as_tensor(contour_marks(p, phi, shape, config)[0])[None] for p, phi in targets]
-    phis = [torch.as_tensor(contour_marks(p, phi, shape, config)[1])[None] for p, phi in targets]
+    images = [contour_marks(p, phi, shape, config) for p, phi in targets]  # the data side, once per pair
+    marks = [torch.as_tensor(m)[None] for m, _ in images]
+    phis = [torch.as_tensor(phi)[None] for _, phi in images]
     for _ in range(iterations):
         with torch.no_grad():
             posed = scene(theta)

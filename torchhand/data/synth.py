@@ -236,9 +236,9 @@ def write_synthetic_sequence(
     backgrounds = [torch.as_tensor(background_texture(c.height, c.width, seed=1000 * seed + k))
                    for k, c in enumerate(cams)] if shaded else None
     if shaded:
-        from torchhand.model.fingertips import fingertip_faces, nail_vertices
+        from torchhand.model.fingertips import nail_vertices
 
-        salient = nail_vertices(scene) if fingertip_faces(scene).names else torch.zeros(0, dtype=torch.int64)
+        salient = nail_vertices(scene)  # empty without hands
         sal2d = np.zeros((N, len(cams), len(salient), 2))
         sal_vis = np.zeros((N, len(cams), len(salient)), bool)
         detections = [[] for _ in cams]

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -66,13 +66,14 @@ class ChamferConfig:
             raise ValueError(f"need bins >= 2, radius_px >= 1, 0 < tau_deg <= 180, lam >= 0; got {self}")
 
 
-class ContourMatch:
+class ContourMatch(NamedTuple):
     """Pairs of rim points and contour pixels: ``source`` (B, m) int64 the index of the
-    query each pair comes from, ``pixel`` (B, m) (row, col) int64 the contour pixel,
+    query each pair comes from, ``pixel`` (B, m, 2) (row, col) int64 the contour pixel,
     ``valid`` (B, m) bool (m = n queries, or 2n for DCH-Quant2)."""
 
-    def __init__(self, source: torch.Tensor, pixel: torch.Tensor, valid: torch.Tensor) -> None:
-        self.source, self.pixel, self.valid = source, pixel, valid
+    source: torch.Tensor
+    pixel: torch.Tensor
+    valid: torch.Tensor
 
 
 def circular_distance(a: torch.Tensor, b: torch.Tensor, signed: bool = True) -> torch.Tensor:

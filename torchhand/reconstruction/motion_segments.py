@@ -34,7 +34,8 @@ Redundant parts (thesis Sec. 6.4.2: "redundant bones are removed"): the deformab
 tracking of a tube seen from one side slides a little along the tube and bends rigid
 links by a few millimetres, which the distance variation reads as motion and splits a
 link in two (a two-link chain, 80 + 140 mm with Kinect noise: 3 parts, the extra cut
-in the middle of the long link). :func:`merge_rigid_parts` therefore joins two
+in the middle of the long link; 150 frames of ``eval/exp_rig.py``'s ``chain2_kinect``
+object and motion, rigged once). :func:`merge_rigid_parts` therefore joins two
 neighbouring parts when one rigid motion explains both nearly as well as each alone:
 the 95th percentile over the frames of the RMS residual of the union's rigid fit is at
 most ``merge_ratio`` times that of the worse part. In that chain the false cut scored
@@ -215,11 +216,16 @@ def _connected_parts(labels: np.ndarray, faces: np.ndarray, V: int, min_part: fl
         if len(touching) == 0:
             break  # an isolated piece (a separate shell) stays as it is
         piece[piece == p] = np.bincount(touching).argmax()
-    uniq, piece = np.unique(piece, return_inverse=True)
-    order = np.argsort(-np.bincount(piece), kind="stable")
+    return _by_size(piece)
+
+
+def _by_size(labels: np.ndarray) -> np.ndarray:
+    """The labels renumbered 0.. by decreasing size (ties: the smaller old label first)."""
+    _, labels = np.unique(labels, return_inverse=True)
+    order = np.argsort(-np.bincount(labels), kind="stable")
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
-    return rank[piece].astype(np.int64)
+    return rank[labels].astype(np.int64)
 
 
 def rigid_residual(trajectories: np.ndarray, template: np.ndarray, ids: np.ndarray, percentile: float = 95.0) -> float:
@@ -267,8 +273,4 @@ def merge_rigid_parts(trajectories: np.ndarray, template: np.ndarray, faces: np.
         own[p] = union[p, q]
         del own[q]
         union = {k: v for k, v in union.items() if p not in k and q not in k}
-    uniq, labels = np.unique(labels, return_inverse=True)
-    order = np.argsort(-np.bincount(labels), kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return rank[labels].astype(np.int64), tuple(merged)
+    return _by_size(labels), tuple(merged)
