@@ -283,8 +283,14 @@ def test_parse_energy_rejects_unknown_and_future_components():
     assert [t.name for t in parse_energy("LO")] == ["m2d", "d2m", "anatomy", "regularization"]
     with pytest.raises(ValueError, match="unknown components"):
         parse_energy("LO+X")
-    with pytest.raises(ValueError, match="must start with LO"):
+    with pytest.raises(ValueError, match="unknown components"):
         parse_energy("XYZ")
+    with pytest.raises(ValueError, match="no data term"):
+        parse_energy("C")
+    with pytest.raises(ValueError, match="LO twice"):
+        parse_energy("LO+LO")
+    assert [t.name for t in parse_energy("E+C+O")] == ["edges", "flow", "collision", "anatomy", "regularization"]
+    assert [t.needs for t in parse_energy("LO+E")][:3] == ["depth", "depth", "colour"]
 
 
 def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):

@@ -62,7 +62,8 @@ class Scene(nn.Module):
         self.vertex_slices: Dict[str, slice] = {}
         self.keypoint_slices: Dict[str, slice] = {}
         start = vstart = kstart = 0
-        faces, face_model, face_bone, vertex_model = [], [], [], []
+        faces, face_model, face_bone, vertex_model, vertex_part = [], [], [], [], []
+        bones = 0
         for k, (n, m) in enumerate(zip(names, models)):
             self.slices[n] = slice(start, start + m.num_dofs)
             self.vertex_slices[n] = slice(vstart, vstart + m.num_vertices)
@@ -71,6 +72,8 @@ class Scene(nn.Module):
             face_model.append(torch.full((len(m.faces),), k, dtype=torch.int64))
             face_bone.append(m.vertex_bone[m.faces[:, 0]])  # part of a face = part of its first vertex
             vertex_model.append(torch.full((m.num_vertices,), k, dtype=torch.int64))
+            vertex_part.append(m.vertex_bone + bones)
+            bones += m.num_bones
             start += m.num_dofs
             vstart += m.num_vertices
             kstart += len(m.keypoint_names)
@@ -80,6 +83,9 @@ class Scene(nn.Module):
         self.register_buffer("face_model_id", torch.cat(face_model), persistent=False)
         self.register_buffer("face_bone_id", torch.cat(face_bone), persistent=False)
         self.register_buffer("vertex_model_id", torch.cat(vertex_model), persistent=False)
+        # each vertex's dominant bone, numbered over the scene (model k's bones after those of models < k)
+        self.register_buffer("vertex_bone_id", torch.cat(vertex_part), persistent=False)
+        self.num_bones = bones
         self.register_buffer("vertex_faces", vertex_faces(self.faces, vstart), persistent=False)  # one-rings
 
     @classmethod

@@ -1,10 +1,17 @@
-"""Preprocessing of depth frames for tracking (thesis Ch. 4.2.2.1-4.2.2.3).
+"""Preprocessing of depth and colour frames for tracking (thesis Ch. 4.2.2.1-4.2.2.3;
+Ballan et al. 2012, Sec. 3).
 
 Per frame: remove what cannot be the hands or objects (depth range, optionally a
 fitted support plane or a user mask), smooth with a bilateral filter, back-project
 to points with normals, and find the depth discontinuities (Canny on the depth map;
 their depth is the 3x3 average of the thesis because single pixels at
 discontinuities are unreliable).
+
+Colour frames (:func:`preprocess_colour`, Ballan's features): the grey image, its
+Canny edges with their orientations (the direction of the intensity gradient, taken
+modulo pi: whether the hand is brighter or darker than what is behind it is not
+known, so an image edge has no sign), and the previous frame's grey image of the same
+camera, from which the optical-flow term computes its dense flow.
 """
 
 from __future__ import annotations
@@ -18,7 +25,8 @@ import torch
 
 from torchhand.geometry.camera import Camera, depth_to_points_and_normals
 
-__all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError", "remove_plane"]
+__all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError", "remove_plane", "ColourConfig",
+           "ColourFrame", "preprocess_colour"]
 
 
 class EmptyFrameError(ValueError):
@@ -179,3 +187,62 @@ def remove_plane(d: np.ndarray, camera: Camera, distance: float) -> np.ndarray:
         out[v[inliers], u[inliers]] = 0
         return out
     return d
+
+
+@dataclass(frozen=True)
+class ColourConfig:
+    """blur: sigma in px of the Gaussian smoothing before Canny (0: none); canny: (low,
+    high) hysteresis thresholds on the 8-bit grey image's gradient (L2 norm)."""
+
+    blur: float = 1.0
+    canny: tuple = (40, 100)
+
+    def __post_init__(self) -> None:
+        if not self.blur >= 0 or len(self.canny) != 2 or not 0 <= self.canny[0] <= self.canny[1]:
+            raise ValueError(f"need blur >= 0 and 0 <= canny low <= high, got {self}")
+
+
+class ColourFrame(NamedTuple):
+    """A preprocessed colour frame (one camera).
+
+    gray: (H, W) uint8 host array; edges: (E, 2) int64 (row, col) Canny edge pixels;
+    edge_phi: (E,) float32 their orientation in [0, pi), the image direction of the
+    intensity gradient (the edge's normal) modulo pi; previous: the grey image of the
+    same camera's previous frame (None at the first frame); ignore: (H, W) bool host
+    array or None, pixels whose features are not used (the occluders of Ballan's
+    protocol, for optical flow).
+    """
+
+    gray: np.ndarray
+    edges: torch.Tensor
+    edge_phi: torch.Tensor
+    previous: Optional[np.ndarray] = None
+    ignore: Optional[np.ndarray] = None
+
+
+def preprocess_colour(image, camera: Camera, config: ColourConfig = ColourConfig(), previous: Optional[np.ndarray] = None,
+                      ignore: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32) -> ColourFrame:
+    """Preprocess one colour image: (H, W, 3) uint8 RGB (or (H, W) grey) of ``camera``'s
+    size; ``previous``: the grey image of the previous frame (``ColourFrame.gray``);
+    ``ignore``: (H, W) bool pixels to leave out of the flow."""
+    if isinstance(image, torch.Tensor):
+        image = image.detach().cpu().numpy()
+    img = np.asarray(image)
+    if img.ndim not in (2, 3) or img.shape[:2] != (camera.height, camera.width) or (img.ndim == 3 and img.shape[2] != 3):
+        raise ValueError(f"colour image must have shape ({camera.height}, {camera.width}, 3) (or grey "
+                         f"({camera.height}, {camera.width})), got {img.shape}")
+    if img.dtype != np.uint8:
+        raise ValueError(f"colour image must be 8-bit (uint8), got {img.dtype}")
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else np.ascontiguousarray(img)
+    for name, other in (("previous", previous), ("ignore", ignore)):
+        if other is not None and np.shape(other) != gray.shape:
+            raise ValueError(f"{name} must have shape {gray.shape}, got {np.shape(other)}")
+    smooth = cv2.GaussianBlur(gray, (0, 0), config.blur) if config.blur > 0 else gray
+    edges = cv2.Canny(smooth, config.canny[0], config.canny[1], L2gradient=True) > 0
+    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
+    rc = np.argwhere(edges)
+    phi = np.remainder(np.arctan2(gy[rc[:, 0], rc[:, 1]], gx[rc[:, 0], rc[:, 1]]), np.pi)
+    return ColourFrame(gray, torch.as_tensor(rc, dtype=torch.int64, device=device).reshape(-1, 2),
+                       torch.as_tensor(phi, dtype=dtype, device=device), previous,
+                       None if ignore is None else np.asarray(ignore, bool))

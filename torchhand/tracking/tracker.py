@@ -26,9 +26,10 @@ from torchhand.geometry.raycast import BACKENDS, _box_of, default_backend
 from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
-from torchhand.tracking.energies import EnergyTerm, TrackState, parse_energy
+from torchhand.tracking.energies import EnergyTerm, Prepared, TrackState, parse_energy
 from torchhand.tracking.labels import LABELINGS, label_by_proximity, label_data
-from torchhand.tracking.preprocess import DepthFrame, EmptyFrameError, PreprocessConfig, preprocess_depth
+from torchhand.tracking.preprocess import (ColourConfig, ColourFrame, DepthFrame, EmptyFrameError, PreprocessConfig,
+                                          preprocess_colour, preprocess_depth)
 
 __all__ = ["TrackerConfig", "FrameResult", "SolveResult", "Tracker", "predicted_start"]
 
@@ -72,7 +73,8 @@ class TrackerConfig:
     the Warp backends, the CPU reference for open3d); None: Warp when installed;
     render_margin: px around the projection of a solve's start poses that its renders
     cover (the models move a few mm within a frame: 48 px are about 40 mm at 450 mm; a
-    model that leaves the box loses the pixels outside it for that frame)."""
+    model that leaves the box loses the pixels outside it for that frame); colour: the
+    preprocessing of colour views (:class:`~torchhand.tracking.preprocess.ColourConfig`)."""
 
     energy: str = "LO+F"
     metric: str = "point-to-plane"
@@ -91,6 +93,7 @@ class TrackerConfig:
     prediction: float = 0.0
     prediction_limiter: bool = True
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    colour: ColourConfig = field(default_factory=ColourConfig)
     backend: Optional[str] = None
     render_margin: int = 48
 
@@ -169,10 +172,12 @@ class Objective:
     ``posed`` scene) must lie within them, so that this call reuses ``posed``.
     """
 
-    def __init__(self, scene: Scene, terms: Sequence[EnergyTerm], theta: torch.Tensor, posed: SceneOutput):
-        self.scene, self.terms = scene, list(terms)
+    def __init__(self, scene: Scene, terms: Sequence[EnergyTerm], theta: torch.Tensor, posed: SceneOutput,
+                 views: int = 1):
+        self.scene, self.terms, self.views = scene, list(terms), int(views)
         self.current = posed  # the scene at the solver's current theta
         self._first, self._last = True, (theta, posed)  # the latest theta evaluated and its pose
+        self._rep = None if self.views == 1 else torch.arange(theta.shape[0], device=theta.device).repeat_interleave(self.views)
 
     def __call__(self, theta: torch.Tensor, jacobian: bool):
         if self._first:  # the start (clamping a theta within the bounds changes no value)
@@ -182,7 +187,20 @@ class Objective:
         else:
             posed = self.scene(theta, validate=False)
             self._last = (theta, posed)
-        parts = [t.residuals(theta, posed, jacobian) for t in self.terms]
+        if self._rep is None:
+            parts = [t.residuals(theta, posed, jacobian) for t in self.terms]
+        else:  # the terms that read images see the B x V view problems: stack each problem's views
+            B, D = theta.shape
+            per_view = [t for t in self.terms if t.needs is not None]
+            th_v, posed_v = (theta[self._rep], posed.select(self._rep)) if per_view else (None, None)
+            parts = []
+            for t in self.terms:
+                if t.needs is None:
+                    parts.append(t.residuals(theta, posed, jacobian))
+                    continue
+                res = t.residuals(th_v, posed_v, jacobian)
+                parts.append(res._replace(r=res.r.reshape(B, -1),
+                                          J=None if res.J is None else res.J.reshape(B, -1, D)))
         r = torch.cat([p.r for p in parts], 1)
         J = torch.cat([p.J for p in parts], 1) if jacobian else None
         return r, J
@@ -227,14 +245,17 @@ class Tracker:
         if not any(not t.prior for t in self.terms):
             raise ValueError("terms need at least one data term (a term that is not a prior)")
         self._energy_history: collections.deque = collections.deque(maxlen=ENERGY_HISTORY)
+        self._last_gray: dict = {}  # view problem -> the grey image of its previous frame (optical flow)
         # back faces can be left out of the renders when every mesh is closed and outward
         cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
         self.renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=config.render_backend,
                                  cull_back_faces=cull)
 
     def reset(self) -> None:
-        """Forget the energies of earlier frames (before tracking other sequences)."""
+        """Forget the energies and colour images of earlier frames (before tracking other
+        sequences)."""
         self._energy_history.clear()
+        self._last_gray.clear()
 
     # ------------------------------------------------------------------ frames
     def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera], slots: torch.Tensor,
@@ -257,39 +278,82 @@ class Tracker:
         lo, hi = b.amin(0).tolist(), b.amax(0).tolist()
         return (max(lo[0] - m, 0), min(hi[1] + m, H), max(lo[2] - m, 0), min(hi[3] + m, W))
 
-    def _state(self, theta, previous, frames, cameras, problems=None, frame_data=None, posed=None,
-               labels=None, shared=None, box=None) -> TrackState:
-        problems = torch.arange(theta.shape[0], device=theta.device) if problems is None else problems
+    def _state(self, theta, previous, frames, cameras, **kwargs) -> TrackState:
+        """The state of the first outer iteration of one view per problem (the terms' tests)."""
+        return self._states(theta, previous, frames, cameras, **kwargs)[0]
+
+    def _states(self, theta, previous, frames, cameras, problems=None, frame_data=None, posed=None,
+                labels=None, shared=None, box=None, colours=None, views: int = 1):
+        """The states of one outer iteration: (view state, pose state) (``TrackState``);
+        one object with one view. ``frames``, ``cameras``, ``colours`` and ``problems``
+        are per view problem; ``theta``, ``previous`` and ``posed`` per problem."""
+        V, nb = views, theta.shape[0]
+        problems = torch.arange(nb * V, device=theta.device) if problems is None else problems
         frame_data = {} if frame_data is None else frame_data
         shared = all(_same_camera(c, cameras[0]) for c in cameras) if shared is None else shared
         posed = posed if posed is not None else self.scene(theta, validate=False)
-        rend = self._render(posed.vertices.detach(), cameras, problems, shared, box)
+        if V == 1:
+            th_v, prev_v, posed_v = theta, previous, posed
+        else:
+            rep = torch.arange(nb, device=theta.device).repeat_interleave(V)
+            th_v, prev_v, posed_v = theta[rep], previous[rep], posed.select(rep)
+        rend = self._render(posed_v.vertices.detach(), cameras, problems, shared, box)
         if labels is None:  # once per frame, at its start pose
-            if self.config.labels == "proximity":
-                labels = label_by_proximity(frames, cameras, posed.vertices, self.scene.vertex_model_id,
+            if all(f is None for f in frames):  # colour views: no data points to label
+                labels = torch.full(rend.model_id.shape, -1, dtype=torch.int64, device=rend.model_id.device)
+            elif self.config.labels == "proximity":
+                labels = label_by_proximity(frames, cameras, posed_v.vertices, self.scene.vertex_model_id,
                                             self.config.label_distance, self.config.neighbor_backend)
             else:  # OpenCV on the CPU
                 labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
                                       for b, f in enumerate(frames)])
-        return TrackState(self.scene, theta, previous, posed, frames, cameras, rend, labels, problems=problems,
-                          frame_data=frame_data, box=box)
+        view = TrackState(self.scene, th_v, prev_v, posed_v, frames, cameras, rend, labels, problems=problems,
+                          frame_data=frame_data, box=box, colours=colours)
+        if V == 1:
+            return view, view
+        first = slice(0, None, V)  # each problem seen by its first view
+        pose = TrackState(self.scene, theta, previous, posed, frames[first], cameras[first],
+                          RenderResult(*(None if x is None else x[first] for x in rend)), labels[first],
+                          problems=problems[first] // V, frame_data=frame_data, box=box,
+                          colours=None if colours is None else colours[first])
+        return view, pose
 
-    def _prepare(self, state: TrackState):
-        """Prepare every term: the data terms, then the priors with C_all known.
-        Returns (C_all (B,), candidates (B,), unmatched energy (B,))."""
-        found = [t.prepare(state) for t in self.terms if not t.prior]
-        state.correspondences = sum(f.correspondences for f in found)
-        found += [t.prepare(state) for t in self.terms if t.prior]
-        return state.correspondences, sum(f.candidates for f in found), sum(f.unmatched for f in found)
+    def _prepare(self, view: TrackState, pose: TrackState, views: int = 1):
+        """Prepare every term: the data terms (on the view problems, summed per problem),
+        then the priors with C_all known. Returns (C_all (B,), candidates (B,), unmatched
+        energy (B,))."""
+        nb = pose.theta.shape[0]
 
-    def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[DepthFrame],
-              cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None) -> SolveResult:
+        def summed(x):
+            return x.view(nb, views).sum(1)
+
+        found = []
+        for t in self.terms:
+            if t.prior:
+                continue
+            if views == 1 or t.needs is None:
+                found.append(t.prepare(pose))
+            else:
+                f = t.prepare(view)
+                found.append(Prepared(summed(f.correspondences), summed(f.candidates), summed(f.unmatched),
+                                      {k: summed(v) for k, v in f.diagnostics.items()}))
+        pose.correspondences = sum(f.correspondences for f in found)
+        found += [t.prepare(pose) for t in self.terms if t.prior]
+        return pose.correspondences, sum(f.candidates for f in found), sum(f.unmatched for f in found)
+
+    def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[Optional[DepthFrame]],
+              cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None,
+              colours: Optional[List[ColourFrame]] = None, views: int = 1) -> SolveResult:
         """Algorithm 1 for a batch: alternate correspondences and LM steps.
 
         The data pixels are labelled at the start pose (``config.labels``) and keep
         these labels for the frame (the models move a few mm within a frame);
         visibility, silhouettes
         and correspondences are renewed in every iteration.
+
+        With ``views`` V > 1 (camera rigs), ``frames``, ``cameras`` and ``colours`` hold
+        B x V entries, problem-major (view v of problem b at b V + v); ``frames`` entries
+        are None for colour views.
 
         A problem stops when its joints moved less than ``min_motion`` mm (default
         ``config.min_joint_motion``) in an iteration, or when no LM step was accepted.
@@ -299,7 +363,10 @@ class Tracker:
         (:attr:`Prepared.unmatched`).
         """
         theta = self.scene.clamp(start)  # within the bounds, as the solver keeps it (see Objective)
-        B = theta.shape[0]
+        B, V = theta.shape[0], int(views)
+        if len(frames) != B * V or len(cameras) != B * V or (colours is not None and len(colours) != B * V):
+            raise ValueError(f"give B x V = {B} x {V} frames and cameras (and colour frames), got {len(frames)}, "
+                             f"{len(cameras)}" + ("" if colours is None else f" and {len(colours)}"))
         lower, upper = self.scene.lower, self.scene.upper
         min_motion = self.config.min_joint_motion if min_motion is None else min_motion
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
@@ -316,15 +383,19 @@ class Tracker:
         shared = all(_same_camera(c, cameras[0]) for c in cameras)  # once per solve (compares tensors)
         with torch.no_grad():
             posed = self.scene(theta, validate=False)
-            box = self._box(posed.vertices, cameras, shared)
+            box = self._box(posed.vertices if V == 1 else posed.vertices.repeat_interleave(V, 0), cameras, shared)
         for it in range(iterations):
+            vsub = [b * V + v for b in sub for v in range(V)]
             with torch.no_grad():
-                state = self._state(theta[idx], previous[idx], [frames[b] for b in sub], [cameras[b] for b in sub],
-                                    idx, frame_data, posed, labels, shared, box)
-                labels = state.data_labels  # labelled once per frame, at its start pose
-                count, candidates, unmatched = self._prepare(state)
+                view, state = self._states(theta[idx], previous[idx], [frames[j] for j in vsub],
+                                          [cameras[j] for j in vsub],
+                                          idx if V == 1 else torch.tensor(vsub, device=theta.device), frame_data,
+                                          posed, labels, shared, box,
+                                          None if colours is None else [colours[j] for j in vsub], V)
+                labels = view.data_labels  # labelled once per frame, at its start pose
+                count, candidates, unmatched = self._prepare(view, state, V)
                 counts[idx] = count.to(counts.device)
-                objective = Objective(self.scene, self.terms, state.theta, state.posed)
+                objective = Objective(self.scene, self.terms, state.theta, state.posed, V)
 
                 def going(th, steps, objective=objective, state=state):
                     # a problem goes on while its joints move; one whose step was rejected
@@ -347,44 +418,65 @@ class Tracker:
                 sub = [b for b, g in zip(sub, flags) if g]
                 idx = torch.tensor(sub, device=theta.device)
                 keep = torch.tensor(flags, device=theta.device)
-                labels, posed = labels[keep], posed.select(keep)
+                labels, posed = labels[keep.repeat_interleave(V) if V > 1 else keep], posed.select(keep)
         return SolveResult(theta, iters, energy, counts)
 
-    def track_frame(self, depths: Sequence[Depth], cameras: Sequence[Camera], previous: torch.Tensor,
+    def track_frame(self, depths: Optional[Sequence], cameras: Sequence, previous: torch.Tensor,
                     first: bool = False, generator: Optional[torch.Generator] = None,
-                    start: Optional[torch.Tensor] = None) -> FrameResult:
+                    start: Optional[torch.Tensor] = None, colours: Optional[Sequence] = None) -> FrameResult:
         """Track one frame of each of B sequences.
 
         Args:
-            depths: B depth maps (H, W) in mm (tensors or arrays), or None where a frame is missing.
-            cameras: B cameras.
+            depths: B depth maps (H, W) in mm (tensors or arrays), or None where a frame is
+                missing; for camera rigs, B sequences of V depth maps. None: no depth
+                (colour views only).
+            cameras: B cameras, or B camera rigs (sequences of V cameras, the same V for
+                every problem and one image size for every view).
             previous: (B, D) poses of the previous frame (or the initial poses).
             first: use the first-frame iteration budget.
             generator: draws the recovery perturbations (torch's global generator if None).
             start: (B, D) poses to start the solve from (default: ``previous``), e.g. a
                 motion prediction; ``previous`` stays the reference of the temporal
                 regularisation and the recovery.
+            colours: None, or B colour images (H, W, 3) uint8 RGB (B sequences of V for
+                rigs), or None where a frame is missing; an image may come as ``(image,
+                ignore)`` with an (H, W) bool mask of pixels whose features are not used.
+                The optical flow of a view is computed against the previous frame this
+                tracker saw of it (:meth:`reset` forgets them).
         Returns:
-            :class:`FrameResult`; problems without usable depth keep ``previous``
+            :class:`FrameResult`; problems without usable data keep ``previous``
             and are flagged invalid.
+        Raises:
+            ValueError: inputs of the wrong count, rigs of different sizes, a frame
+            missing in some views of a problem but not in others, or terms that need
+            depth (colour) without depth (colour) data.
         """
         t0 = time.perf_counter()
         cfg, B = self.config, previous.shape[0]
-        if len(depths) != B or len(cameras) != B:
-            raise ValueError(f"give one depth map and one camera per problem: previous has {B} rows, "
-                             f"got {len(depths)} depth maps and {len(cameras)} cameras")
+        rigs, V, nested = _rigs(cameras, B)
+        self._check_inputs(depths is not None, colours is not None)
+        depth_views = _per_view(depths, B, V, "depth", nested) if depths is not None else None
+        colour_views = _per_view(colours, B, V, "colour image", nested) if colours is not None else None
         if start is not None:
             start = self.scene.check_theta(start, "start")
             if start.shape[0] != B:
                 raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
         init = previous if start is None else self.scene.clamp(start)
-        frames, ok, notes = [], [], [""] * B
-        for b, d in enumerate(depths):
+        frames, cols, ok, notes = [], [], [], [""] * B
+        for b in range(B):
             try:
-                if d is None:
-                    raise EmptyFrameError("missing depth frame")
-                frames.append(preprocess_depth(d, cameras[b], cfg.preprocess, device=previous.device,
-                                               dtype=previous.dtype))
+                fr, co = [None] * V, [None] * V
+                if depth_views is not None:
+                    if depth_views[b] is None:
+                        raise EmptyFrameError("missing depth frame")
+                    fr = [preprocess_depth(d, rigs[b][v], cfg.preprocess, device=previous.device, dtype=previous.dtype)
+                          for v, d in enumerate(depth_views[b])]
+                if colour_views is not None:
+                    if colour_views[b] is None:
+                        raise EmptyFrameError("missing colour frame")
+                    co = [self._colour_frame(c, rigs[b][v], b * V + v, previous) for v, c in enumerate(colour_views[b])]
+                frames += fr
+                cols += co
                 ok.append(b)
             except EmptyFrameError as err:
                 notes[b] = f"{err}; previous pose kept"
@@ -396,14 +488,15 @@ class Tracker:
         counts = torch.zeros(B, dtype=torch.int64)
         if ok:
             idx = torch.tensor(ok)
-            cams = [cameras[b] for b in ok]
+            cams = [rigs[b][v] for b in ok for v in range(V)]
+            cols = cols if colour_views is not None else None
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             # the first frame refines a given initial pose: its whole budget is spent
             # unless the solver stops accepting steps (the thesis' 50 iterations)
-            sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None)
+            sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None, cols, V)
             th, en = sol.theta, sol.energy
             if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
-                th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator)
+                th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator, cols, V)
                 recovered[idx] = rec.cpu()
             # never return NaN: a diverged problem keeps its previous pose and is flagged
             finite = torch.isfinite(th).all(1) & torch.isfinite(en)
@@ -417,6 +510,26 @@ class Tracker:
                     notes[b] = "no correspondences (models out of view or far from the data)"
         self._energy_history.append(energy)
         return FrameResult(theta, valid, iters, energy, recovered, counts, notes, time.perf_counter() - t0)
+
+    def _check_inputs(self, has_depth: bool, has_colour: bool) -> None:
+        """Every term's data is there: a clear error instead of a term without its images."""
+        for t in self.terms:
+            if t.needs == "depth" and not has_depth:
+                raise ValueError(f"energy term {t.name!r} needs depth frames, but only colour images were given "
+                                 "(colour terms: E edges, O optical flow)")
+            if t.needs == "colour" and not has_colour:
+                raise ValueError(f"energy term {t.name!r} needs colour images, but only depth frames were given "
+                                 "(depth terms: LO, F, S)")
+
+    def _colour_frame(self, item, camera: Camera, key: int, like: torch.Tensor) -> ColourFrame:
+        """A colour view preprocessed, with the previous frame this tracker saw of it."""
+        image, ignore = item if isinstance(item, tuple) else (item, None)
+        prev = self._last_gray.get(key)
+        if prev is not None and prev.shape != (camera.height, camera.width):
+            prev = None
+        frame = preprocess_colour(image, camera, self.config.colour, prev, ignore, device=like.device, dtype=like.dtype)
+        self._last_gray[key] = frame.gray
+        return frame
 
     def track(self, depths: Iterable[Sequence[Depth]], cameras: Sequence[Camera], init: torch.Tensor,
               revise: Optional[Callable[[int, FrameResult], FrameResult]] = None) -> Iterator[FrameResult]:
@@ -450,7 +563,7 @@ class Tracker:
             history.append((theta, res.valid.to(theta.device)))
             yield res
 
-    def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator):
+    def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator, colours=None, views=1):
         """Re-solve problems whose energy rose sharply, from perturbed previous poses."""
         hist = torch.stack(list(self._energy_history))[:, idx]
         ref = torch.nanmedian(hist, 0).values
@@ -458,8 +571,8 @@ class Tracker:
         rec = torch.zeros(len(energy), dtype=torch.bool)
         if not bad:
             return theta, energy, rec
-        R = self.config.recover_tries
-        starts, fr, cams, prev = [], [], [], []
+        R, V = self.config.recover_tries, views
+        starts, fr, cams, prev, cols = [], [], [], [], []
         # every try perturbs the previous pose (the unperturbed start was just solved):
         # the joints by N(0, perturbation) rad, the global pose by N(0, 4 mm / 0.03 rad)
         scale = torch.full((previous.shape[1],), self.config.perturbation, dtype=previous.dtype)
@@ -469,10 +582,12 @@ class Tracker:
             for r in range(R):
                 noise = torch.randn(previous.shape[1], generator=generator, dtype=previous.dtype) * scale
                 starts.append(previous[b] + noise.to(previous.device))
-                fr.append(frames[b])
-                cams.append(cameras[b])
+                fr += frames[b * V : (b + 1) * V]
+                cams += cameras[b * V : (b + 1) * V]
+                cols += [] if colours is None else colours[b * V : (b + 1) * V]
                 prev.append(previous[b])
-        sol = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations)
+        sol = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations,
+                         colours=None if colours is None else cols, views=V)
         th, en = sol.theta, sol.energy
         for i, b in enumerate(bad):
             best = int(torch.argmin(en[i * R : (i + 1) * R]))
@@ -510,3 +625,48 @@ def predicted_start(history: Sequence[tuple], factor: float, limiter: bool = Tru
         same = torch.sign(step) == torch.sign(older)
         step = torch.where(same, torch.sign(step) * torch.minimum(step.abs(), older.abs()), torch.zeros_like(step))
     return poses[-1] + factor * torch.where(ok[:, None], step, torch.zeros_like(step))
+
+
+def _rigs(cameras: Sequence, B: int) -> tuple:
+    """(B rigs as tuples of V cameras, V, nested) of ``track_frame``'s cameras: one camera
+    per problem, or (``nested``) one rig per problem with the same number of views and
+    one image size."""
+    if len(cameras) != B:
+        raise ValueError(f"give one camera (or camera rig) per problem: previous has {B} rows, got {len(cameras)}")
+    nested = bool(cameras) and not isinstance(cameras[0], Camera)
+    if any(isinstance(c, Camera) == nested for c in cameras):
+        raise ValueError("give a Camera for every problem, or a camera rig (a sequence of Cameras) for every problem")
+    rigs = [tuple(c) if nested else (c,) for c in cameras]
+    V = len(rigs[0]) if rigs else 1
+    for b, rig in enumerate(rigs):
+        if len(rig) != V or V == 0:
+            raise ValueError(f"problem {b} has {len(rig)} views, problem 0 has {V}: a batch tracks rigs of one size")
+        for v, c in enumerate(rig):
+            if not isinstance(c, Camera):
+                raise TypeError(f"problem {b}, view {v}: expected a Camera, got {type(c).__name__}")
+            if (c.width, c.height) != (rig[0].width, rig[0].height):
+                raise ValueError(f"problem {b}: view {v} is {c.width}x{c.height} px, view 0 is {rig[0].width}x"
+                                 f"{rig[0].height}: every view of a rig needs the same image size")
+    return rigs, V, nested
+
+
+def _per_view(items: Sequence, B: int, V: int, what: str, nested: bool) -> list:
+    """B entries of V items each (None: the problem's frame is missing); with one camera
+    per problem (not ``nested`` in rigs) an entry is the item itself. A frame missing in
+    some views of a problem only is an error."""
+    if len(items) != B:
+        raise ValueError(f"give one {what} entry per problem ({B}), got {len(items)}")
+    out = []
+    for b, item in enumerate(items):
+        if item is None:
+            out.append(None)
+            continue
+        views = list(item) if nested else [item]
+        if len(views) != V:
+            raise ValueError(f"problem {b}: {len(views)} {what}s for a rig of {V} views")
+        missing = [v for v, x in enumerate(views) if x is None]
+        if missing and len(missing) < V:
+            raise ValueError(f"problem {b}: views {missing} have no {what} while the other views have one: "
+                             "every view of a rig needs each frame")
+        out.append(None if missing else views)
+    return out

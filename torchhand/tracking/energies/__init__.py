@@ -3,16 +3,20 @@ interface (:mod:`torchhand.tracking.energies.base`), weights and robust losses a
 wrappers (:mod:`torchhand.tracking.energies.wrappers`).
 
 ``parse_energy("LO+C")`` builds the terms named on the command line with the tracker's
-weights and losses: ``LO`` is model-to-data plus data-to-model, ``C`` adds collisions,
+weights and losses: ``LO`` is model-to-data plus data-to-model (depth), ``C`` adds collisions,
 ``S`` salient points, ``F`` free space and ``P`` physics (``LO+CS``: collisions and salient points,
-components in any order); anatomy and regularisation are always added.
+components in any order); ``E`` (edges) and ``O`` (optical flow) read colour images
+(Ballan et al. 2012: ``E+C+O`` on colour views, ``LO+E`` on RGB-D); anatomy and
+regularisation are always added.
 """
 
 from __future__ import annotations
 
 from typing import List, Optional
 
-from torchhand.tracking.energies import anatomy, collision, data_to_model, free_space, physics, regularization
+from torchhand.tracking.energies import anatomy, collision, data_to_model, edges, free_space, physics, regularization
+from torchhand.tracking.energies.edges import Edges
+from torchhand.tracking.energies.optical_flow import OpticalFlow
 from torchhand.tracking.energies.anatomy import Anatomy
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
 from torchhand.tracking.energies.collision import Collision
@@ -25,11 +29,13 @@ from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
 __all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
-           "FreeSpace", "Physics", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
+           "FreeSpace", "Physics", "Edges", "OpticalFlow", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
            "default_free_space", "default_priors", "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
-ENERGY_COMPONENTS = {"C": "collisions (conic distance fields, Eq. 4.9-4.13)",
+ENERGY_COMPONENTS = {"E": "edges of colour images (rendered occluding contours to Canny edges, DCH-Thres)",
+                     "O": "optical flow of colour images (visible vertices follow the DIS flow)",
+                     "C": "collisions (conic distance fields, Eq. 4.9-4.13)",
                      "S": "salient points (detected fingertips, Eq. 4.14-4.15)",
                      "F": "free space (model surface where the sensor saw nothing or farther, pulled into its data)",
                      "P": "physics (Bullet stability of held rigid objects, Eq. 4.16; needs pybullet)"}
@@ -54,18 +60,30 @@ def default_priors() -> List[EnergyTerm]:
 
 
 def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[str] = None) -> List[EnergyTerm]:
-    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+F``, ``LO+CSF``...; ``backend``: of
-    the data terms' neighbour searches (``"warp"`` or ``"torch"``; None: Warp when installed)."""
-    parts = spec.replace(" ", "").split("+")
-    if parts[0] != "LO":
-        raise ValueError(f"energy {spec!r} must start with LO (model-to-data + data-to-model)")
-    extra = "".join(parts[1:])
+    """Terms for an energy string: ``LO``, ``LO+C``, ``LO+S``, ``LO+F``, ``LO+CSF``, ``E+C+O``, ``LO+E``...;
+    ``backend``: of the data terms' neighbour searches (``"warp"`` or ``"torch"``; None: Warp when
+    installed)."""
+    parts = [p for p in spec.replace(" ", "").split("+")]
+    if not spec.strip() or any(not p for p in parts):
+        raise ValueError(f"energy {spec!r}: expected parts joined by '+', e.g. LO+C or E+C+O")
+    lo = parts.count("LO")
+    if lo > 1:
+        raise ValueError(f"energy {spec!r} names LO twice")
+    extra = "".join(p for p in parts if p != "LO")
     unknown = [c for c in extra if c not in ENERGY_COMPONENTS]
     if unknown:
-        raise ValueError(f"energy {spec!r}: unknown components {unknown}; known after LO: {sorted(ENERGY_COMPONENTS)}")
+        raise ValueError(f"energy {spec!r}: unknown components {unknown}; known: LO and {sorted(ENERGY_COMPONENTS)}")
     if len(set(extra)) != len(extra):
         raise ValueError(f"energy {spec!r} names a component twice")
-    terms: List[EnergyTerm] = [ModelToData(metric=metric, backend=backend), default_data_to_model(backend=backend)]
+    if not lo and not set(extra) & set("ESFO"):
+        raise ValueError(f"energy {spec!r} has no data term: give LO (depth) or E / O (colour), e.g. LO+C or E+C+O")
+    terms: List[EnergyTerm] = []
+    if lo:
+        terms += [ModelToData(metric=metric, backend=backend), default_data_to_model(backend=backend)]
+    if "E" in extra:
+        terms.append(Robust(Edges(backend=backend), edges.DEFAULT_LOSS))
+    if "O" in extra:
+        terms.append(OpticalFlow())
     if "C" in extra:
         terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
     if "S" in extra:

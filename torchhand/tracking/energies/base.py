@@ -33,7 +33,7 @@ from torchhand.model.kinematics import skew
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
-__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "scatter_columns", "no_residuals", "bone_inliers",
+__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm", "pixel_rows", "scatter_columns", "no_residuals", "bone_inliers",
            "prepared", "stack_rows", "stride_subsample", "seen_vertices"]
 
 
@@ -110,7 +110,15 @@ class TrackState:
     derive once per solve from the frames and labels (their data side), keyed by term,
     made by the tracker per solve and shared by its outer iterations; a term builds its
     entry at the first iteration, when every problem of the solve is present; box: the
-    pixel box (r0, r1, c0, c1) the renders of the solve cover (None: the whole image).
+    pixel box (r0, r1, c0, c1) the renders of the solve cover (None: the whole image);
+    colours: one preprocessed colour frame per problem (``ColourFrame``), or None for
+    depth-only data.
+
+    With several views per problem (a camera rig), the tracker gives the terms that read
+    images (``EnergyTerm.needs``) a state of B x V *view problems*, problem-major (view v
+    of problem b at row b V + v), each with its own frame, camera and render, and the
+    pose terms a state of the B problems seen by their first view; it stacks the view
+    problems' residuals of each problem into that problem's rows.
     """
 
     scene: Scene
@@ -125,6 +133,7 @@ class TrackState:
     problems: Optional[torch.Tensor] = None
     frame_data: Dict = field(default_factory=dict, repr=False)
     box: Optional[tuple] = None
+    colours: Optional[List] = None
     _visible: Optional[torch.Tensor] = field(default=None, repr=False)
 
     def visible_vertices(self) -> torch.Tensor:
@@ -159,11 +168,16 @@ class EnergyTerm:
     ``residuals(theta, posed, jacobian=True) -> Residuals``.
 
     ``name`` names the term in logs; ``prior`` marks terms prepared after the others,
-    with ``state.correspondences`` known (module docstring).
+    with ``state.correspondences`` known (module docstring); ``needs`` is what the term
+    reads of the images: ``"depth"`` (depth frames, ``state.frames``), ``"colour"``
+    (colour frames, ``state.colours``), or None for a term of the pose alone
+    (collisions, physics, priors). A term that reads images is prepared once per view
+    of a camera rig (``TrackState``).
     """
 
     name: str = "term"
     prior: bool = False
+    needs: Optional[str] = None
 
     def prepare(self, state: TrackState) -> Prepared:  # pragma: no cover - interface
         raise NotImplementedError
@@ -231,6 +245,71 @@ class VertexRayTerm(EnergyTerm):
                 J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
             parts.append(Residuals(r.reshape(B, -1), J, 3, mask, torch.full_like(ids, k)))
         return stack_rows(parts, theta, jacobian, 3, len(self.per_model))
+
+
+class VertexPixelTerm(EnergyTerm):
+    """A term whose pairs are (model vertex, image point): the residual is the vertex's
+    projection minus the point, ``(pi(V) - q) s`` (2 rows), in mm through a per-pair
+    scale s (mm per px, fixed for the outer iteration): Ballan et al.'s reprojection
+    error (Eq. 2) in the units of the depth terms (free space, edges, optical flow).
+    ``prepare`` sets ``self._scene``, ``self._cameras`` = (K (B, 3, 3), T_cw (B, 4, 4))
+    and ``self.per_model``: per model, (local vertex ids (B, n), q (B, n, 2) (u, v) px,
+    s (B, n), mask (B, n)) (:func:`pixel_rows` builds them)."""
+
+    def fold_row_weights(self, sqrt_w):
+        # the residual is linear in the stored scale: scaling it weights the pair by w
+        start = 0
+        for k, (ids, q, scale, mask) in enumerate(self.per_model):
+            self.per_model[k] = (ids, q, scale * sqrt_w[:, start : start + ids.shape[1]], mask)
+            start += ids.shape[1]
+        return True
+
+    def residuals(self, theta, posed, jacobian=True):
+        B, D = theta.shape
+        K_b, T_b = self._cameras
+        R, t = T_b[:, None, :3, :3], T_b[:, None, :3, 3]
+        fx, fy = K_b[:, 0, 0, None], K_b[:, 1, 1, None]
+        cx, cy = K_b[:, 0, 2, None], K_b[:, 1, 2, None]
+        parts = []
+        b = torch.arange(B, device=theta.device)[:, None]
+        for k, (ids, q, scale, mask) in enumerate(self.per_model):
+            out = posed.models[k]
+            V = out.vertices[b, ids]  # (B, n, 3) world
+            Xc = (R @ V[..., None])[..., 0] + t
+            Z = Xc[..., 2].clamp(min=1.0)
+            u = torch.stack([fx * Xc[..., 0] / Z + cx, fy * Xc[..., 1] / Z + cy], -1)
+            r = (u - q) * scale[..., None]  # (B, n, 2) mm at the data depth
+            J = None
+            if jacobian:
+                model = self._scene.models[k]
+                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))  # (B, n, 3, D_k)
+                zeros = torch.zeros_like(Z)
+                Jp = torch.stack([torch.stack([fx / Z, zeros, -fx * Xc[..., 0] / Z ** 2], -1),
+                                  torch.stack([zeros, fy / Z, -fy * Xc[..., 1] / Z ** 2], -1)], -2)  # (B, n, 2, 3)
+                Jr = (Jp @ R) @ Jv * scale[..., None, None]
+                cols = self._scene.slices[self._scene.names[k]]
+                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
+            parts.append(Residuals(r.reshape(B, -1), J, 2, mask, torch.full_like(ids, k)))
+        return stack_rows(parts, theta, jacobian, 2, len(self.per_model))
+
+
+def pixel_rows(scene: Scene, vertex: torch.Tensor, target: torch.Tensor, scale: torch.Tensor,
+               keep: torch.Tensor) -> list:
+    """``VertexPixelTerm.per_model`` from pairs of any models: vertex (B, n) int64 scene
+    vertex ids, target (B, n, 2) (u, v) px, scale (B, n) mm per px, keep (B, n) bool.
+    Each model's rows are its kept pairs, packed to the most any problem has (one host
+    sync)."""
+    out = []
+    for name in scene.names:
+        sl = scene.vertex_slices[name]
+        sel = keep & (vertex >= sl.start) & (vertex < sl.stop)
+        count = int(sel.sum(1).max()) if sel.numel() else 0
+        pos, ok = stride_subsample(sel, max(count, 1)) if count else (sel.new_zeros(sel.shape[0], 0, dtype=torch.int64),
+                                                                       sel.new_zeros(sel.shape[0], 0))
+        local = torch.where(ok, vertex.gather(1, pos) - sl.start, torch.zeros_like(pos))
+        q = target.gather(1, pos[..., None].expand(-1, -1, 2))
+        out.append((local, q, scale.gather(1, pos) * ok, ok.to(target.dtype)))
+    return out
 
 
 def seen_vertices(render: RenderResult, faces: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:

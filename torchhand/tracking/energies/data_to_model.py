@@ -77,6 +77,7 @@ class DataToModel(VertexRayTerm):
     """
 
     name = "d2m"
+    needs = "depth"
 
     def __init__(self, max_distance=30.0, max_pixels=600, outlier_sigma=2.0, backend: Optional[str] = None):
         if not max_distance > 0:

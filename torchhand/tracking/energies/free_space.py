@@ -46,8 +46,8 @@ import torch
 
 from torchhand.geometry.neighbors import marked_pixel_transform
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, prepared,
-                                              scatter_columns, seen_vertices, stack_rows, stride_subsample)
+from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, prepared, seen_vertices,
+                                              stride_subsample)
 
 __all__ = ["FreeSpace", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -72,7 +72,7 @@ class _Data(NamedTuple):
     origin: tuple
 
 
-class FreeSpace(EnergyTerm):
+class FreeSpace(VertexPixelTerm):
     """E_free: unweighted, with the plain sum of squares.
 
     Args:
@@ -84,6 +84,7 @@ class FreeSpace(EnergyTerm):
     """
 
     name = "free"
+    needs = "depth"
 
     def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400):
         if not tolerance >= 0:
@@ -150,39 +151,3 @@ class FreeSpace(EnergyTerm):
             local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
             self.per_model.append((local, target[:, rows].flip(-1), scale[:, rows], keep[:, rows].to(dt)))
         return prepared(B, device=dev, pixels=keep.sum(1), free=free.reshape(B, -1).sum(1))
-
-    def fold_row_weights(self, sqrt_w):
-        # the residual is linear in the stored scale: scaling it weights the pair by w
-        start = 0
-        for k, (ids, q, scale, mask) in enumerate(self.per_model):
-            self.per_model[k] = (ids, q, scale * sqrt_w[:, start : start + ids.shape[1]], mask)
-            start += ids.shape[1]
-        return True
-
-    def residuals(self, theta, posed, jacobian=True):
-        B, D = theta.shape
-        K_b, T_b = self._cameras
-        R, t = T_b[:, None, :3, :3], T_b[:, None, :3, 3]
-        fx, fy = K_b[:, 0, 0, None], K_b[:, 1, 1, None]
-        cx, cy = K_b[:, 0, 2, None], K_b[:, 1, 2, None]
-        parts = []
-        b = torch.arange(B, device=theta.device)[:, None]
-        for k, (ids, q, scale, mask) in enumerate(self.per_model):
-            out = posed.models[k]
-            V = out.vertices[b, ids]  # (B, n, 3) world
-            Xc = (R @ V[..., None])[..., 0] + t
-            Z = Xc[..., 2].clamp(min=1.0)
-            u = torch.stack([fx * Xc[..., 0] / Z + cx, fy * Xc[..., 1] / Z + cy], -1)
-            r = (u - q) * scale[..., None]  # (B, n, 2) mm at the data depth
-            J = None
-            if jacobian:
-                model = self._scene.models[k]
-                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))  # (B, n, 3, D_k)
-                zeros = torch.zeros_like(Z)
-                Jp = torch.stack([torch.stack([fx / Z, zeros, -fx * Xc[..., 0] / Z ** 2], -1),
-                                  torch.stack([zeros, fy / Z, -fy * Xc[..., 1] / Z ** 2], -1)], -2)  # (B, n, 2, 3)
-                Jr = (Jp @ R) @ Jv * scale[..., None, None]
-                cols = self._scene.slices[self._scene.names[k]]
-                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
-            parts.append(Residuals(r.reshape(B, -1), J, 2, mask, torch.full_like(ids, k)))
-        return stack_rows(parts, theta, jacobian, 2, len(self.per_model))

@@ -56,6 +56,7 @@ class ModelToData(EnergyTerm):
     """
 
     name = "m2d"
+    needs = "depth"
 
     def __init__(self, metric="point-to-plane", max_distance=10.0, max_angle=45.0, max_vertices=1500,
                  outlier_sigma=2.0, backend: Optional[str] = None):

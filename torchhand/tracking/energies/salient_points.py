@@ -56,6 +56,7 @@ class Salient(EnergyTerm):
     """
 
     name = "salient"
+    needs = "depth"
 
     def __init__(self, detector=None, lam: float = 1.2, min_score: float = 0.15, confidence_weighted: bool = False,
                  unit_mm: float = 10.0, near_mm: float = 10.0, min_inside: float = 0.5, box: int = 8,

@@ -45,7 +45,7 @@ class Weighted(EnergyTerm):
             raise ValueError(f"weight must be a number >= 0, got {weight!r}")
         self.term, self.weight = term, float(weight)
         self.per_correspondence, self.min_weight = bool(per_correspondence), float(min_weight)
-        self.name = term.name
+        self.name, self.needs = term.name, term.needs
         self.prior = term.prior or self.per_correspondence
         self._sqrt_w: Optional[torch.Tensor] = None  # (B, 1) with per_correspondence
         self._folded = False
@@ -92,7 +92,7 @@ class Robust(EnergyTerm):
         if not isinstance(loss, RobustLoss):
             raise TypeError(f"loss must be a torchhand.optim.robust_loss.RobustLoss, got {type(loss).__name__}")
         self.term, self.loss = term, loss
-        self.name, self.prior = term.name, term.prior
+        self.name, self.prior, self.needs = term.name, term.prior, term.needs
         self._sqrt_w: Optional[torch.Tensor] = None  # (B, n) per row, fixed for the outer iteration
         self._folded = False
 

@@ -1,0 +1,131 @@
+"""Tracking with camera rigs: the view problems of the tracker, the colour terms (edges,
+optical flow) and their bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchhand.data.layout import camera_dir, frame_name, read_depth, read_rgb, read_sequence_info
+from torchhand.data.synth import demo_motion, with_camera_ring, write_synthetic_sequence
+from torchhand.geometry.camera import Camera
+from torchhand.tracking.energies import Edges, OpticalFlow, default_priors, parse_energy
+from torchhand.tracking.preprocess import preprocess_colour
+from torchhand.tracking.tracker import Tracker, TrackerConfig
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory):
+    """The demo's first three frames seen by a ring of 8 cameras (shaded colour, clean
+    depth): (scene, cameras, gt theta (3, D), colour [frame][view], depth [frame][view])."""
+    frames = with_camera_ring(demo_motion(slice(0, 3), dtype=F64), 8)
+    root = write_synthetic_sequence(frames, tmp_path_factory.mktemp("ring") / "seq", noise="none", colour="shaded",
+                                    progress=False)
+    info = read_sequence_info(root)
+    colour = [[read_rgb(camera_dir(root, k) / "rgb" / frame_name(f)) for k in range(8)] for f in range(3)]
+    depth = [[read_depth(camera_dir(root, k) / "depth" / frame_name(f)) for k in range(8)] for f in range(3)]
+    return frames.scene, info.cameras, torch.as_tensor(np.load(root / "gt" / "theta.npy")), colour, depth
+
+
+def _shifted(scene, theta, shift) -> torch.Tensor:
+    """theta with every model moved by ``shift`` (mm)."""
+    out = theta.clone()
+    for sl in scene.slices.values():
+        out[:, sl.start : sl.start + 3] += torch.tensor(shift, dtype=theta.dtype)
+    return out
+
+
+def _keypoint_error(scene, a, b) -> float:
+    with torch.no_grad():
+        return float((scene(a).keypoints - scene(b).keypoints).norm(dim=-1).mean())
+
+
+def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
+    scene, cams, gt, _, depth = ring
+    start = _shifted(scene, gt[:1], [4.0, -3.0, 5.0])
+    cfg = TrackerConfig(max_iterations=6, first_frame_iterations=6)
+    single = Tracker(scene, cfg).track_frame([depth[0][0]], [cams[0]], start, first=True)
+    rig = Tracker(scene, cfg).track_frame([[depth[0][0]]], [[cams[0]]], start, first=True)
+    assert torch.equal(single.theta, rig.theta) and torch.equal(single.energy, rig.energy)
+
+
+def test_depth_views_of_a_rig_are_tracked_together(ring):
+    scene, cams, gt, _, depth = ring
+    start = _shifted(scene, gt[:1], [6.0, -4.0, 8.0])
+    cfg = TrackerConfig(max_iterations=15, first_frame_iterations=15)
+    res = Tracker(scene, cfg).track_frame([depth[0][:3]], [cams[:3]], start, first=True)
+    assert _keypoint_error(scene, start, gt[:1]) > 8.0
+    assert _keypoint_error(scene, res.theta, gt[:1]) < 1.0
+    one = Tracker(scene, cfg).track_frame([depth[0][0]], [cams[0]], start, first=True)
+    assert int(res.correspondences[0]) > 1.5 * int(one.correspondences[0])  # every view's pairs count
+
+
+@pytest.mark.parametrize("energy, limit", [("E+C", 2.5), ("E+C+O", 1.5)])
+def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
+    scene, cams, gt, colour, _ = ring
+    tracker = Tracker(scene, TrackerConfig(energy=energy))
+    theta, errors = gt[:1], []
+    for f in range(3):
+        res = tracker.track_frame(None, [cams], theta, first=(f == 0), colours=[colour[f]])
+        assert bool(res.valid[0]), res.notes
+        theta = res.theta
+        errors.append(_keypoint_error(scene, theta, gt[f : f + 1]))
+    assert np.mean(errors) < limit, errors
+
+
+def test_edge_pairs_at_the_true_pose_are_close(ring):
+    scene, cams, gt, colour, _ = ring
+    tracker = Tracker(scene, TrackerConfig(energy="E"))
+    cols = [preprocess_colour(colour[0][k], cams[k], dtype=F64) for k in range(8)]
+    view, _ = tracker._states(gt[:1], gt[:1], [None] * 8, list(cams), colours=cols, views=8)
+    term = Edges()
+    found = term.prepare(view)
+    assert bool((found.correspondences > 50).all())  # every view sees edges of the hands
+    res = term.residuals(view.theta, view.posed, jacobian=False)
+    d = res.r.view(8, -1, 2).norm(dim=-1)[res.mask > 0]
+    assert float(d.median()) < 1.5  # mm: about a pixel
+
+
+@pytest.mark.parametrize("make", [Edges, lambda: OpticalFlow(sigma=None)], ids=["edges", "flow"])
+def test_colour_term_jacobians_match_finite_differences(ring, make):
+    scene, cams, gt, colour, _ = ring
+    tracker = Tracker(scene, TrackerConfig(energy="E"))
+    prev = [preprocess_colour(colour[0][k], cams[k], dtype=F64) for k in range(2)]
+    cols = [preprocess_colour(colour[1][k], cams[k], previous=prev[k].gray, dtype=F64) for k in range(2)]
+    theta = _shifted(scene, gt[1:2], [1.0, -1.0, 2.0])
+    view, _ = tracker._states(theta, gt[:1], [None] * 2, list(cams[:2]), colours=cols, views=2)
+    term = make()
+    assert int(term.prepare(view).correspondences.sum()) > 50
+    res = term.residuals(view.theta, view.posed, jacobian=True)
+    eps = 1e-6
+    for j in (0, 2, 4, 10, 30):
+        tp = view.theta.clone()
+        tp[:, j] += eps
+        fd = (term.residuals(tp, scene(tp), jacobian=False).r - res.r) / eps
+        assert torch.allclose(fd, res.J[:, :, j], atol=1e-4 * max(1.0, float(res.J[:, :, j].abs().max())))
+
+
+def test_rig_bad_input_is_named(ring):
+    scene, cams, gt, colour, depth = ring
+    tracker = Tracker(scene, TrackerConfig(energy="E+C"))
+    with pytest.raises(ValueError, match="needs colour images"):
+        tracker.track_frame([depth[0][:2]], [cams[:2]], gt[:1])
+    with pytest.raises(ValueError, match="needs depth frames"):
+        Tracker(scene, TrackerConfig(energy="LO")).track_frame(None, [cams[:2]], gt[:1], colours=[colour[0][:2]])
+    with pytest.raises(ValueError, match=r"views \[1\] have no colour image"):
+        tracker.track_frame(None, [cams[:2]], gt[:1], colours=[[colour[0][0], None]])
+    with pytest.raises(ValueError, match="3 colour images for a rig of 2 views"):
+        tracker.track_frame(None, [cams[:2]], gt[:1], colours=[colour[0][:3]])
+    small = Camera(cams[1].K, cams[1].T_cw, 320, 240)
+    with pytest.raises(ValueError, match="same image size"):
+        tracker.track_frame(None, [[cams[0], small]], gt[:1], colours=[colour[0][:2]])
+    with pytest.raises(ValueError, match=r"shape \(480, 640, 3\)"):
+        tracker.track_frame(None, [cams[:2]], gt[:1], colours=[[colour[0][0], colour[0][1][:100]]])
+    # a whole frame missing is a frame without data: the pose is kept and flagged
+    res = tracker.track_frame(None, [cams[:2]], gt[:1], colours=[None])
+    assert not bool(res.valid[0]) and "missing colour frame" in res.notes[0]
+    assert [t.needs for t in parse_energy("E+O+C")][:3] == ["colour", "colour", None]
+    assert [t.name for t in Tracker(scene, TrackerConfig(energy="E"), [Edges()] + default_priors()).terms][0] == "edges"

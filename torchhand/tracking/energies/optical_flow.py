@@ -1,0 +1,135 @@
+"""O: visible vertices follow the optical flow between consecutive colour frames
+(Ballan et al. 2012, Eq. 2; the flow correspondences of their reference [28]).
+
+Once per frame and view, the dense flow from the previous grey image to the current
+one (OpenCV's DIS, ``preset``) predicts where each model point moved: a vertex seen at
+the start of the frame's solve projects, at the previous frame's pose, to p; its
+correspondence is ``p + flow(p)``, and its residual the reprojection error to it, in
+mm at the vertex's depth (:class:`~torchhand.tracking.energies.base.VertexPixelTerm`).
+Pixels the frame marks as ignored (``ColourFrame.ignore``: the occluders of Ballan's
+protocol, whose flow the paper leaves out) give no pairs, nor do vertices whose flow
+is longer than ``max_flow_px``. At every outer iteration, pairs farther than the mean
+plus ``sigma`` standard deviations of their bone's pairs are dropped (Ballan Sec. 3).
+
+The visible vertices are those of the render at the solve's first outer iteration, at
+its start pose: the previous frame's pose unless the tracker predicts the motion.
+The first frame of a sequence has no flow: the term is empty there.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, NamedTuple
+
+import cv2
+import numpy as np
+import torch
+
+from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
+                                              prepared, stride_subsample)
+
+__all__ = ["OpticalFlow", "dense_flow"]
+
+PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+           "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+
+
+def dense_flow(previous: np.ndarray, current: np.ndarray, preset: str = "medium") -> np.ndarray:
+    """(H, W, 2) float32 (du, dv) px: OpenCV DIS flow from ``previous`` to ``current``
+    ((H, W) uint8 grey images)."""
+    if preset not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    return cv2.DISOpticalFlow_create(PRESETS[preset]).calc(previous, current, None)
+
+
+class _Data(NamedTuple):
+    vertex: torch.Tensor  # (P, n) int64 scene vertex ids
+    target: torch.Tensor  # (P, n, 2) (u, v) px, where the flow moved them
+    keep: torch.Tensor  # (P, n) bool
+
+
+class OpticalFlow(VertexPixelTerm):
+    """E_flow (module docstring).
+
+    Args:
+        max_points: vertices with a flow correspondence per view (a stride subsample).
+        max_flow_px: longer flow vectors are taken as wrong.
+        sigma: per-bone outlier cut in standard deviations (Ballan: 2); None keeps all.
+        preset: DIS preset (``"ultrafast"``, ``"fast"``, ``"medium"``).
+    """
+
+    name = "flow"
+    needs = "colour"
+
+    def __init__(self, max_points: int = 300, max_flow_px: float = 60.0, sigma=2.0, preset: str = "medium"):
+        if not (isinstance(max_points, int) and max_points > 0):
+            raise ValueError(f"max_points must be a positive int, got {max_points!r}")
+        if not max_flow_px > 0 or (sigma is not None and not sigma > 0):
+            raise ValueError(f"need max_flow_px > 0 and sigma > 0 (or None), got {max_flow_px!r}, {sigma!r}")
+        if preset not in PRESETS:
+            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+        self.max_points, self.max_flow_px, self.sigma, self.preset = max_points, float(max_flow_px), sigma, preset
+        self._flows: Dict[int, tuple] = {}
+
+    def _flow(self, frame) -> np.ndarray:
+        """The frame's flow from its previous image, computed once per frame."""
+        key = id(frame)
+        if key not in self._flows:
+            if len(self._flows) >= 64:
+                self._flows.clear()
+            self._flows[key] = (frame, dense_flow(frame.previous, frame.gray, self.preset))
+        return self._flows[key][1]
+
+    def _build(self, state: TrackState) -> _Data:
+        if state.colours is None or any(c is None for c in state.colours):
+            raise ValueError("the optical-flow term needs a colour frame for every view")
+        scene, P = state.scene, state.theta.shape[0]
+        dev, dt = state.theta.device, state.theta.dtype
+        n = self.max_points
+        vis = state.visible_vertices()  # (P, V) at the start pose
+        index, slot = stride_subsample(vis, n)
+        earlier = scene(state.previous, validate=False).vertices.detach()  # (P, V, 3)
+        b = torch.arange(P, device=dev)[:, None]
+        vertex = index
+        target = torch.zeros(P, n, 2, dtype=dt, device=dev)
+        keep = torch.zeros(P, n, dtype=torch.bool, device=dev)
+        for j, (frame, cam) in enumerate(zip(state.colours, state.cameras)):
+            if frame.previous is None:
+                continue
+            flow = torch.as_tensor(self._flow(frame), device=dev, dtype=dt)
+            H, W = flow.shape[:2]
+            uv = cam.to(device=dev, dtype=dt).project(earlier[j : j + 1, index[j]])[0]  # (n, 2)
+            iu, iv = uv[:, 0].round().long(), uv[:, 1].round().long()
+            inside = slot[j] & (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
+            iu, iv = iu.clamp(0, W - 1), iv.clamp(0, H - 1)
+            f = flow[iv, iu]
+            ok = inside & (f.norm(dim=-1) <= self.max_flow_px)
+            if frame.ignore is not None:
+                ok &= ~torch.as_tensor(frame.ignore, device=dev)[iv, iu]
+            target[j], keep[j] = uv + f, ok
+        return _Data(vertex, target, keep)
+
+    def prepare(self, state: TrackState) -> Prepared:
+        scene, B = state.scene, state.theta.shape[0]
+        dev, dt = state.theta.device, state.theta.dtype
+        self._scene = scene
+        data = state.data_side(self, self._build)
+        p = state.problem_index()
+        vertex, target, keep = data.vertex[p], data.target[p], data.keep[p]
+        K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
+        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
+        b = torch.arange(B, device=dev)[:, None]
+        Xw = state.posed.vertices.detach()[b, vertex]
+        Xc = (T_b[:, None, :3, :3] @ Xw[..., None])[..., 0] + T_b[:, None, :3, 3]
+        z = Xc[..., 2].clamp_min(1.0)
+        uv = torch.stack([K_b[:, 0, 0, None] * Xc[..., 0] / z + K_b[:, 0, 2, None],
+                          K_b[:, 1, 1, None] * Xc[..., 1] / z + K_b[:, 1, 2, None]], -1)
+        if self.sigma is not None:
+            keep = keep & bone_inliers((uv - target).norm(dim=-1), scene.vertex_bone_id[vertex], keep, scene.num_bones,
+                                       self.sigma)
+        scale = z / K_b[:, 0, 0, None]
+        self._cameras = (K_b, T_b)
+        self.per_model = pixel_rows(scene, vertex, target, scale, keep)
+        return prepared(B, device=dev, correspondences=keep.sum(1))
+
+    def __repr__(self) -> str:
+        return f"OpticalFlow(max_points={self.max_points}, sigma={self.sigma}, preset={self.preset!r})"
