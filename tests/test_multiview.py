@@ -129,3 +129,26 @@ def test_rig_bad_input_is_named(ring):
     assert not bool(res.valid[0]) and "missing colour frame" in res.notes[0]
     assert [t.needs for t in parse_energy("E+O+C")][:3] == ["colour", "colour", None]
     assert [t.name for t in Tracker(scene, TrackerConfig(energy="E"), [Edges()] + default_priors()).terms][0] == "edges"
+
+
+def test_track_command_on_colour_views(tmp_path, capsys):
+    from torchhand.app.cli import main
+
+    seq, out = tmp_path / "views", tmp_path / "out"
+    assert main(["synth", "--demo", "--frames", ":3", "--views", "4", "--protocol", "ballan", "--out", str(seq)]) == 0
+    assert main(["track", str(seq), "--energy", "E+C+O", "--viz", "--out", str(out)]) == 0
+    res = out / read_sequence_info(seq).name
+    kp2 = np.load(res / "keypoints_2d.npy")
+    assert kp2.shape[:2] == (3, 4)  # every frame in every camera
+    for c in range(4):
+        assert (res / "overlays" / f"cam{c}" / frame_name(2)).is_file()
+    assert (res / "overlays.mp4").is_file()
+    capsys.readouterr()
+    assert main(["eval", str(res), "--gt", str(seq), "--json", str(tmp_path / "eval.json")]) == 0
+    import json
+
+    report = json.loads((tmp_path / "eval.json").read_text())
+    assert report["models"]["hand_right"]["mean_mm"] < 12.0, report["models"]  # 4 views, the noise protocol
+    # the depth terms on colour views: a clear message, nothing written
+    assert main(["track", str(seq), "--out", str(tmp_path / "lo")]) != 0
+    assert "colour views only" in capsys.readouterr().err

@@ -441,8 +441,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "the rest")
     p.add_argument("--out", type=Path, required=True, help="output folder; each sequence gets OUT/<name>/")
     p.add_argument("--energy", default="LO+F",
-                   help="energy terms: LO (model-to-data + data-to-model) plus any of C (collisions), S (salient "
-                        "points), F (free space), P (physics, needs pybullet), e.g. LO+CS or LO+CSP")
+                   help="energy terms: LO (model-to-data + data-to-model, depth) and any of C (collisions), S "
+                        "(salient points), F (free space), P (physics, needs pybullet), E (edges of colour images), "
+                        "O (optical flow of colour images), e.g. LO+CS or LO+CSP; colour views (synth --views): "
+                        "E+C+O; every camera of sequence.json is used")
     p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
                    help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
     from torchhand.tracking.labels import LABELINGS

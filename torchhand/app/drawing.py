@@ -13,7 +13,7 @@ from torchhand.io.assets import FINGER_NAMES, HAND_KEYPOINT_NAMES
 
 __all__ = ["HAND_SKELETON", "GT_COLOR", "OBJECT_COLOR", "depth_range", "depth_to_color", "draw_skeleton", "draw_chain",
            "draw_hull", "draw_mask_outline", "draw_colorbar", "draw_legend", "write_video", "plot_curves",
-           "part_colors", "draw_rig"]
+           "part_colors", "draw_rig", "draw_models", "mosaic"]
 
 #: Bones of the 21-keypoint hand skeleton as index pairs into HAND_KEYPOINT_NAMES.
 HAND_SKELETON: Tuple[Tuple[int, int], ...] = tuple(
@@ -222,3 +222,33 @@ def draw_rig(vertices: np.ndarray, parts: np.ndarray, nodes: np.ndarray, edges: 
             cv2.circle(img, (int(p[0]), int(p[1])), 5, color, -1, cv2.LINE_AA)
     return draw_legend(img, "rig", [("joint (DoF)", (0, 0, 255)), ("skeleton end", (255, 255, 0)),
                                     ("branch", (0, 255, 255))])
+
+
+def draw_models(image: np.ndarray, scene, posed, f: int, camera, gt_px=None) -> np.ndarray:
+    """Frame ``f`` of a posed scene drawn into ``image`` as ``camera`` sees it: hand
+    skeletons, the joints of articulated objects, the outlines of rigid ones; with
+    ``gt_px`` ((P, 2) px, the scene's keypoints), the ground-truth skeletons in white,
+    thin, over the tracked ones, so that both show."""
+    for k, (model, out) in enumerate(zip(scene.models, posed.models)):
+        if model.kind == "hand":
+            draw_skeleton(image, camera.project(out.keypoints[f : f + 1])[0].cpu().numpy())
+            if gt_px is not None:
+                draw_skeleton(image, gt_px[scene.keypoint_slices[scene.names[k]]], color=GT_COLOR, thickness=1)
+        elif model.num_bones > 1:
+            draw_chain(image, camera.project(model.joints_from(out.G[f : f + 1]))[0].cpu().numpy())
+        else:
+            draw_hull(image, camera.project(out.vertices[f : f + 1, ::16])[0].cpu().numpy())
+    return image
+
+
+def mosaic(images, columns: int = 4, scale: float = 0.5) -> np.ndarray:
+    """Equal-sized BGR images side by side, ``columns`` to a row, each scaled by ``scale``
+    (the views of a camera rig in one picture)."""
+    small = [cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) for im in images]
+    h, w = small[0].shape[:2]
+    rows = -(-len(small) // columns)
+    out = np.zeros((rows * h, min(columns, len(small)) * w, 3), np.uint8)
+    for k, im in enumerate(small):
+        r, c = divmod(k, columns)
+        out[r * h : (r + 1) * h, c * w : (c + 1) * w] = im
+    return out

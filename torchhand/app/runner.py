@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to_color, draw_chain, draw_colorbar,
-                                   draw_hull, draw_legend, draw_mask_outline, draw_skeleton, write_video)
+from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to_color, draw_colorbar, draw_legend,
+                                   draw_mask_outline, draw_models, draw_skeleton, mosaic, write_video)
 from torchhand.data.layout import (Poses, SequenceError, SequenceInfo, camera_dir, frame_name, read_depth,
                                    read_init_pose, read_poses, read_rgb, read_sequence_info, write_depth, write_poses)
 from torchhand.io.assets import THESIS_MODEL_NAMES, save_assets
@@ -30,7 +30,7 @@ from torchhand.model.articulated import ArticulatedModel, load_model
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.calibration import CalibrationConfig, calibrate_hand
-from torchhand.tracking.energies import EnergyTerm
+from torchhand.tracking.energies import EnergyTerm, parse_energy
 from torchhand.tracking.initialization import InitConfig, Initializer, InitResult
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
@@ -125,25 +125,32 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
             raise FileExistsError(f"{t} is not empty; choose another --out or pass --force")
     summaries: Dict[int, dict] = {}
     groups: Dict[tuple, List[int]] = {}
+    needs = energy_needs(config, make_terms)
     for k, info in enumerate(infos):
-        if not info.has_depth:
-            summaries[k] = _failed(names[k], f"{roots[k]}: colour views only (sequence.json has_depth false, no "
-                                   "depth/): the tracker's energies read depth; synthesise the views with --depth "
-                                   "for an RGB-D rig")
+        V = len(info.cameras)
+        why = _unusable(roots[k], info, needs, segment)
+        if why:
+            summaries[k] = _failed(names[k], why)
             continue
         try:  # a sequence whose first frame is unusable fails before any tracking
-            read_depth(camera_dir(roots[k], 0) / "depth" / frame_name(0), info.depth_unit_mm)
+            for c in range(V):
+                if "depth" in needs:
+                    read_depth(camera_dir(roots[k], c) / "depth" / frame_name(0), info.depth_unit_mm)
+                if "colour" in needs:
+                    read_rgb(camera_dir(roots[k], c) / "rgb" / frame_name(0))
         except SequenceError as err:
             summaries[k] = _failed(names[k], f"{err}")
             continue
-        groups.setdefault(tuple(info.models), []).append(k)
-    for models, members in groups.items():
+        groups.setdefault((tuple(info.models), V), []).append(k)
+    for (models, V), members in groups.items():
         scene = Scene.from_names(list(models), device=device)
         tracker = Tracker(scene, config, make_terms() if make_terms is not None else None)
         cams = [infos[k].cameras[0].to(device) for k in members]
-        segs = [_segment_of(infos[k], segment) for k in members]
+        rigs = [[c.to(device) for c in infos[k].cameras] for k in members] if V > 1 else None
+        segs = [_segment_of(infos[k], segment) if V == 1 else None for k in members]
         hands_only = all(m.kind == "hand" for m in scene.models)
-        initializer = Initializer(tracker, init_config) if hands_only else None
+        # the automatic initialisation and re-initialisation read one depth view
+        initializer = Initializer(tracker, init_config) if hands_only and V == 1 and "depth" in needs else None
         starts, init_notes = [], []
         for i, k in enumerate(members):
             if init_poses is not None:
@@ -161,11 +168,14 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         n_frames = max(infos[k].frames for k in members)
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
         results: List[FrameResult] = []
-        frames = _Frames([roots[k] for k in members], [infos[k] for k in members], n_frames, segs, keep_masks=viz)
+        frames = _Frames([roots[k] for k in members], [infos[k] for k in members], n_frames, segs, keep_masks=viz,
+                         views=V, depth="depth" in needs, colour="colour" in needs)
         refit = _Refit(tracker, scene, cams, frames, initializer if reinit_iou > 0 else None, reinit_iou,
                        [_segment_for_search(segs[i], scene) for i in range(len(members))])
         read_errors = frames.errors
-        for f, res in enumerate(tracker.track(frames, cams, init, revise=refit)):
+        tracked = tracker.track(frames.depth_frames() if "depth" in needs else None, rigs or cams, init, revise=refit,
+                                colours=frames.colour_frames() if "colour" in needs else None)
+        for f, res in enumerate(tracked):
             for i, err in enumerate(read_errors[f]):
                 if err:
                     res.notes[i] = f"{err}; previous pose kept"
@@ -180,10 +190,30 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                 on_frames(sum(f < infos[k].frames for k in members))
         bar.close()
         for i, k in enumerate(members):
-            summaries[k] = _write_sequence(targets[k], roots[k], infos[k], names[k], scene, cams[i], results, i,
-                                           len(members), settings, viz, force, frames, refit, tracker.renderer,
-                                           write_render, write_vertices)
+            summaries[k] = _write_sequence(targets[k], roots[k], infos[k], names[k], scene,
+                                           rigs[i] if rigs else [cams[i]], results, i, len(members), settings, viz,
+                                           force, frames, refit, tracker.renderer, write_render, write_vertices)
     return [summaries[k] for k in range(len(roots))]
+
+
+def energy_needs(config: TrackerConfig, make_terms: Optional[Callable[[], List[EnergyTerm]]] = None) -> set:
+    """What the run's energy terms read: a subset of ``{"depth", "colour"}``."""
+    terms = make_terms() if make_terms is not None else parse_energy(config.energy, config.metric)
+    return {t.needs for t in terms if t.needs is not None}
+
+
+def _unusable(root: Path, info: SequenceInfo, needs: set, segment: Optional[SegmentConfig]) -> str:
+    """Why a sequence cannot be tracked with this energy ("" when it can)."""
+    if "depth" in needs and not info.has_depth:
+        return (f"{root}: colour views only (sequence.json has_depth false, no depth/), but the energy's terms "
+                f"read depth: track colour views with the colour terms (--energy E+C+O), or synthesise the views "
+                f"with --depth for an RGB-D rig")
+    if "colour" in needs and not info.has_rgb:
+        return f"{root}: the energy's colour terms (E, O) read rgb/ images, and sequence.json says it has none"
+    if len(info.cameras) > 1 and (segment is not None or info.segmentation is not None):
+        return (f"{root}: a segmentation (--segment or sequence.json) reads one depth view; a camera rig "
+                f"({len(info.cameras)} views) is tracked unsegmented")
+    return ""
 
 
 def output_names(infos: Sequence[SequenceInfo]) -> List[str]:
@@ -222,8 +252,9 @@ def _init_pose(root: Path, info: SequenceInfo, scene: Scene, models: tuple, init
                              f"{list(models)} has {scene.num_dofs} DoF")
         return th, ""
     if initializer is None:
-        raise ValueError(f"{root}: no init_pose.json, and the automatic initialisation places hands only (the scene "
-                         f"{list(models)} has objects): write init_pose.json")
+        raise ValueError(f"{root}: no init_pose.json, and the automatic initialisation places hands only, in one "
+                         f"depth view (the scene {list(models)}, {len(info.cameras)} view(s), this energy): write "
+                         "init_pose.json")
     res = automatic_init(root, info, initializer, cam, segment)
     return res.theta.cpu().double().numpy(), (f"no init_pose.json: initialised automatically (depth discrepancy "
                                              f"{res.cost:.2f}, {res.seconds:.1f} s)")
@@ -372,40 +403,68 @@ def _read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Segmen
 
 
 class _Frames:
-    """The frames of a batch of sequences, each read and segmented once: iterating yields
-    per frame the depth map of every sequence as the tracker sees it (None past its end,
-    where unreadable or where the segmentation found no hand; the reason goes to
-    ``errors``, one list per frame); ``depths`` and ``segmentations`` hold the current
-    frame's; with ``keep_masks`` every frame's segmentation masks are kept (packed) for
-    the overlays."""
+    """The frames of a batch of sequences, each read and segmented once.
+
+    :meth:`depth_frames` and :meth:`colour_frames` yield, per frame, what the tracker
+    sees of every sequence, read in step (a frame is read once for both): a depth map
+    (with one camera) or the depth maps of every view (a rig of ``views``), and the
+    colour images (with the protocol's occluders, ``occluders/``, as pixels whose
+    features are ignored); None past a sequence's end, where unreadable or where the
+    segmentation found no hand (the reason goes to ``errors``, one list per frame).
+    ``depths`` and ``segmentations`` hold the current frame's (camera 0's depth); with
+    ``keep_masks`` every frame's segmentation masks are kept (packed) for the overlays."""
 
     def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
-                 segments: List[Optional[SegmentConfig]], keep_masks: bool = False):
+                 segments: List[Optional[SegmentConfig]], keep_masks: bool = False, views: int = 1,
+                 depth: bool = True, colour: bool = False):
         self.roots, self.infos, self.n_frames, self.segments = roots, infos, n_frames, segments
-        self.keep_masks = keep_masks
+        self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
         self.errors: List[List[str]] = []
         self.depths: List[Optional[np.ndarray]] = []
         self.segmentations: List[Optional[Segmentation]] = []
         self.masks: List[List[Optional[tuple]]] = [[] for _ in roots]  # per sequence, per frame
+        self._frame, self._views, self._colours = -1, [], []
 
-    def __iter__(self) -> Iterator[List[Optional[np.ndarray]]]:
-        for f in range(self.n_frames):
-            depths, segs, why = [], [], []
-            for i, (root, info, seg) in enumerate(zip(self.roots, self.infos, self.segments)):
-                depth, s, err = None, None, ""
-                if f < info.frames:
-                    try:
+    def _load(self, f: int) -> None:
+        if f == self._frame:
+            return
+        depths, views, colours, segs, why = [], [], [], [], []
+        for i, (root, info, seg) in enumerate(zip(self.roots, self.infos, self.segments)):
+            depth, view, colour, s, err = None, None, None, None, ""
+            if f < info.frames:
+                try:
+                    if self.depth and self.views == 1:
                         depth, s = _read_frame(root, info, f, seg)
-                    except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
-                        err = str(e)
-                    if self.keep_masks:
-                        self.masks[i].append(None if s is None else (np.packbits(s.mask), np.packbits(s.cut)))
-                depths.append(depth)
-                segs.append(s)
-                why.append(err)
-            self.errors.append(why)
-            self.depths, self.segmentations = depths, segs
-            yield depths
+                        view = depth
+                    elif self.depth:
+                        view = [read_depth(camera_dir(root, c) / "depth" / frame_name(f), info.depth_unit_mm)
+                                for c in range(self.views)]
+                        depth = view[0]
+                    if self.colour:
+                        colour = [_read_colour(root, c, f) for c in range(self.views)]
+                        colour = colour[0] if self.views == 1 else colour
+                except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
+                    depth, view, colour, err = None, None, None, str(e)
+                if self.keep_masks:
+                    self.masks[i].append(None if s is None else (np.packbits(s.mask), np.packbits(s.cut)))
+            depths.append(depth)
+            views.append(view)
+            colours.append(colour)
+            segs.append(s)
+            why.append(err)
+        self.errors.append(why)
+        self.depths, self.segmentations, self._views, self._colours = depths, segs, views, colours
+        self._frame = f
+
+    def depth_frames(self) -> Iterator[list]:
+        for f in range(self.n_frames):
+            self._load(f)
+            yield self._views
+
+    def colour_frames(self) -> Iterator[list]:
+        for f in range(self.n_frames):
+            self._load(f)
+            yield self._colours
 
     def masks_of(self, i: int, f: int, shape: tuple) -> Optional[tuple]:
         """(hands' mask, forearm cut) of sequence ``i``'s frame ``f``, or None."""
@@ -414,6 +473,19 @@ class _Frames:
             return None
         n = shape[0] * shape[1]
         return tuple(np.unpackbits(p, count=n).reshape(shape).astype(bool) for p in packed)
+
+
+def _read_colour(root: Path, camera: int, f: int):
+    """A colour view as the tracker takes it: the image, or (image, ignored pixels) where
+    the folder has the protocol's ``occluders/`` mask of the frame."""
+    image = read_rgb(camera_dir(root, camera) / "rgb" / frame_name(f))
+    occluders = camera_dir(root, camera) / "occluders" / frame_name(f)
+    if occluders.is_file():
+        mask = cv2.imread(str(occluders), cv2.IMREAD_GRAYSCALE)
+        if mask is None or mask.shape != image.shape[:2]:
+            raise SequenceError(f"{occluders}: expected an 8-bit mask of the image's size {image.shape[:2]}")
+        return image, mask > 0
+    return image
 
 
 class _Refit:
@@ -464,11 +536,13 @@ class _Refit:
         return res._replace(theta=theta, notes=notes)
 
 
-def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
-                    batch: int, settings: dict, viz: bool, force: bool, frames: _Frames, refit: _Refit,
+def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, rig: list, results,
+                    i: int, batch: int, settings: dict, viz: bool, force: bool, frames: _Frames, refit: _Refit,
                     renderer=None, write_render: bool = False, write_vertices: bool = False) -> dict:
     """Write one sequence's outputs from the batch's frame results (problem ``i``), into
-    a partial folder renamed to ``final`` when complete."""
+    a partial folder renamed to ``final`` when complete; ``rig``: the cameras tracked
+    (keypoints are written in each, renders and vertices in camera 0's)."""
+    cam = rig[0]
     N = info.frames
     valid = np.array([r.valid[i].item() for r in results[:N]], bool)
     if not valid.any():
@@ -478,11 +552,11 @@ def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scen
     with torch.no_grad():
         th = torch.as_tensor(TH, device=cam.device)
         posed = scene(th)
-        kp3 = cam.to_camera(posed.keypoints).cpu().numpy()[:, None]
-        kp2 = cam.project(posed.keypoints).cpu().numpy()[:, None]
+        kp3 = np.stack([c.to_camera(posed.keypoints).cpu().numpy() for c in rig], 1)
+        kp2 = np.stack([c.project(posed.keypoints).cpu().numpy() for c in rig], 1)
     target = partial_dir(final)
     try:
-        summary = _write_outputs(target, root, info, name, scene, cam, results, i, batch, settings, viz, frames,
+        summary = _write_outputs(target, root, info, name, scene, rig, results, i, batch, settings, viz, frames,
                                  refit, renderer, write_render, TH, th, posed, kp3, kp2, valid)
         if write_vertices:
             (target / "vertices").mkdir()
@@ -499,10 +573,10 @@ def _write_sequence(final: Path, root: Path, info: SequenceInfo, name: str, scen
     return summary
 
 
-def _write_outputs(target: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, cam, results, i: int,
-                   batch: int, settings: dict, viz: bool, frames: _Frames, refit: _Refit, renderer,
+def _write_outputs(target: Path, root: Path, info: SequenceInfo, name: str, scene: Scene, rig: list, results,
+                   i: int, batch: int, settings: dict, viz: bool, frames: _Frames, refit: _Refit, renderer,
                    write_render: bool, TH, th, posed, kp3, kp2, valid) -> dict:
-    N = info.frames
+    N, cam = info.frames, rig[0]
     write_poses(target, Poses(TH.astype(np.float64), kp3, kp2, list(scene.names), scene.dof_names,
                               scene.keypoint_names, valid))
     (target / "motion").mkdir()
@@ -525,8 +599,10 @@ def _write_outputs(target: Path, root: Path, info: SequenceInfo, name: str, scen
     (target / "track_log.json").write_text(json.dumps({"sequence": name, "source": str(root),
                                                        "energy": settings["tracker"]["energy"],
                                                        "settings": settings, "frames": log}))
-    if viz:
+    if viz and len(rig) == 1 and frames.depth:
         _write_overlays(target, root, info, scene, posed, cam, frames, i)
+    elif viz:
+        write_view_overlays(target, root, info, scene, posed, rig)
     ious = [q[0] for q in quality if np.isfinite(q[0])]
     res = [q[1] for q in quality if np.isfinite(q[1])]
     return {"sequence": name, "status": "ok", "frames": N, "out": str(target),
@@ -575,15 +651,7 @@ def _write_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, 
             if segs[f] is not None:
                 draw_mask_outline(img, segs[f][0], (0, 220, 0))
                 draw_mask_outline(img, segs[f][1], (0, 0, 220))
-            for k, (model, out) in enumerate(zip(scene.models, posed.models)):
-                if kinds[k] == "hand":
-                    draw_skeleton(img, cam.project(out.keypoints[f : f + 1])[0].cpu().numpy())
-                    if gt is not None:  # thin, over the tracked one, so that both show
-                        draw_skeleton(img, gt[f, scene.keypoint_slices[scene.names[k]]], color=GT_COLOR, thickness=1)
-                elif model.num_bones > 1:
-                    draw_chain(img, cam.project(model.joints_from(out.G[f : f + 1]))[0].cpu().numpy())
-                else:
-                    draw_hull(img, cam.project(out.vertices[f : f + 1, ::16])[0].cpu().numpy())
+            draw_models(img, scene, posed, f, cam, None if gt is None else gt[f, 0])
             draw_colorbar(img, near, far)
             draw_legend(img, f"frame {f}", legend)
             cv2.imwrite(str(target / "overlays" / frame_name(f)), img)
@@ -591,13 +659,47 @@ def _write_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, 
     write_video(images, target / "overlays.mp4", fps=info.fps)
 
 
+def write_view_overlays(target: Path, root: Path, info: SequenceInfo, scene: Scene, posed: SceneOutput,
+                        rig: list) -> None:
+    """Overlays of a camera rig (or of colour views): ``overlays/cam<k>/NNNNNN.png`` per
+    view, the view's colour image (its depth in false colour where it has none) with
+    the tracked models and, where ``root/gt`` exists, the ground-truth skeletons; and
+    ``overlays.mp4``, every view of a frame in one picture."""
+    gt = _ground_truth_2d(root, scene, info.frames)
+    kinds = [m.kind for m in scene.models]
+    legend = [(f"{n}: tracked", None if kind == "hand" else OBJECT_COLOR) for n, kind in zip(scene.names, kinds)]
+    legend += [("ground truth", GT_COLOR)] if gt is not None else []
+    for c in range(len(rig)):
+        (target / "overlays" / f"cam{c}").mkdir(parents=True)
+    pictures = []
+    with torch.no_grad():
+        for f in range(info.frames):
+            views = []
+            for c, cam in enumerate(rig):
+                try:
+                    if info.has_rgb:
+                        img = cv2.cvtColor(read_rgb(camera_dir(root, c) / "rgb" / frame_name(f)), cv2.COLOR_RGB2BGR)
+                    else:
+                        img = depth_to_color(read_depth(camera_dir(root, c) / "depth" / frame_name(f),
+                                                        info.depth_unit_mm))
+                except SequenceError:
+                    img = np.zeros((cam.height, cam.width, 3), np.uint8)
+                has_gt = gt is not None and gt.shape[1] == len(rig)
+                draw_models(img, scene, posed, f, cam, gt[f, c] if has_gt else None)
+                draw_legend(img, f"frame {f}, camera {c}", legend)
+                cv2.imwrite(str(target / "overlays" / f"cam{c}" / frame_name(f)), img)
+                views.append(img)
+            pictures.append(mosaic(views))
+    write_video(pictures, target / "overlays.mp4", fps=info.fps)
+
+
 def _ground_truth_2d(root: Path, scene: Scene, frames: int) -> Optional[np.ndarray]:
-    """(N, P, 2) ground-truth keypoints of camera 0 for the overlays, or None when the
-    folder has no readable ``gt/`` of this scene (the tracking itself never reads it)."""
+    """(N, C, P, 2) ground-truth keypoints of every camera for the overlays, or None when
+    the folder has no readable ``gt/`` of this scene (the tracking itself never reads it)."""
     try:
         gt = read_poses(root / "gt")
     except SequenceError:
         return None
     if gt.keypoint_names != scene.keypoint_names or len(gt.keypoints_2d) != frames:
         return None
-    return gt.keypoints_2d[:, 0]
+    return gt.keypoints_2d

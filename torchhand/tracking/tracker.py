@@ -11,6 +11,7 @@ independent problems that share every tensor operation.
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -531,14 +532,18 @@ class Tracker:
         self._last_gray[key] = frame.gray
         return frame
 
-    def track(self, depths: Iterable[Sequence[Depth]], cameras: Sequence[Camera], init: torch.Tensor,
-              revise: Optional[Callable[[int, FrameResult], FrameResult]] = None) -> Iterator[FrameResult]:
+    def track(self, depths: Optional[Iterable[Sequence[Depth]]], cameras: Sequence, init: torch.Tensor,
+              revise: Optional[Callable[[int, FrameResult], FrameResult]] = None,
+              colours: Optional[Iterable[Sequence]] = None) -> Iterator[FrameResult]:
         """Track B sequences frame by frame from their initial poses.
 
         Args:
             depths: per frame, B depth maps (H, W) in mm or None (a sequence that has
-                ended or lacks the frame keeps its pose and is flagged).
-            cameras: B cameras.
+                ended or lacks the frame keeps its pose and is flagged); for camera rigs,
+                B sequences of V. None: colour views only.
+            cameras: B cameras, or B camera rigs (:meth:`track_frame`).
+            colours: per frame, the colour images of :meth:`track_frame`, or None
+                (depth only); read in step with ``depths``.
             init: (B, D) initial poses (the first frame refines them with the
                 first-frame budget).
             revise: called with (frame index, result) after each frame; what it returns
@@ -554,9 +559,19 @@ class Tracker:
         self.reset()
         generator = torch.Generator().manual_seed(cfg.seed)
         history: collections.deque = collections.deque(maxlen=3)  # (theta, tracked) of the last frames
-        for f, frame in enumerate(depths):
+        if depths is None and colours is None:
+            raise ValueError("give depth frames, colour frames or both")
+        depth_frames = None if depths is None else iter(depths)
+        colour_frames = None if colours is None else iter(colours)
+        for f in itertools.count():
+            try:
+                frame = None if depth_frames is None else next(depth_frames)
+                colour = None if colour_frames is None else next(colour_frames)
+            except StopIteration:
+                return
             start = predicted_start(list(history), cfg.prediction, cfg.prediction_limiter)
-            res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start)
+            res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
+                                   colours=colour)
             if revise is not None:
                 res = revise(f, res)
             theta = res.theta

@@ -88,7 +88,6 @@ class OpticalFlow(VertexPixelTerm):
         vis = state.visible_vertices()  # (P, V) at the start pose
         index, slot = stride_subsample(vis, n)
         earlier = scene(state.previous, validate=False).vertices.detach()  # (P, V, 3)
-        b = torch.arange(P, device=dev)[:, None]
         vertex = index
         target = torch.zeros(P, n, 2, dtype=dt, device=dev)
         keep = torch.zeros(P, n, dtype=torch.bool, device=dev)
