@@ -323,9 +323,9 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
     calls, solved_from = [], []
     original, original_solve = Tracker.track_frame, Tracker.solve
 
-    def spy(self, depths, cameras, previous, first=False, generator=None, start=None):
+    def spy(self, depths, cameras, previous, first=False, generator=None, start=None, colours=None):
         solved_from.clear()
-        res = original(self, depths, cameras, previous, first, generator, start)
+        res = original(self, depths, cameras, previous, first, generator, start, colours)
         calls.append((previous.clone(), None if start is None else start.clone(), res.theta.clone(),
                       solved_from[0].clone(), self.scene))
         return res

@@ -204,7 +204,8 @@ def _track(args) -> int:
     cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.first_iterations, prediction=args.prediction,
                         prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend,
-                        labels=args.labels)
+                        labels=args.labels, solver=args.solver, particles=args.particles,
+                        generations=args.generations)
     segment = _segment_config(args, "none") if args.segment else None
     dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
     job = TrackJob(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
@@ -447,6 +448,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "E+C+O; every camera of sequence.json is used")
     p.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"],
                    help="model-to-data distance (thesis Eq. 4.6 / 4.7)")
+    p.add_argument("--solver", default="lm", choices=["lm", "pso"],
+                   help="per frame: Levenberg-Marquardt (Algorithm 1), or a particle swarm over the same energy (the "
+                        "HOPE baseline of Ballan et al.; slow: particles x generations energy evaluations a frame)")
+    p.add_argument("--particles", type=int, default=64, help="with --solver pso (HOPE64, HOPE128)")
+    p.add_argument("--generations", type=int, default=40, help="with --solver pso")
     from torchhand.tracking.labels import LABELINGS
 
     p.add_argument("--labels", default="proximity", choices=LABELINGS,

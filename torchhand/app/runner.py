@@ -32,6 +32,7 @@ from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.calibration import CalibrationConfig, calibrate_hand
 from torchhand.tracking.energies import EnergyTerm, parse_energy
 from torchhand.tracking.initialization import InitConfig, Initializer, InitResult
+from torchhand.tracking.preprocess import ColourView
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
@@ -197,9 +198,10 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
 
 
 def energy_needs(config: TrackerConfig, make_terms: Optional[Callable[[], List[EnergyTerm]]] = None) -> set:
-    """What the run's energy terms read: a subset of ``{"depth", "colour"}``."""
+    """What the run's energy terms read: a subset of ``{"depth", "colour", "salient"}``
+    (salient: the nail detections of colour views, ``salient.json``)."""
     terms = make_terms() if make_terms is not None else parse_energy(config.energy, config.metric)
-    return {t.needs for t in terms if t.needs is not None}
+    return {t.needs for t in terms if t.needs is not None} | {"salient" for t in terms if t.name == "nails"}
 
 
 def _unusable(root: Path, info: SequenceInfo, needs: set, segment: Optional[SegmentConfig]) -> str:
@@ -210,6 +212,11 @@ def _unusable(root: Path, info: SequenceInfo, needs: set, segment: Optional[Segm
                 f"with --depth for an RGB-D rig")
     if "colour" in needs and not info.has_rgb:
         return f"{root}: the energy's colour terms (E, O) read rgb/ images, and sequence.json says it has none"
+    missing = [str(camera_dir(root, c) / "salient.json") for c in range(len(info.cameras))
+               if not (camera_dir(root, c) / "salient.json").is_file()]
+    if "salient" in needs and missing:
+        return (f"{root}: S on colour views reads the nail detections of every camera, and {missing[0]} is missing "
+                f"(synth --protocol ballan writes simulated ones)")
     if len(info.cameras) > 1 and (segment is not None or info.segmentation is not None):
         return (f"{root}: a segmentation (--segment or sequence.json) reads one depth view; a camera rig "
                 f"({len(info.cameras)} views) is tracked unsegmented")
@@ -424,6 +431,7 @@ class _Frames:
         self.segmentations: List[Optional[Segmentation]] = []
         self.masks: List[List[Optional[tuple]]] = [[] for _ in roots]  # per sequence, per frame
         self._frame, self._views, self._colours = -1, [], []
+        self._detections: Dict[tuple, Optional[list]] = {}
 
     def _load(self, f: int) -> None:
         if f == self._frame:
@@ -441,7 +449,7 @@ class _Frames:
                                 for c in range(self.views)]
                         depth = view[0]
                     if self.colour:
-                        colour = [_read_colour(root, c, f) for c in range(self.views)]
+                        colour = [_read_colour(root, c, f, self._salient(i, c)) for c in range(self.views)]
                         colour = colour[0] if self.views == 1 else colour
                 except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
                     depth, view, colour, err = None, None, None, str(e)
@@ -455,6 +463,23 @@ class _Frames:
         self.errors.append(why)
         self.depths, self.segmentations, self._views, self._colours = depths, segs, views, colours
         self._frame = f
+
+    def _salient(self, i: int, camera: int) -> Optional[list]:
+        """The salient point detections of sequence ``i``'s camera (``salient.json``: per
+        frame a list of (u, v) px), read once; None without the file."""
+        key = (i, camera)
+        if key not in self._detections:
+            path = camera_dir(self.roots[i], camera) / "salient.json"
+            frames = None
+            if path.is_file():
+                try:
+                    frames = json.loads(path.read_text())["frames"]
+                    if len(frames) != self.infos[i].frames:
+                        raise ValueError(f"{len(frames)} frames, sequence.json has {self.infos[i].frames}")
+                except (ValueError, KeyError, TypeError) as err:
+                    raise SequenceError(f"{path}: expected {{'frames': [[[u, v], ...] per frame]}} ({err})") from None
+            self._detections[key] = frames
+        return self._detections[key]
 
     def depth_frames(self) -> Iterator[list]:
         for f in range(self.n_frames):
@@ -475,17 +500,22 @@ class _Frames:
         return tuple(np.unpackbits(p, count=n).reshape(shape).astype(bool) for p in packed)
 
 
-def _read_colour(root: Path, camera: int, f: int):
-    """A colour view as the tracker takes it: the image, or (image, ignored pixels) where
-    the folder has the protocol's ``occluders/`` mask of the frame."""
+def _read_colour(root: Path, camera: int, f: int, detections: Optional[list] = None) -> ColourView:
+    """A colour view as the tracker takes it: the image, the protocol's ``occluders/``
+    mask of the frame where the folder has one (ignored pixels), and the frame's salient
+    point detections."""
     image = read_rgb(camera_dir(root, camera) / "rgb" / frame_name(f))
     occluders = camera_dir(root, camera) / "occluders" / frame_name(f)
+    mask = None
     if occluders.is_file():
         mask = cv2.imread(str(occluders), cv2.IMREAD_GRAYSCALE)
         if mask is None or mask.shape != image.shape[:2]:
             raise SequenceError(f"{occluders}: expected an 8-bit mask of the image's size {image.shape[:2]}")
-        return image, mask > 0
-    return image
+        mask = mask > 0
+    salient = None
+    if detections is not None:
+        salient = np.asarray(detections[f], np.float64).reshape(-1, 2) if len(detections[f]) else np.zeros((0, 2))
+    return ColourView(image, mask, salient)
 
 
 class _Refit:

@@ -26,7 +26,7 @@ import torch
 from torchhand.geometry.camera import Camera, depth_to_points_and_normals
 
 __all__ = ["PreprocessConfig", "DepthFrame", "preprocess_depth", "EmptyFrameError", "remove_plane", "ColourConfig",
-           "ColourFrame", "preprocess_colour"]
+           "ColourFrame", "ColourView", "preprocess_colour"]
 
 
 class EmptyFrameError(ValueError):
@@ -210,7 +210,8 @@ class ColourFrame(NamedTuple):
     intensity gradient (the edge's normal) modulo pi; previous: the grey image of the
     same camera's previous frame (None at the first frame); ignore: (H, W) bool host
     array or None, pixels whose features are not used (the occluders of Ballan's
-    protocol, for optical flow).
+    protocol, for optical flow); salient: (S, 2) float64 (u, v) px salient point
+    detections (nails) of the frame, or None.
     """
 
     gray: np.ndarray
@@ -218,13 +219,26 @@ class ColourFrame(NamedTuple):
     edge_phi: torch.Tensor
     previous: Optional[np.ndarray] = None
     ignore: Optional[np.ndarray] = None
+    salient: Optional[np.ndarray] = None
+
+
+class ColourView(NamedTuple):
+    """A colour view as a caller gives it to the tracker: the (H, W, 3) uint8 RGB image,
+    optionally the (H, W) bool pixels whose features are ignored and the (S, 2) (u, v)
+    px salient point detections."""
+
+    image: np.ndarray
+    ignore: Optional[np.ndarray] = None
+    salient: Optional[np.ndarray] = None
 
 
 def preprocess_colour(image, camera: Camera, config: ColourConfig = ColourConfig(), previous: Optional[np.ndarray] = None,
-                      ignore: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32) -> ColourFrame:
+                      ignore: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32,
+                      salient: Optional[np.ndarray] = None) -> ColourFrame:
     """Preprocess one colour image: (H, W, 3) uint8 RGB (or (H, W) grey) of ``camera``'s
     size; ``previous``: the grey image of the previous frame (``ColourFrame.gray``);
-    ``ignore``: (H, W) bool pixels to leave out of the flow."""
+    ``ignore``: (H, W) bool pixels to leave out of the flow; ``salient``: (S, 2) (u, v)
+    px detections of salient points."""
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu().numpy()
     img = np.asarray(image)
@@ -243,6 +257,11 @@ def preprocess_colour(image, camera: Camera, config: ColourConfig = ColourConfig
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
     rc = np.argwhere(edges)
     phi = np.remainder(np.arctan2(gy[rc[:, 0], rc[:, 1]], gx[rc[:, 0], rc[:, 1]]), np.pi)
+    if salient is not None:
+        salient = np.asarray(salient, np.float64)
+        if salient.size and (salient.ndim != 2 or salient.shape[1] != 2 or not np.isfinite(salient).all()):
+            raise ValueError(f"salient detections must be finite (S, 2) (u, v) px, got shape {salient.shape}")
+        salient = salient.reshape(-1, 2)
     return ColourFrame(gray, torch.as_tensor(rc, dtype=torch.int64, device=device).reshape(-1, 2),
                        torch.as_tensor(phi, dtype=dtype, device=device), previous,
-                       None if ignore is None else np.asarray(ignore, bool))
+                       None if ignore is None else np.asarray(ignore, bool), salient)

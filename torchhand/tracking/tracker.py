@@ -27,10 +27,11 @@ from torchhand.geometry.raycast import BACKENDS, _box_of, default_backend
 from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
+from torchhand.optim.pso import particle_swarm
 from torchhand.tracking.energies import EnergyTerm, Prepared, TrackState, parse_energy
 from torchhand.tracking.labels import LABELINGS, label_by_proximity, label_data
-from torchhand.tracking.preprocess import (ColourConfig, ColourFrame, DepthFrame, EmptyFrameError, PreprocessConfig,
-                                          preprocess_colour, preprocess_depth)
+from torchhand.tracking.preprocess import (ColourConfig, ColourFrame, ColourView, DepthFrame, EmptyFrameError,
+                                          PreprocessConfig, preprocess_colour, preprocess_depth)
 
 __all__ = ["TrackerConfig", "FrameResult", "SolveResult", "Tracker", "predicted_start"]
 
@@ -39,6 +40,13 @@ Depth = Union[torch.Tensor, np.ndarray, None]
 
 #: frames whose energies the recovery rule compares a frame with (the median of these)
 ENERGY_HISTORY = 30
+
+#: the solvers of a frame: Levenberg-Marquardt (Algorithm 1) or the particle swarm (HOPE)
+SOLVERS = ("lm", "pso")
+
+#: the spread of HOPE's particles about the start pose, per DoF: global translation (mm),
+#: global rotation and joint angles (rad)
+SWARM_SPREAD = (5.0, 0.05, 0.1)
 
 
 @dataclass
@@ -75,7 +83,11 @@ class TrackerConfig:
     render_margin: px around the projection of a solve's start poses that its renders
     cover (the models move a few mm within a frame: 48 px are about 40 mm at 450 mm; a
     model that leaves the box loses the pixels outside it for that frame); colour: the
-    preprocessing of colour views (:class:`~torchhand.tracking.preprocess.ColourConfig`)."""
+    preprocessing of colour views (:class:`~torchhand.tracking.preprocess.ColourConfig`);
+    solver: ``"lm"`` (Algorithm 1, Levenberg-Marquardt) or ``"pso"``, the HOPE baseline
+    of Ballan et al. (Oikonomidis et al.'s particle swarm over the same energy,
+    :meth:`Tracker.swarm_solve`) with ``particles`` particles and ``generations``
+    generations (HOPE64: 64 and 40)."""
 
     energy: str = "LO+F"
     metric: str = "point-to-plane"
@@ -97,6 +109,9 @@ class TrackerConfig:
     colour: ColourConfig = field(default_factory=ColourConfig)
     backend: Optional[str] = None
     render_margin: int = 48
+    solver: str = "lm"
+    particles: int = 64
+    generations: int = 40
 
     def __post_init__(self) -> None:
         if (isinstance(self.prediction, bool) or not isinstance(self.prediction, (int, float))
@@ -108,6 +123,11 @@ class TrackerConfig:
             raise ValueError(f"labels must be one of {LABELINGS}, got {self.labels!r}")
         if not self.label_distance > 0:
             raise ValueError(f"label_distance must be > 0 (mm), got {self.label_distance!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if not (isinstance(self.particles, int) and self.particles >= 2 and isinstance(self.generations, int)
+                and self.generations >= 0):
+            raise ValueError(f"need particles >= 2 and generations >= 0, got {self.particles!r}, {self.generations!r}")
         if self.backend is not None and self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS} or None, got {self.backend!r}")
 
@@ -440,8 +460,10 @@ class Tracker:
                 motion prediction; ``previous`` stays the reference of the temporal
                 regularisation and the recovery.
             colours: None, or B colour images (H, W, 3) uint8 RGB (B sequences of V for
-                rigs), or None where a frame is missing; an image may come as ``(image,
-                ignore)`` with an (H, W) bool mask of pixels whose features are not used.
+                rigs), or None where a frame is missing; an image may come as a
+                :class:`~torchhand.tracking.preprocess.ColourView` (or ``(image, ignore,
+                salient)`` tuple) with an (H, W) bool mask of pixels whose features are
+                not used and the frame's salient point detections.
                 The optical flow of a view is computed against the previous frame this
                 tracker saw of it (:meth:`reset` forgets them).
         Returns:
@@ -494,9 +516,12 @@ class Tracker:
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             # the first frame refines a given initial pose: its whole budget is spent
             # unless the solver stops accepting steps (the thesis' 50 iterations)
-            sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None, cols, V)
+            if cfg.solver == "pso":
+                sol = self.swarm_solve(init[idx], previous[idx], frames, cams, cols, V, generator)
+            else:
+                sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None, cols, V)
             th, en = sol.theta, sol.energy
-            if not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
+            if cfg.solver == "lm" and not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
                 th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator, cols, V)
                 recovered[idx] = rec.cpu()
             # never return NaN: a diverged problem keeps its previous pose and is flagged
@@ -512,6 +537,66 @@ class Tracker:
         self._energy_history.append(energy)
         return FrameResult(theta, valid, iters, energy, recovered, counts, notes, time.perf_counter() - t0)
 
+    def swarm_solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[Optional[DepthFrame]],
+                    cameras: Sequence[Camera], colours: Optional[List[ColourFrame]] = None, views: int = 1,
+                    generator: Optional[torch.Generator] = None) -> SolveResult:
+        """HOPE for a batch (Oikonomidis et al. 2011, the baseline of Ballan et al.'s
+        Table 1): a particle swarm (:func:`torchhand.optim.pso.particle_swarm`) over the
+        energy Levenberg-Marquardt minimises, each particle's correspondences found at its
+        own pose (the terms' prepare), its fitness the energy per candidate correspondence
+        (:meth:`solve`'s). ``config.particles`` particles are drawn about the start pose
+        (:data:`SWARM_SPREAD`; the first is the start itself), ``config.generations``
+        generations follow; velocities are limited to twice the spread. Arguments as
+        :meth:`solve`; ``generator`` draws the particles and the swarm's coefficients."""
+        cfg, V = self.config, int(views)
+        theta = self.scene.clamp(start)
+        B, D = theta.shape
+        P = cfg.particles
+        generator = torch.Generator().manual_seed(cfg.seed) if generator is None else generator
+        frame_data: dict = {}
+        shared = all(_same_camera(c, cameras[0]) for c in cameras)
+        with torch.no_grad():
+            posed = self.scene(theta, validate=False)
+            box = self._box(posed.vertices if V == 1 else posed.vertices.repeat_interleave(V, 0), cameras, shared)
+            view, pose = self._states(theta, previous, frames, cameras, None, frame_data, posed, None, shared, box,
+                                      colours, V)
+            labels = view.data_labels
+            self._prepare(view, pose, V)  # the terms' data side, once for the frame
+        spread = torch.full((D,), SWARM_SPREAD[2], dtype=theta.dtype)
+        for sl in self.scene.slices.values():
+            spread[sl.start : sl.start + 3], spread[sl.start + 3 : sl.start + 6] = SWARM_SPREAD[0], SWARM_SPREAD[1]
+        spread = spread.to(theta.device)
+        noise = torch.randn(B, P, D, generator=generator, dtype=theta.dtype).to(theta.device) * spread
+        noise[:, 0] = 0
+        chunk = max(1, 64 // V)  # particles per batch of renders (their data sides are gathered per view problem)
+
+        def energies(th: torch.Tensor, owner: List[int]) -> tuple:
+            """(energy (N,), C_all (N,)) of poses th (N, D) of the problems ``owner``."""
+            out, counts = [], []
+            for c0 in range(0, len(owner), chunk):
+                js = list(range(c0, min(c0 + chunk, len(owner))))
+                vsub = [owner[j] * V + v for j in js for v in range(V)]
+                prob = torch.tensor([owner[j] for j in js], device=theta.device)
+                vidx = torch.tensor(vsub, device=theta.device)
+                with torch.no_grad():
+                    sv, sp = self._states(th[js], previous[prob], [frames[i] for i in vsub], [cameras[i] for i in vsub],
+                                          vidx, frame_data, None, labels[vidx.to(labels.device)], shared, box,
+                                          None if colours is None else [colours[i] for i in vsub], V)
+                    count, cand, unmatched = self._prepare(sv, sp, V)
+                    r, _ = Objective(self.scene, self.terms, sp.theta, sp.posed, V)(sp.theta, False)
+                out.append(((r ** 2).sum(1) + unmatched.to(r)) / cand.to(r).clamp_min(1))
+                counts.append(count.cpu())
+            return torch.cat(out), torch.cat(counts)
+
+        owners = [b for b in range(B) for _ in range(P)]
+        res = particle_swarm(lambda pos: energies(pos.reshape(B * P, D), owners)[0].view(B, P), theta[:, None] + noise,
+                             self.scene.lower, self.scene.upper, cfg.generations, velocity_scale=2 * spread,
+                             generator=generator)
+        best = self.scene.clamp(res.best)
+        final, n = energies(best, list(range(B)))
+        iters = torch.full((B,), cfg.generations, dtype=torch.int64)
+        return SolveResult(best, iters, final, n)
+
     def _check_inputs(self, has_depth: bool, has_colour: bool) -> None:
         """Every term's data is there: a clear error instead of a term without its images."""
         for t in self.terms:
@@ -524,11 +609,12 @@ class Tracker:
 
     def _colour_frame(self, item, camera: Camera, key: int, like: torch.Tensor) -> ColourFrame:
         """A colour view preprocessed, with the previous frame this tracker saw of it."""
-        image, ignore = item if isinstance(item, tuple) else (item, None)
+        view = ColourView(*item) if isinstance(item, tuple) else ColourView(item)
         prev = self._last_gray.get(key)
         if prev is not None and prev.shape != (camera.height, camera.width):
             prev = None
-        frame = preprocess_colour(image, camera, self.config.colour, prev, ignore, device=like.device, dtype=like.dtype)
+        frame = preprocess_colour(view.image, camera, self.config.colour, prev, view.ignore, device=like.device,
+                                  dtype=like.dtype, salient=view.salient)
         self._last_gray[key] = frame.gray
         return frame
 

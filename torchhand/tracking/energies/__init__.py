@@ -6,7 +6,9 @@ wrappers (:mod:`torchhand.tracking.energies.wrappers`).
 weights and losses: ``LO`` is model-to-data plus data-to-model (depth), ``C`` adds collisions,
 ``S`` salient points, ``F`` free space and ``P`` physics (``LO+CS``: collisions and salient points,
 components in any order); ``E`` (edges) and ``O`` (optical flow) read colour images
-(Ballan et al. 2012: ``E+C+O`` on colour views, ``LO+E`` on RGB-D); anatomy and
+(Ballan et al. 2012: ``E+C+O+S`` on colour views, ``LO+E`` on RGB-D); ``S`` is the
+fingertips detected in depth when the energy has ``LO``, the nails detected in colour
+views (:mod:`~torchhand.tracking.energies.nails`) when it has not; anatomy and
 regularisation are always added.
 """
 
@@ -14,8 +16,10 @@ from __future__ import annotations
 
 from typing import List, Optional
 
-from torchhand.tracking.energies import anatomy, collision, data_to_model, edges, free_space, physics, regularization
+from torchhand.tracking.energies import (anatomy, collision, data_to_model, edges, free_space, nails, physics,
+                                         regularization)
 from torchhand.tracking.energies.edges import Edges
+from torchhand.tracking.energies.nails import Nails
 from torchhand.tracking.energies.optical_flow import OpticalFlow
 from torchhand.tracking.energies.anatomy import Anatomy
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
@@ -29,14 +33,15 @@ from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
 __all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
-           "FreeSpace", "Physics", "Edges", "OpticalFlow", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
+           "FreeSpace", "Physics", "Edges", "OpticalFlow", "Nails", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
            "default_free_space", "default_priors", "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
 ENERGY_COMPONENTS = {"E": "edges of colour images (rendered occluding contours to Canny edges, DCH-Thres)",
                      "O": "optical flow of colour images (visible vertices follow the DIS flow)",
                      "C": "collisions (conic distance fields, Eq. 4.9-4.13)",
-                     "S": "salient points (detected fingertips, Eq. 4.14-4.15)",
+                     "S": "salient points (with LO: fingertips detected in depth, Eq. 4.14-4.15; without: "
+                          "nails detected in colour views, Ballan Eq. 3)",
                      "F": "free space (model surface where the sensor saw nothing or farther, pulled into its data)",
                      "P": "physics (Bullet stability of held rigid objects, Eq. 4.16; needs pybullet)"}
 
@@ -86,8 +91,8 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
         terms.append(OpticalFlow())
     if "C" in extra:
         terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
-    if "S" in extra:
-        terms.append(Salient())
+    if "S" in extra:  # fingertips in depth with the depth terms, else the nails of colour views
+        terms.append(Salient() if lo else Weighted(Nails(), nails.DEFAULT_WEIGHT))
     if "F" in extra:
         terms.append(default_free_space())
     if "P" in extra:

@@ -82,9 +82,14 @@ def rim_vertices(state: TrackState, max_points: int) -> tuple:
     iu = (K[:, 0, 0, None] * Xc[..., 0] / z + K[:, 0, 2, None]).round().long()
     iv = (K[:, 1, 1, None] * Xc[..., 1] / z + K[:, 1, 2, None]).round().long()
     inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
-    near = torch.nn.functional.max_pool2d(rend.silhouette_edges[:, None].float(), 3, 1, 1)[:, 0] > 0
-    b = torch.arange(B, device=dev)[:, None]
-    on = state.visible_vertices() & inside & near[b, iv.clamp(0, H - 1), iu.clamp(0, W - 1)]
+    # on an edge pixel or one of its 8 neighbours (looked up at the vertices, not over the image)
+    edges = rend.silhouette_edges.reshape(B, -1)
+    on = torch.zeros_like(inside)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            at = (iv + dr).clamp(0, H - 1) * W + (iu + dc).clamp(0, W - 1)
+            on |= edges.gather(1, at)
+    on &= state.visible_vertices() & inside
     ids, ok = stride_subsample(on, max_points)
     pixels = torch.stack([iv.gather(1, ids).clamp(0, H - 1), iu.gather(1, ids).clamp(0, W - 1)], -1)
     n = vertex_normals(V, state.scene.faces, ids, state.scene.vertex_faces) @ T[:, :3, :3].transpose(1, 2)
