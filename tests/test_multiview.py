@@ -27,7 +27,8 @@ def ring(tmp_path_factory):
     info = read_sequence_info(root)
     colour = [[read_rgb(camera_dir(root, k) / "rgb" / frame_name(f)) for k in range(8)] for f in range(3)]
     depth = [[read_depth(camera_dir(root, k) / "depth" / frame_name(f)) for k in range(8)] for f in range(3)]
-    return frames.scene, info.cameras, torch.as_tensor(np.load(root / "gt" / "theta.npy")), colour, depth
+    nails = np.load(root / "gt" / "salient_2d.npy"), np.load(root / "gt" / "salient_visible.npy")
+    return frames.scene, info.cameras, torch.as_tensor(np.load(root / "gt" / "theta.npy")), colour, depth, nails
 
 
 def _shifted(scene, theta, shift) -> torch.Tensor:
@@ -44,7 +45,7 @@ def _keypoint_error(scene, a, b) -> float:
 
 
 def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
-    scene, cams, gt, _, depth = ring
+    scene, cams, gt, _, depth, _ = ring
     start = _shifted(scene, gt[:1], [4.0, -3.0, 5.0])
     cfg = TrackerConfig(max_iterations=6, first_frame_iterations=6)
     single = Tracker(scene, cfg).track_frame([depth[0][0]], [cams[0]], start, first=True)
@@ -53,7 +54,7 @@ def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
 
 
 def test_depth_views_of_a_rig_are_tracked_together(ring):
-    scene, cams, gt, _, depth = ring
+    scene, cams, gt, _, depth, _ = ring
     start = _shifted(scene, gt[:1], [6.0, -4.0, 8.0])
     cfg = TrackerConfig(max_iterations=15, first_frame_iterations=15)
     res = Tracker(scene, cfg).track_frame([depth[0][:3]], [cams[:3]], start, first=True)
@@ -65,7 +66,7 @@ def test_depth_views_of_a_rig_are_tracked_together(ring):
 
 @pytest.mark.parametrize("energy, limit", [("E+C", 2.5), ("E+C+O", 1.5)])
 def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
-    scene, cams, gt, colour, _ = ring
+    scene, cams, gt, colour, _, _ = ring
     tracker = Tracker(scene, TrackerConfig(energy=energy))
     theta, errors = gt[:1], []
     for f in range(3):
@@ -77,7 +78,7 @@ def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
 
 
 def test_edge_pairs_at_the_true_pose_are_close(ring):
-    scene, cams, gt, colour, _ = ring
+    scene, cams, gt, colour, _, _ = ring
     tracker = Tracker(scene, TrackerConfig(energy="E"))
     cols = [preprocess_colour(colour[0][k], cams[k], dtype=F64) for k in range(8)]
     view, _ = tracker._states(gt[:1], gt[:1], [None] * 8, list(cams), colours=cols, views=8)
@@ -91,7 +92,7 @@ def test_edge_pairs_at_the_true_pose_are_close(ring):
 
 @pytest.mark.parametrize("make", [Edges, lambda: OpticalFlow(sigma=None)], ids=["edges", "flow"])
 def test_colour_term_jacobians_match_finite_differences(ring, make):
-    scene, cams, gt, colour, _ = ring
+    scene, cams, gt, colour, _, _ = ring
     tracker = Tracker(scene, TrackerConfig(energy="E"))
     prev = [preprocess_colour(colour[0][k], cams[k], dtype=F64) for k in range(2)]
     cols = [preprocess_colour(colour[1][k], cams[k], previous=prev[k].gray, dtype=F64) for k in range(2)]
@@ -109,7 +110,7 @@ def test_colour_term_jacobians_match_finite_differences(ring, make):
 
 
 def test_rig_bad_input_is_named(ring):
-    scene, cams, gt, colour, depth = ring
+    scene, cams, gt, colour, depth, _ = ring
     tracker = Tracker(scene, TrackerConfig(energy="E+C"))
     with pytest.raises(ValueError, match="needs colour images"):
         tracker.track_frame([depth[0][:2]], [cams[:2]], gt[:1])
@@ -152,3 +153,41 @@ def test_track_command_on_colour_views(tmp_path, capsys):
     # the depth terms on colour views: a clear message, nothing written
     assert main(["track", str(seq), "--out", str(tmp_path / "lo")]) != 0
     assert "colour views only" in capsys.readouterr().err
+
+
+def test_nails_pull_the_salient_vertices_onto_their_detections(ring):
+    from torchhand.tracking.energies import Nails
+    from torchhand.tracking.preprocess import ColourView
+
+    scene, cams, gt, colour, _, (uv, seen) = ring
+    views = []
+    for k in range(8):  # the true nail centres a camera sees, and one false detection far from any
+        det = np.concatenate([uv[0, k][seen[0, k]], [[5.0, 5.0]]])
+        views.append(ColourView(colour[0][k], None, det))
+    start = _shifted(scene, gt[:1], [5.0, -4.0, 3.0])
+    cfg = TrackerConfig(first_frame_iterations=15)
+    res = Tracker(scene, cfg, [Nails()] + default_priors()).track_frame(None, [cams], start, first=True,
+                                                                         colours=[views])
+    # ten nails in eight views: the hands' global position is found from them alone
+    assert int(res.correspondences[0]) >= 20
+    assert _keypoint_error(scene, res.theta, gt[:1]) < 0.5 * _keypoint_error(scene, start, gt[:1])
+    with pytest.raises(ValueError, match="gate_px"):
+        Nails(gate_px=0)
+
+
+def test_the_swarm_never_returns_worse_than_its_start(ring, monkeypatch):
+    import torchhand.tracking.tracker as tracker_module
+
+    scene, cams, gt, colour, _, _ = ring
+    start = _shifted(scene, gt[:1], [3.0, 0.0, 0.0])
+    cfg = TrackerConfig(energy="E+C", solver="pso", particles=4, generations=2)
+    res = Tracker(scene, cfg).track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
+    assert bool(res.valid[0]) and int(res.iterations[0]) == 2
+    monkeypatch.setattr(tracker_module, "SWARM_SPREAD", (0.0, 0.0, 0.0))  # every particle at the start
+    still = Tracker(scene, cfg).track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
+    assert torch.equal(still.theta, scene.clamp(start))
+    assert 0 < float(res.energy[0]) <= float(still.energy[0]) + 1e-9
+    with pytest.raises(ValueError, match="particles"):
+        TrackerConfig(solver="pso", particles=1)
+    with pytest.raises(ValueError, match="solver"):
+        TrackerConfig(solver="hope")

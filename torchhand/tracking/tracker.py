@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Union
 
+import cv2
 import numpy as np
 import torch
 
@@ -40,6 +41,10 @@ Depth = Union[torch.Tensor, np.ndarray, None]
 
 #: frames whose energies the recovery rule compares a frame with (the median of these)
 ENERGY_HISTORY = 30
+
+#: px around the ignored pixels of a colour view (and of its previous frame) where its
+#: optical flow is not used either (DIS estimates the flow of 8 px patches)
+IGNORE_MARGIN = 8
 
 #: the solvers of a frame: Levenberg-Marquardt (Algorithm 1) or the particle swarm (HOPE)
 SOLVERS = ("lm", "pso")
@@ -266,7 +271,7 @@ class Tracker:
         if not any(not t.prior for t in self.terms):
             raise ValueError("terms need at least one data term (a term that is not a prior)")
         self._energy_history: collections.deque = collections.deque(maxlen=ENERGY_HISTORY)
-        self._last_gray: dict = {}  # view problem -> the grey image of its previous frame (optical flow)
+        self._last_gray: dict = {}  # view problem -> (grey image, ignored pixels) of its previous frame (flow)
         # back faces can be left out of the renders when every mesh is closed and outward
         cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
         self.renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=config.render_backend,
@@ -610,12 +615,21 @@ class Tracker:
     def _colour_frame(self, item, camera: Camera, key: int, like: torch.Tensor) -> ColourFrame:
         """A colour view preprocessed, with the previous frame this tracker saw of it."""
         view = ColourView(*item) if isinstance(item, tuple) else ColourView(item)
-        prev = self._last_gray.get(key)
+        prev, prev_ignore = self._last_gray.get(key, (None, None))
         if prev is not None and prev.shape != (camera.height, camera.width):
-            prev = None
-        frame = preprocess_colour(view.image, camera, self.config.colour, prev, view.ignore, device=like.device,
+            prev, prev_ignore = None, None
+        ignore = view.ignore
+        if ignore is not None or prev_ignore is not None:
+            # the flow between two frames is wrong where either has an occluder, and a few
+            # px around it (the size of DIS's patches)
+            both = np.zeros((camera.height, camera.width), bool)
+            for m in (ignore, prev_ignore):
+                if m is not None and np.shape(m) == both.shape:
+                    both |= np.asarray(m, bool)
+            ignore = cv2.dilate(both.astype(np.uint8), np.ones((2 * IGNORE_MARGIN + 1,) * 2, np.uint8)) > 0
+        frame = preprocess_colour(view.image, camera, self.config.colour, prev, ignore, device=like.device,
                                   dtype=like.dtype, salient=view.salient)
-        self._last_gray[key] = frame.gray
+        self._last_gray[key] = (frame.gray, view.ignore)
         return frame
 
     def track(self, depths: Optional[Iterable[Sequence[Depth]]], cameras: Sequence, init: torch.Tensor,

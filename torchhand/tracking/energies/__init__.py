@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from typing import List, Optional
 
-from torchhand.tracking.energies import (anatomy, collision, data_to_model, edges, free_space, nails, physics,
-                                         regularization)
+from torchhand.tracking.energies import (anatomy, collision, data_to_model, edges, free_space, nails,
+                                         optical_flow, physics, regularization)
 from torchhand.tracking.energies.edges import Edges
 from torchhand.tracking.energies.nails import Nails
 from torchhand.tracking.energies.optical_flow import OpticalFlow
@@ -88,11 +88,11 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
     if "E" in extra:
         terms.append(Robust(Edges(backend=backend), edges.DEFAULT_LOSS))
     if "O" in extra:
-        terms.append(OpticalFlow())
+        terms.append(Robust(OpticalFlow(), optical_flow.DEFAULT_LOSS))
     if "C" in extra:
         terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
     if "S" in extra:  # fingertips in depth with the depth terms, else the nails of colour views
-        terms.append(Salient() if lo else Weighted(Nails(), nails.DEFAULT_WEIGHT))
+        terms.append(Salient() if lo else Weighted(Robust(Nails(), nails.DEFAULT_LOSS), nails.DEFAULT_WEIGHT))
     if "F" in extra:
         terms.append(default_free_space())
     if "P" in extra:

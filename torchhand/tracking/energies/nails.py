@@ -23,14 +23,18 @@ import numpy as np
 import torch
 
 from torchhand.model.fingertips import nail_vertices
+from torchhand.optim.robust_loss import Cauchy
 from torchhand.salient.association import associate
 from torchhand.tracking.energies.base import Prepared, TrackState, VertexPixelTerm, pixel_rows, prepared
 
-__all__ = ["Nails", "DEFAULT_WEIGHT"]
+__all__ = ["Nails", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
-#: the weight of the nail pairs (Ballan weighs every correspondence alike; here the
-#: edges give hundreds of pairs per view against a few nails, see docs/multicam.md)
-DEFAULT_WEIGHT = 10.0
+#: the weight of the nail pairs (Ballan weighs every correspondence alike)
+DEFAULT_WEIGHT = 1.0
+
+#: the pairs' robust loss: a false detection within the gate of a nail whose own
+#: detection was missed is paired with it, up to 60 px off (docs/multicam.md)
+DEFAULT_LOSS = Cauchy(scale=5.0)
 
 
 class Nails(VertexPixelTerm):

@@ -7,7 +7,8 @@ the start of the frame's solve projects, at the previous frame's pose, to p; its
 correspondence is ``p + flow(p)``, and its residual the reprojection error to it, in
 mm at the vertex's depth (:class:`~torchhand.tracking.energies.base.VertexPixelTerm`).
 Pixels the frame marks as ignored (``ColourFrame.ignore``: the occluders of Ballan's
-protocol, whose flow the paper leaves out) give no pairs, nor do vertices whose flow
+protocol, whose flow the paper leaves out; the tracker adds the previous frame's and a
+margin of 8 px) give no pairs, nor do vertices whose flow
 is longer than ``max_flow_px``. At every outer iteration, pairs farther than the mean
 plus ``sigma`` standard deviations of their bone's pairs are dropped (Ballan Sec. 3).
 
@@ -24,10 +25,14 @@ import cv2
 import numpy as np
 import torch
 
+from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
                                               prepared, stride_subsample)
 
-__all__ = ["OpticalFlow", "dense_flow"]
+__all__ = ["OpticalFlow", "dense_flow", "DEFAULT_LOSS"]
+
+#: the pairs' robust loss, as the edges' (flow is wrong at occlusions and in textureless skin)
+DEFAULT_LOSS = Cauchy(scale=3.0)
 
 PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
            "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
