@@ -8,13 +8,14 @@ the frame 1, 5, 10 and 15 frames before it (the starting pose). The test frame's
 silhouettes are rendered in ``--views`` cameras around the scene
 (:func:`torchhand.data.synth.with_camera_ring`: the synthetic setup; noise-free). From
 the starting pose the pose is estimated by silhouette fitting alone (Eq. 3.9-3.10):
-at each of ``--iterations`` rounds the model is rendered in every view, its silhouette's
-boundary pixels (the projected rim vertices, with the image direction of their normals)
-are paired with the test frame's contour by one distance of Sec. 3.4
-(:mod:`torchhand.geometry.chamfer`: CH, DCH-Thres with tau 22.5 deg signed and unsigned,
-DCH-Quant, DCH-Quant2, DCH-DT3 with lambda 25 and 16 bins), and the distances of the rim
-vertices to the rays through their contour pixels are minimised (the library's
-Levenberg-Marquardt). The error is the mean distance of the 21 joints per hand to the
+at each of ``--iterations`` rounds the model is rendered in every view, the vertices on
+its silhouette's boundary (with the image direction of their normals) are paired with
+the test frame's contour by one distance of Sec. 3.4 (:mod:`torchhand.geometry.chamfer`:
+CH, DCH-Thres with tau 22.5 deg signed and unsigned, DCH-Quant, DCH-Quant2, DCH-DT3 with
+lambda 25 and 16 bins), and their reprojection errors are minimised (the library's
+Levenberg-Marquardt): this is the tracker's edge term ``E``
+(:mod:`torchhand.tracking.energies.edges`) with silhouettes for image edges, so the
+distance that wins here is the one the term uses. The error is the mean distance of the 21 joints per hand to the
 truth (mm), per gap, as the thesis' Table 3.1; and the share of pairs below each error
 (Fig. 3.2-3.4).
 """
@@ -24,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -35,12 +35,12 @@ import torch
 from tqdm import tqdm
 
 from torchhand.data.synth import thesis_motion, with_camera_ring
-from torchhand.geometry.camera import pixel_rays
-from torchhand.geometry.chamfer import ChamferConfig, boundary_pixels, contour_marks, match_contour, silhouette_contour
+from torchhand.geometry.chamfer import ChamferConfig, silhouette_contour
 from torchhand.geometry.render import Renderer
 from torchhand.io.thesis import FormatError, sequence_models
-from torchhand.optim.levenberg_marquardt import levenberg_marquardt
-from torchhand.tracking.energies.base import VertexRayTerm, seen_vertices, stride_subsample
+from torchhand.tracking.energies.edges import Edges
+from torchhand.tracking.preprocess import ColourFrame
+from torchhand.tracking.tracker import Tracker, TrackerConfig
 
 GAPS = (1, 5, 10, 15)
 #: the distances compared: (label, ChamferConfig)
@@ -81,68 +81,18 @@ def make_pairs(lengths: dict, fraction: float, seed: int, per_gap: int) -> list:
     return pairs
 
 
-class _Rays(VertexRayTerm):
-    """The pairs of one round: rim vertices and the rays through their contour pixels."""
-
-    def __init__(self, scene, ids, d, m) -> None:
-        self._scene = scene
-        self.per_model = []
-        for k, name in enumerate(scene.names):
-            sl = scene.vertex_slices[name]
-            sel = (ids >= sl.start) & (ids < sl.stop)
-            self.per_model.append(((ids[sel] - sl.start)[None], d[sel][None], m[sel][None],
-                                   torch.ones(1, int(sel.sum()), dtype=d.dtype)))
-
-
-def fit_silhouettes(scene, renderer, cams, start, targets, config: ChamferConfig, iterations: int = 12,
+def fit_silhouettes(scene, cams, start, targets, config: ChamferConfig, iterations: int = 12,
                     lm_iterations: int = 3, per_view: int = 400) -> torch.Tensor:
-    """The pose fitted to the target silhouettes from ``start`` (module docstring)."""
-    theta = start.clone()
-    shape = (cams[0].height, cams[0].width)
-    images = [contour_marks(p, phi, shape, config) for p, phi in targets]  # the data side, once per pair
-    marks = [torch.as_tensor(m)[None] for m, _ in images]
-    phis = [torch.as_tensor(phi)[None] for _, phi in images]
-    for _ in range(iterations):
-        with torch.no_grad():
-            posed = scene(theta)
-        ids, ds, ms = [], [], []
-        hits = renderer.hits(posed.vertices, cams)  # (C, H, W): the raw hits of every view at once
-        V = posed.vertices[0]
-        for c, cam in enumerate(cams):
-            fid = hits.face_id[c : c + 1]
-            rim = boundary_pixels(fid >= 0)
-            pos, ok = stride_subsample(rim.reshape(1, -1), per_view)
-            W = rim.shape[-1]
-            q = torch.stack([pos // W, pos % W], -1)
-            # the image direction of the rim's normal: the hit face's normal in the camera, facing it
-            tri = V[scene.faces[fid[0, q[0, :, 0], q[0, :, 1]].clamp_min(0)]]  # (n, 3, 3)
-            R, t = cam.T_cw[:3, :3].to(V), cam.T_cw[:3, 3].to(V)
-            n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ R.T
-            towards = (n * (tri.mean(1) @ R.T + t)).sum(-1, keepdim=True) > 0
-            n = torch.where(towards, -n, n)
-            qphi = torch.remainder(torch.atan2(n[:, 1], n[:, 0]), 2 * math.pi)[None]
-            match = match_contour(config, marks[c], phis[c], q, qphi, ok)
-            good = match.valid[0]
-            src = match.source[0][good]
-            seen = SimpleNamespace(face_id=fid, barycentric=hits.barycentric[c : c + 1])
-            verts = seen_vertices(seen, scene.faces, q[:, src])[0]
-            px = match.pixel[0][good].flip(-1).to(V.dtype)  # (u, v)
-            rays = pixel_rays(px[None], cam.K.to(px.dtype), cam.T_cw.to(px.dtype))
-            ids.append(verts)
-            ds.append(rays.direction[0])
-            ms.append(rays.moment[0])
-        ids, d, m = torch.cat(ids), torch.cat(ds), torch.cat(ms)
-        if len(ids) < 10:
-            break
-        term = _Rays(scene, ids, d, m)
-
-        def residuals(th, with_jacobian):
-            r = term.residuals(th, scene(th), jacobian=with_jacobian)
-            return r.r, r.J
-
-        theta = levenberg_marquardt(residuals, theta, scene.lower, scene.upper, max_iterations=lm_iterations,
-                                    damping=1e-2, retries=2).theta
-    return theta
+    """The pose fitted to the target silhouettes from ``start`` (module docstring): the
+    tracker's edge term (:class:`~torchhand.tracking.energies.edges.Edges`, with the
+    distance ``config`` and no outlier cut) with the silhouette contours as the image
+    edges, alone, solved by the tracker over every view."""
+    frames = [ColourFrame(np.zeros((c.height, c.width), np.uint8), torch.as_tensor(pix, dtype=torch.int64),
+                          torch.as_tensor(phi, dtype=start.dtype)) for c, (pix, phi) in zip(cams, targets)]
+    cfg = TrackerConfig(energy="E", inner_iterations=lm_iterations, step_retries=2, min_joint_motion=0.0)
+    tracker = Tracker(scene, cfg, [Edges(config, max_points=per_view, sigma=None, contours="silhouette")])
+    return tracker.solve(start, start, [None] * len(cams), list(cams), iterations, colours=frames,
+                         views=len(cams)).theta
 
 
 def main(argv=None) -> int:
@@ -182,7 +132,7 @@ def main(argv=None) -> int:
             targets = [silhouette_contour((renderer(truth.vertices, c).face_id[0] >= 0).numpy()) for c in cams]
         for label, cfg in distances:
             t0 = time.perf_counter()
-            est = fit_silhouettes(scene, renderer, cams, first.theta, targets, cfg, args.iterations)
+            est = fit_silhouettes(scene, cams, first.theta, targets, cfg, args.iterations)
             seconds[label] += time.perf_counter() - t0
             with torch.no_grad():
                 err = float((scene(est).keypoints - truth.keypoints).norm(dim=-1).mean())

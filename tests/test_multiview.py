@@ -191,3 +191,12 @@ def test_the_swarm_never_returns_worse_than_its_start(ring, monkeypatch):
         TrackerConfig(solver="pso", particles=1)
     with pytest.raises(ValueError, match="solver"):
         TrackerConfig(solver="hope")
+
+
+def test_the_default_prediction_follows_the_energy():
+    assert TrackerConfig().motion_prediction == 0.0  # depth: the thesis starts from the previous pose
+    assert TrackerConfig(energy="E+C+O+S").motion_prediction == 1.0  # colour views: constant velocity
+    assert TrackerConfig(energy="LO+E").motion_prediction == 0.0
+    assert TrackerConfig(energy="E+C", prediction=0.5).motion_prediction == 0.5
+    with pytest.raises(ValueError, match="prediction"):
+        TrackerConfig(prediction=-1.0)

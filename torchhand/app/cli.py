@@ -460,9 +460,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "model in the image (docs/results.md)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
     p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
-    p.add_argument("--prediction", type=float, default=0.0,
+    p.add_argument("--prediction", type=float, default=None,
                    help="start each frame from the previous pose + P x its last step (minmod-limited, see "
-                        "--no-prediction-limiter): 0 = the previous pose (the thesis), 1 = constant velocity")
+                        "--no-prediction-limiter): 0 = the previous pose (the thesis), 1 = constant velocity; "
+                        "default: 0 with depth terms (LO), 1 for colour views (E, O, S without LO)")
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")

@@ -78,7 +78,10 @@ class TrackerConfig:
     prediction: a frame's solve starts from the previous pose plus
     ``prediction`` times the last step (:func:`predicted_start`, clamped to the joint
     limits): 0 starts from the previous pose as the thesis does, 1 is a
-    constant-velocity prediction; prediction_limiter: per DoF, the smaller of the last
+    constant-velocity prediction, None (the default) is 0 for energies with depth
+    terms and 1 for colour views only (Ballan's features let the hands drift behind a
+    fast motion without it: 4.9 against 1.7 mm on the ball sequence of
+    docs/results.md's Table 1); prediction_limiter: per DoF, the smaller of the last
     two steps when they have the same sign and 0 otherwise (minmod), so that
     frame-to-frame jitter is not extrapolated. The temporal regularisation (Eq. 4.18)
     and the recovery keep the previous pose as their reference.
@@ -108,7 +111,7 @@ class TrackerConfig:
     labels: str = "proximity"
     label_distance: float = 30.0
     label_radius: float = 40.0
-    prediction: float = 0.0
+    prediction: Optional[float] = None
     prediction_limiter: bool = True
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     colour: ColourConfig = field(default_factory=ColourConfig)
@@ -119,9 +122,10 @@ class TrackerConfig:
     generations: int = 40
 
     def __post_init__(self) -> None:
-        if (isinstance(self.prediction, bool) or not isinstance(self.prediction, (int, float))
-                or not math.isfinite(self.prediction) or self.prediction < 0):
-            raise ValueError(f"prediction must be a finite number >= 0, got {self.prediction!r}")
+        if self.prediction is not None and (isinstance(self.prediction, bool)
+                                            or not isinstance(self.prediction, (int, float))
+                                            or not math.isfinite(self.prediction) or self.prediction < 0):
+            raise ValueError(f"prediction must be a finite number >= 0 or None, got {self.prediction!r}")
         if not isinstance(self.prediction_limiter, bool):
             raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")
         if self.labels not in LABELINGS:
@@ -135,6 +139,14 @@ class TrackerConfig:
             raise ValueError(f"need particles >= 2 and generations >= 0, got {self.particles!r}, {self.generations!r}")
         if self.backend is not None and self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS} or None, got {self.backend!r}")
+
+    @property
+    def motion_prediction(self) -> float:
+        """The prediction a run uses: ``prediction``, or when None, 1 (constant velocity)
+        for an energy of colour views only (no ``LO``) and 0 (the thesis) otherwise."""
+        if self.prediction is not None:
+            return float(self.prediction)
+        return 0.0 if "LO" in self.energy.replace(" ", "").split("+") else 1.0
 
     @property
     def render_backend(self) -> str:
@@ -651,7 +663,7 @@ class Tracker:
                 re-initialisation of badly fitting frames).
         Yields:
             one :class:`FrameResult` per frame. The starts follow
-            ``config.prediction``; the recovery perturbations are drawn from a
+            ``config.motion_prediction``; the recovery perturbations are drawn from a
             generator seeded with ``config.seed``, so a run is repeatable.
         """
         cfg = self.config
@@ -669,7 +681,7 @@ class Tracker:
                 colour = None if colour_frames is None else next(colour_frames)
             except StopIteration:
                 return
-            start = predicted_start(list(history), cfg.prediction, cfg.prediction_limiter)
+            start = predicted_start(list(history), cfg.motion_prediction, cfg.prediction_limiter)
             res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
                                    colours=colour)
             if revise is not None:

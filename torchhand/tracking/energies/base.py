@@ -33,7 +33,7 @@ from torchhand.model.kinematics import skew
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
-__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm", "pixel_rows", "scatter_columns", "no_residuals", "bone_inliers",
+__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm", "pixel_rows", "project_views", "scatter_columns", "no_residuals", "bone_inliers",
            "prepared", "stack_rows", "stride_subsample", "seen_vertices"]
 
 
@@ -291,6 +291,19 @@ class VertexPixelTerm(EnergyTerm):
                 J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
             parts.append(Residuals(r.reshape(B, -1), J, 2, mask, torch.full_like(ids, k)))
         return stack_rows(parts, theta, jacobian, 2, len(self.per_model))
+
+
+def project_views(state: TrackState, points: torch.Tensor) -> tuple:
+    """World points (B, n, 3) seen by each problem's camera: (uv (B, n, 2) px, z (B, n) mm
+    (at least 1), K (B, 3, 3), T_cw (B, 4, 4)) in the state's dtype and device."""
+    dev, dt = state.theta.device, state.theta.dtype
+    K = torch.stack([c.K.to(dev, dt) for c in state.cameras])
+    T = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
+    Xc = points.to(dt) @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+    z = Xc[..., 2].clamp_min(1.0)
+    uv = torch.stack([K[:, 0, 0, None] * Xc[..., 0] / z + K[:, 0, 2, None],
+                      K[:, 1, 1, None] * Xc[..., 1] / z + K[:, 1, 2, None]], -1)
+    return uv, z, K, T
 
 
 def pixel_rows(scene: Scene, vertex: torch.Tensor, target: torch.Tensor, scale: torch.Tensor,

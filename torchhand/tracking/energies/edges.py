@@ -37,11 +37,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchhand.geometry.chamfer import ChamferConfig, contour_marks, match_contour
+from torchhand.geometry.chamfer import ChamferConfig, boundary_pixels, contour_marks, match_contour
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
-                                              prepared, stride_subsample)
+                                              prepared, project_views, stride_subsample)
 
 __all__ = ["Edges", "DEFAULT_CHAMFER", "DEFAULT_LOSS", "rim_vertices"]
 
@@ -61,29 +61,26 @@ class _Data(NamedTuple):
     phi: torch.Tensor  # (P, H, W) float32 their orientation, NaN elsewhere
 
 
-def rim_vertices(state: TrackState, max_points: int) -> tuple:
+def rim_vertices(state: TrackState, max_points: int, contours: str = "occluding") -> tuple:
     """The visible vertices lying on the rendered edges of each view (Ballan: "each mesh
     vertex lying on an edge of these maps"): those whose projection falls on, or next
-    to, a pixel of ``render.silhouette_edges``, at most ``max_points`` per view (a
-    stride subsample).
+    to, a pixel of ``render.silhouette_edges`` (``contours="occluding"``: the
+    silhouette and the depth discontinuities inside it) or of the silhouette's boundary
+    alone (``"silhouette"``), at most ``max_points`` per view (a stride subsample).
 
     Returns (ids (B, n) int64 scene vertex ids, pixels (B, n, 2) int64 (row, col) of
     their projections, phi (B, n) the image direction in [0, 2 pi) of their normals,
     ok (B, n) bool real entries, z (B, n) their depth in mm)."""
     B = state.theta.shape[0]
-    dev, dt = state.theta.device, state.theta.dtype
     rend = state.render
     H, W = rend.model_id.shape[-2:]
     V = state.posed.vertices.detach()
-    T = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
-    K = torch.stack([c.K.to(dev, dt) for c in state.cameras])
-    Xc = V @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]  # (B, V, 3)
-    z = Xc[..., 2].clamp_min(1.0)
-    iu = (K[:, 0, 0, None] * Xc[..., 0] / z + K[:, 0, 2, None]).round().long()
-    iv = (K[:, 1, 1, None] * Xc[..., 1] / z + K[:, 1, 2, None]).round().long()
+    uv, z, _, T = project_views(state, V)  # every vertex, (B, V, 2)
+    iu, iv = uv[..., 0].round().long(), uv[..., 1].round().long()
     inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
     # on an edge pixel or one of its 8 neighbours (looked up at the vertices, not over the image)
-    edges = rend.silhouette_edges.reshape(B, -1)
+    rim = rend.silhouette_edges if contours == "occluding" else boundary_pixels(rend.model_id >= 0)
+    edges = rim.reshape(B, -1)
     on = torch.zeros_like(inside)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
@@ -108,12 +105,19 @@ class Edges(VertexPixelTerm):
             every pair.
         backend: of the nearest-pixel searches (``"warp"``, ``"torch"``; None: Warp when
             installed).
+        contours: the model edges: ``"occluding"`` (silhouette and inner depth
+            discontinuities, for image edges) or ``"silhouette"`` (its boundary alone,
+            for silhouette images: the thesis' Ch. 3 benchmark).
     """
 
     name = "edges"
     needs = "colour"
 
-    def __init__(self, config: ChamferConfig = DEFAULT_CHAMFER, max_points: int = 400, sigma=2.0, backend=None):
+    def __init__(self, config: ChamferConfig = DEFAULT_CHAMFER, max_points: int = 400, sigma=2.0, backend=None,
+                 contours: str = "occluding"):
+        if contours not in ("occluding", "silhouette"):
+            raise ValueError(f"contours must be 'occluding' or 'silhouette', got {contours!r}")
+        self.contours = contours
         if not isinstance(config, ChamferConfig):
             raise TypeError(f"config must be a ChamferConfig, got {type(config).__name__}")
         if not (isinstance(max_points, int) and max_points > 0):
@@ -140,7 +144,7 @@ class Edges(VertexPixelTerm):
         self._scene = scene
         data = state.data_side(self, self._build)
         p = state.problem_index()
-        ids, q, phi, ok, z = rim_vertices(state, self.max_points)
+        ids, q, phi, ok, z = rim_vertices(state, self.max_points, self.contours)
         match = match_contour(self.config, data.marks[p], data.phi[p], q, phi, ok, backend=self.backend)
         vid = ids.gather(1, match.source)
         src = q.gather(1, match.source[..., None].expand(-1, -1, 2))  # the model pixel of each pair
@@ -149,9 +153,8 @@ class Edges(VertexPixelTerm):
             dist = (match.pixel - src).to(dt).norm(dim=-1)
             valid = valid & bone_inliers(dist, scene.vertex_bone_id[vid], valid, scene.num_bones, self.sigma)
         K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
-        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
         scale = z.gather(1, match.source) / K_b[:, 0, 0, None]  # mm per px at the model's depth
-        self._cameras = (K_b, T_b)
+        self._cameras = (K_b, torch.stack([c.T_cw.to(dev, dt) for c in state.cameras]))
         self.per_model = pixel_rows(scene, vid, match.pixel.flip(-1).to(dt), scale, valid)
         # a model edge pixel without an image edge pixel is charged the cut-off, radius_px at its depth
         matched = torch.zeros_like(ok, dtype=torch.int64).scatter_reduce(1, match.source, valid.long(), "amax") > 0

@@ -25,12 +25,14 @@ import torch
 from torchhand.model.fingertips import nail_vertices
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.salient.association import associate
-from torchhand.tracking.energies.base import Prepared, TrackState, VertexPixelTerm, pixel_rows, prepared
+from torchhand.tracking.energies.base import Prepared, TrackState, VertexPixelTerm, pixel_rows, prepared, project_views
 
 __all__ = ["Nails", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
-#: the weight of the nail pairs (Ballan weighs every correspondence alike)
-DEFAULT_WEIGHT = 1.0
+#: the weight of the nail pairs (Ballan weighs every correspondence alike; a few nails
+#: against hundreds of edge and flow pairs per view: 3 tracked the Table 1 sequences
+#: 1.66 / 2.0 mm against 1.72 / 2.14 with 1, docs/results.md)
+DEFAULT_WEIGHT = 3.0
 
 #: the pairs' robust loss: a false detection within the gate of a nail whose own
 #: detection was missed is paired with it, up to 60 px off (docs/multicam.md)
@@ -62,13 +64,7 @@ class Nails(VertexPixelTerm):
         if state.colours is None or any(c is None for c in state.colours):
             raise ValueError("the salient-point term on colour views needs a colour frame for every view")
         T = len(self._ids)
-        K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
-        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
-        X = state.posed.vertices.detach()[:, self._ids]  # (B, T, 3)
-        Xc = X @ T_b[:, :3, :3].transpose(1, 2) + T_b[:, None, :3, 3]
-        z = Xc[..., 2].clamp_min(1.0)
-        uv = torch.stack([K_b[:, 0, 0, None] * Xc[..., 0] / z + K_b[:, 0, 2, None],
-                          K_b[:, 1, 1, None] * Xc[..., 1] / z + K_b[:, 1, 2, None]], -1)
+        uv, z, K_b, T_b = project_views(state, state.posed.vertices.detach()[:, self._ids])  # (B, T, 2) px
         seen = state.visible_vertices()[:, self._ids].cpu().numpy()
         uv_h = uv.cpu().numpy()
         vertex = self._ids.expand(B, T).clone()

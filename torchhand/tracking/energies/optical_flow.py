@@ -27,7 +27,7 @@ import torch
 
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
-                                              prepared, stride_subsample)
+                                              prepared, project_views, stride_subsample)
 
 __all__ = ["OpticalFlow", "dense_flow", "DEFAULT_LOSS"]
 
@@ -114,19 +114,13 @@ class OpticalFlow(VertexPixelTerm):
 
     def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
-        dev, dt = state.theta.device, state.theta.dtype
+        dev = state.theta.device
         self._scene = scene
         data = state.data_side(self, self._build)
         p = state.problem_index()
         vertex, target, keep = data.vertex[p], data.target[p], data.keep[p]
-        K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
-        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
         b = torch.arange(B, device=dev)[:, None]
-        Xw = state.posed.vertices.detach()[b, vertex]
-        Xc = (T_b[:, None, :3, :3] @ Xw[..., None])[..., 0] + T_b[:, None, :3, 3]
-        z = Xc[..., 2].clamp_min(1.0)
-        uv = torch.stack([K_b[:, 0, 0, None] * Xc[..., 0] / z + K_b[:, 0, 2, None],
-                          K_b[:, 1, 1, None] * Xc[..., 1] / z + K_b[:, 1, 2, None]], -1)
+        uv, z, K_b, T_b = project_views(state, state.posed.vertices.detach()[b, vertex])
         if self.sigma is not None:
             keep = keep & bone_inliers((uv - target).norm(dim=-1), scene.vertex_bone_id[vertex], keep, scene.num_bones,
                                        self.sigma)
