@@ -200,3 +200,19 @@ def test_the_default_prediction_follows_the_energy():
     assert TrackerConfig(energy="E+C", prediction=0.5).motion_prediction == 0.5
     with pytest.raises(ValueError, match="prediction"):
         TrackerConfig(prediction=-1.0)
+
+
+def test_a_rig_of_mixed_image_sizes_is_refused_by_name(tmp_path):
+    import json
+
+    from torchhand.app.runner import track_sequences
+
+    seq = tmp_path / "views"
+    write_synthetic_sequence(with_camera_ring(demo_motion(slice(0, 1)), 2), seq, colour="shaded", depth=False,
+                             progress=False)
+    meta = json.loads((seq / "sequence.json").read_text())
+    meta["cameras"][1]["width"], meta["cameras"][1]["height"] = 320, 240
+    (seq / "sequence.json").write_text(json.dumps(meta))
+    [summary] = track_sequences([seq], tmp_path / "out", TrackerConfig(energy="E+C"), progress=False)
+    assert summary["status"] == "failed" and "camera 1 is 320x240 px" in summary["error"]
+    assert not (tmp_path / "out" / "demo").exists()

@@ -217,6 +217,11 @@ def _unusable(root: Path, info: SequenceInfo, needs: set, segment: Optional[Segm
     if "salient" in needs and missing:
         return (f"{root}: S on colour views reads the nail detections of every camera, and {missing[0]} is missing "
                 f"(synth --protocol ballan writes simulated ones)")
+    sizes = [(c.width, c.height) for c in info.cameras]
+    if len(set(sizes)) > 1:
+        k = next(k for k, size in enumerate(sizes) if size != sizes[0])
+        return (f"{root}: sequence.json camera {k} is {sizes[k][0]}x{sizes[k][1]} px, camera 0 is {sizes[0][0]}x"
+                f"{sizes[0][1]}: every view of a rig needs the same image size")
     if len(info.cameras) > 1 and (segment is not None or info.segmentation is not None):
         return (f"{root}: a segmentation (--segment or sequence.json) reads one depth view; a camera rig "
                 f"({len(info.cameras)} views) is tracked unsegmented")
