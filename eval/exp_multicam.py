@@ -19,7 +19,7 @@ Levenberg-Marquardt ("LO"); the HOPE rows run the particle swarm over the same e
 Columns, as in the paper: the joint position error (the 21 joints of each hand against
 the truth, mean, std and max over joints and frames, mm) and the bone orientation error
 (the angle between each tracked bone of the hand skeletons and the true one, degrees).
-Timings per frame are the runner's.
+``s/frame`` is a row's wall time (tracking and writing its outputs) over its frames.
 """
 
 from __future__ import annotations

@@ -129,7 +129,6 @@ def test_rig_bad_input_is_named(ring):
     res = tracker.track_frame(None, [cams[:2]], gt[:1], colours=[None])
     assert not bool(res.valid[0]) and "missing colour frame" in res.notes[0]
     assert [t.needs for t in parse_energy("E+O+C")][:3] == ["colour", "colour", None]
-    assert [t.name for t in Tracker(scene, TrackerConfig(energy="E"), [Edges()] + default_priors()).terms][0] == "edges"
 
 
 def test_track_command_on_colour_views(tmp_path, capsys):

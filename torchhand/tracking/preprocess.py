@@ -211,7 +211,8 @@ class ColourFrame(NamedTuple):
     same camera's previous frame (None at the first frame); ignore: (H, W) bool host
     array or None, pixels whose features are not used (the occluders of Ballan's
     protocol, for optical flow); salient: (S, 2) float64 (u, v) px salient point
-    detections (nails) of the frame, or None.
+    detections (nails) of the frame, or None; previous_ignore: ``ignore`` of the
+    previous frame (the flow between the two is wrong under either's occluders).
     """
 
     gray: np.ndarray
@@ -220,6 +221,7 @@ class ColourFrame(NamedTuple):
     previous: Optional[np.ndarray] = None
     ignore: Optional[np.ndarray] = None
     salient: Optional[np.ndarray] = None
+    previous_ignore: Optional[np.ndarray] = None
 
 
 class ColourView(NamedTuple):
@@ -234,11 +236,12 @@ class ColourView(NamedTuple):
 
 def preprocess_colour(image, camera: Camera, config: ColourConfig = ColourConfig(), previous: Optional[np.ndarray] = None,
                       ignore: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32,
-                      salient: Optional[np.ndarray] = None) -> ColourFrame:
+                      salient: Optional[np.ndarray] = None,
+                      previous_ignore: Optional[np.ndarray] = None) -> ColourFrame:
     """Preprocess one colour image: (H, W, 3) uint8 RGB (or (H, W) grey) of ``camera``'s
     size; ``previous``: the grey image of the previous frame (``ColourFrame.gray``);
-    ``ignore``: (H, W) bool pixels to leave out of the flow; ``salient``: (S, 2) (u, v)
-    px detections of salient points."""
+    ``ignore``: (H, W) bool pixels to leave out of the flow (``previous_ignore``: the
+    previous frame's); ``salient``: (S, 2) (u, v) px detections of salient points."""
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu().numpy()
     img = np.asarray(image)
@@ -248,7 +251,7 @@ def preprocess_colour(image, camera: Camera, config: ColourConfig = ColourConfig
     if img.dtype != np.uint8:
         raise ValueError(f"colour image must be 8-bit (uint8), got {img.dtype}")
     gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else np.ascontiguousarray(img)
-    for name, other in (("previous", previous), ("ignore", ignore)):
+    for name, other in (("previous", previous), ("ignore", ignore), ("previous_ignore", previous_ignore)):
         if other is not None and np.shape(other) != gray.shape:
             raise ValueError(f"{name} must have shape {gray.shape}, got {np.shape(other)}")
     smooth = cv2.GaussianBlur(gray, (0, 0), config.blur) if config.blur > 0 else gray
@@ -264,4 +267,5 @@ def preprocess_colour(image, camera: Camera, config: ColourConfig = ColourConfig
         salient = salient.reshape(-1, 2)
     return ColourFrame(gray, torch.as_tensor(rc, dtype=torch.int64, device=device).reshape(-1, 2),
                        torch.as_tensor(phi, dtype=dtype, device=device), previous,
-                       None if ignore is None else np.asarray(ignore, bool), salient)
+                       None if ignore is None else np.asarray(ignore, bool), salient,
+                       None if previous_ignore is None else np.asarray(previous_ignore, bool))

@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Union
 
-import cv2
 import numpy as np
 import torch
 
@@ -41,10 +40,6 @@ Depth = Union[torch.Tensor, np.ndarray, None]
 
 #: frames whose energies the recovery rule compares a frame with (the median of these)
 ENERGY_HISTORY = 30
-
-#: px around the ignored pixels of a colour view (and of its previous frame) where its
-#: optical flow is not used either (DIS estimates the flow of 8 px patches)
-IGNORE_MARGIN = 8
 
 #: the solvers of a frame: Levenberg-Marquardt (Algorithm 1) or the particle swarm (HOPE)
 SOLVERS = ("lm", "pso")
@@ -630,17 +625,8 @@ class Tracker:
         prev, prev_ignore = self._last_gray.get(key, (None, None))
         if prev is not None and prev.shape != (camera.height, camera.width):
             prev, prev_ignore = None, None
-        ignore = view.ignore
-        if ignore is not None or prev_ignore is not None:
-            # the flow between two frames is wrong where either has an occluder, and a few
-            # px around it (the size of DIS's patches)
-            both = np.zeros((camera.height, camera.width), bool)
-            for m in (ignore, prev_ignore):
-                if m is not None and np.shape(m) == both.shape:
-                    both |= np.asarray(m, bool)
-            ignore = cv2.dilate(both.astype(np.uint8), np.ones((2 * IGNORE_MARGIN + 1,) * 2, np.uint8)) > 0
-        frame = preprocess_colour(view.image, camera, self.config.colour, prev, ignore, device=like.device,
-                                  dtype=like.dtype, salient=view.salient)
+        frame = preprocess_colour(view.image, camera, self.config.colour, prev, view.ignore, device=like.device,
+                                  dtype=like.dtype, salient=view.salient, previous_ignore=prev_ignore)
         self._last_gray[key] = (frame.gray, view.ignore)
         return frame
 

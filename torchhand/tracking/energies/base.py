@@ -27,7 +27,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 import torch
 
 from torchhand.core.check import skip_checks
-from torchhand.geometry.camera import Camera
+from torchhand.geometry.camera import Camera, project_points, transform_points
 from torchhand.geometry.render import RenderResult, visible_vertices
 from torchhand.model.kinematics import skew
 from torchhand.model.scene import Scene, SceneOutput
@@ -294,16 +294,14 @@ class VertexPixelTerm(EnergyTerm):
 
 
 def project_views(state: TrackState, points: torch.Tensor) -> tuple:
-    """World points (B, n, 3) seen by each problem's camera: (uv (B, n, 2) px, z (B, n) mm
-    (at least 1), K (B, 3, 3), T_cw (B, 4, 4)) in the state's dtype and device."""
+    """World points (B, n, 3) seen by each problem's camera: (uv (B, n, 2) px
+    (:func:`~torchhand.geometry.camera.project_points`), z (B, n) mm (at least 1), K
+    (B, 3, 3), T_cw (B, 4, 4)) in the state's dtype and device."""
     dev, dt = state.theta.device, state.theta.dtype
     K = torch.stack([c.K.to(dev, dt) for c in state.cameras])
     T = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
-    Xc = points.to(dt) @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
-    z = Xc[..., 2].clamp_min(1.0)
-    uv = torch.stack([K[:, 0, 0, None] * Xc[..., 0] / z + K[:, 0, 2, None],
-                      K[:, 1, 1, None] * Xc[..., 1] / z + K[:, 1, 2, None]], -1)
-    return uv, z, K, T
+    Xc = transform_points(T, points.to(dt))
+    return project_points(Xc, K), Xc[..., 2].clamp_min(1.0), K, T
 
 
 def pixel_rows(scene: Scene, vertex: torch.Tensor, target: torch.Tensor, scale: torch.Tensor,

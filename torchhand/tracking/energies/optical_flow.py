@@ -6,9 +6,10 @@ one (OpenCV's DIS, ``preset``) predicts where each model point moved: a vertex s
 the start of the frame's solve projects, at the previous frame's pose, to p; its
 correspondence is ``p + flow(p)``, and its residual the reprojection error to it, in
 mm at the vertex's depth (:class:`~torchhand.tracking.energies.base.VertexPixelTerm`).
-Pixels the frame marks as ignored (``ColourFrame.ignore``: the occluders of Ballan's
-protocol, whose flow the paper leaves out; the tracker adds the previous frame's and a
-margin of 8 px) give no pairs, nor do vertices whose flow
+Pixels ignored in the frame or the previous one (``ColourFrame.ignore``,
+``previous_ignore``: the occluders of Ballan's protocol, whose flow the paper leaves
+out), and ``margin_px`` around them (DIS estimates the flow of 8 px patches), give no
+pairs, nor do vertices whose flow
 is longer than ``max_flow_px``. At every outer iteration, pairs farther than the mean
 plus ``sigma`` standard deviations of their bone's pairs are dropped (Ballan Sec. 3).
 
@@ -60,12 +61,17 @@ class OpticalFlow(VertexPixelTerm):
         max_flow_px: longer flow vectors are taken as wrong.
         sigma: per-bone outlier cut in standard deviations (Ballan: 2); None keeps all.
         preset: DIS preset (``"ultrafast"``, ``"fast"``, ``"medium"``).
+        margin_px: px around ignored pixels whose flow is not used either.
     """
 
     name = "flow"
     needs = "colour"
 
-    def __init__(self, max_points: int = 300, max_flow_px: float = 60.0, sigma=2.0, preset: str = "medium"):
+    def __init__(self, max_points: int = 300, max_flow_px: float = 60.0, sigma=2.0, preset: str = "medium",
+                 margin_px: int = 8):
+        if not (isinstance(margin_px, int) and margin_px >= 0):
+            raise ValueError(f"margin_px must be an int >= 0, got {margin_px!r}")
+        self.margin_px = margin_px
         if not (isinstance(max_points, int) and max_points > 0):
             raise ValueError(f"max_points must be a positive int, got {max_points!r}")
         if not max_flow_px > 0 or (sigma is not None and not sigma > 0):
@@ -75,13 +81,19 @@ class OpticalFlow(VertexPixelTerm):
         self.max_points, self.max_flow_px, self.sigma, self.preset = max_points, float(max_flow_px), sigma, preset
         self._flows: Dict[int, tuple] = {}
 
-    def _flow(self, frame) -> np.ndarray:
-        """The frame's flow from its previous image, computed once per frame."""
+    def _flow(self, frame) -> tuple:
+        """(flow (H, W, 2), unusable (H, W) bool or None) of the frame from its previous
+        image, computed once per frame."""
         key = id(frame)
         if key not in self._flows:
             if len(self._flows) >= 64:
                 self._flows.clear()
-            self._flows[key] = (frame, dense_flow(frame.previous, frame.gray, self.preset))
+            masks = [np.asarray(m, bool) for m in (frame.ignore, frame.previous_ignore) if m is not None]
+            bad = None
+            if masks:
+                k = 2 * self.margin_px + 1
+                bad = cv2.dilate(np.logical_or.reduce(masks).astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+            self._flows[key] = (frame, (dense_flow(frame.previous, frame.gray, self.preset), bad))
         return self._flows[key][1]
 
     def _build(self, state: TrackState) -> _Data:
@@ -93,24 +105,26 @@ class OpticalFlow(VertexPixelTerm):
         vis = state.visible_vertices()  # (P, V) at the start pose
         index, slot = stride_subsample(vis, n)
         earlier = scene(state.previous, validate=False).vertices.detach()  # (P, V, 3)
-        vertex = index
+        b = torch.arange(P, device=dev)[:, None]
+        uv_all, _, _, _ = project_views(state, earlier[b, index])  # (P, n, 2) at the previous pose
         target = torch.zeros(P, n, 2, dtype=dt, device=dev)
         keep = torch.zeros(P, n, dtype=torch.bool, device=dev)
-        for j, (frame, cam) in enumerate(zip(state.colours, state.cameras)):
+        for j, frame in enumerate(state.colours):
             if frame.previous is None:
                 continue
-            flow = torch.as_tensor(self._flow(frame), device=dev, dtype=dt)
+            flow, bad = self._flow(frame)
+            flow = torch.as_tensor(flow, device=dev, dtype=dt)
             H, W = flow.shape[:2]
-            uv = cam.to(device=dev, dtype=dt).project(earlier[j : j + 1, index[j]])[0]  # (n, 2)
+            uv = uv_all[j]
             iu, iv = uv[:, 0].round().long(), uv[:, 1].round().long()
             inside = slot[j] & (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
             iu, iv = iu.clamp(0, W - 1), iv.clamp(0, H - 1)
             f = flow[iv, iu]
             ok = inside & (f.norm(dim=-1) <= self.max_flow_px)
-            if frame.ignore is not None:
-                ok &= ~torch.as_tensor(frame.ignore, device=dev)[iv, iu]
+            if bad is not None:
+                ok &= ~torch.as_tensor(bad, device=dev)[iv, iu]
             target[j], keep[j] = uv + f, ok
-        return _Data(vertex, target, keep)
+        return _Data(index, target, keep)
 
     def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
