@@ -224,18 +224,18 @@ def _check_hits(dets, frame, max_px=4.0):
 
 def test_shipped_weights_detect_fingertips(rendered_frame):
     det = SalientDetector.load()
-    dets = det.detect(rendered_frame.depth[0])
+    dets = det.detect(rendered_frame.image[0])
     _check_hits(dets, rendered_frame)
     assert (dets.depth > 0).float().mean() > 0.5
     # torch input, and an odd size (padded internally): same detections
-    d2 = det.detect(torch.from_numpy(rendered_frame.depth[0][:478, :637].astype(np.float32)))
+    d2 = det.detect(torch.from_numpy(rendered_frame.image[0][:478, :637].astype(np.float32)))
     _check_hits(d2, rendered_frame)
 
 
 def test_shipped_onnx_matches_torch(rendered_frame):
     pytest.importorskip("onnxruntime")
-    a = SalientDetector.load().detect(rendered_frame.depth[0])
-    b = SalientDetector.load_onnx().detect(rendered_frame.depth[0])
+    a = SalientDetector.load().detect(rendered_frame.image[0])
+    b = SalientDetector.load_onnx().detect(rendered_frame.image[0])
     torch.testing.assert_close(a.uv, b.uv, atol=1e-3, rtol=0)
     torch.testing.assert_close(a.score, b.score, atol=1e-3, rtol=1e-4)
 
@@ -436,7 +436,7 @@ def test_fingertips_the_sensor_does_not_measure_are_not_ground_truth():
         near[:, sl.start : sl.start + 3] -= (z_far - 390.0) * axis
     moved = dataclasses.replace(frames, theta=near)
     out = render_salient_frames(moved, seed=0, background=False, progress=False)
-    assert (out.depth[0] > 0).mean() < 0.01 and float(out.area_mm2[0].max()) == 0.0, out.area_mm2
+    assert (out.image[0] > 0).mean() < 0.01 and float(out.area_mm2[0].max()) == 0.0, out.area_mm2
 
 
 def test_random_background_stays_behind_the_models_and_spheres_only_add_blobs():
@@ -502,3 +502,128 @@ def test_ddp_two_processes_match_one_and_resume_exactly(tmp_path):
     for k in a["state_dict"]:
         torch.testing.assert_close(a["state_dict"][k], b["state_dict"][k], rtol=0, atol=0, msg=k)
     assert json.loads((tmp_path / "two" / "done.json").read_text())["world_size"] == 2
+
+
+# ------------------------------------------------------------ colour (nails, Ballan)
+
+
+def _random_colour_net(seed: int = 0) -> SalientNet:
+    torch.manual_seed(seed)
+    net = SalientNet(SalientConfig(channels=(4, 6), dilations=(1, 2), modality="colour"))
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn_like(p) * 0.5)
+    return net.eval()
+
+
+def test_colour_network_onnx_parity_and_save_load(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    net = _random_colour_net(1)
+    x = 255 * torch.rand(2, 3, 52, 36, generator=torch.Generator().manual_seed(0))
+    path = export_onnx(net, tmp_path / "nails.onnx", height=48, width=64)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == ["rgb"]
+    got = sess.run(None, {"rgb": x.numpy()})
+    with torch.no_grad():
+        ref = net(x)
+    for name, a, b in zip(ref._fields, ref, got):
+        np.testing.assert_allclose(b, a.numpy(), atol=1e-4, rtol=0, err_msg=name)
+    net.save(tmp_path / "nails.pt")
+    back = SalientDetector.load(tmp_path / "nails.pt")
+    assert back.modality == "colour" and back.net.config == net.config
+    onnx_det = SalientDetector.load_onnx(path)
+    assert onnx_det.modality == "colour"
+    image = (255 * np.random.default_rng(0).random((50, 70, 3))).astype(np.uint8)
+    a, b = back.detect(image), onnx_det.detect(image)
+    torch.testing.assert_close(a.uv, b.uv, atol=1e-3, rtol=0)
+    assert float(a.depth.abs().sum()) == 0.0  # no depth on colour frames
+
+
+def test_colour_detector_bad_input_is_named():
+    det = SalientDetector(_random_colour_net())
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        det.detect(np.zeros((48, 64), np.float32))  # a depth frame given to the colour detector
+    with pytest.raises(ValueError, match="0..255"):
+        det.detect(np.full((48, 64, 3), 300.0, np.float32))
+    with pytest.raises(TypeError, match="uint8 or float"):
+        det.detect(np.zeros((48, 64, 3), np.int32))
+    with pytest.raises(ValueError, match="RGB in 0..255"):
+        det.net(torch.zeros(1, 1, 48, 64))
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        SalientDetector(_random_net()).detect(np.zeros((48, 64, 3), np.uint8))  # colour to the depth detector
+    with pytest.raises(ValueError, match="modality"):
+        SalientConfig(modality="infrared")
+    with pytest.raises(ValueError, match="modality"):
+        SalientDetector.load(modality="thermal")
+
+
+@pytest.fixture(scope="module")
+def colour_frames():
+    from torchhand.data.synth import demo_motion
+    from torchhand.salient.training_data import render_salient_frames
+
+    # frames 30..33: cameras 0..3 of the ring (frame k by camera k mod 8)
+    return render_salient_frames(demo_motion(frames=slice(30, 34)), seed=3, progress=False, modality="colour")
+
+
+def test_colour_frames_label_the_visible_nails(colour_frames):
+    from torchhand.data.synth import demo_motion
+    from torchhand.salient.training_data import VISIBLE_NAIL_MM2, render_salient_frames, visible_mm2
+
+    f = colour_frames
+    assert f.image.shape == (4, 480, 640, 3) and f.image.dtype == np.uint8 and visible_mm2(f) == VISIBLE_NAIL_MM2
+    seen = (f.area_mm2 >= VISIBLE_NAIL_MM2).sum(1)
+    assert seen.min() >= 1 and seen.sum() >= 20, seen  # every view sees nails, from the back most
+    # a nail is part of its fingertip: never more visible area than the depth labels' tip
+    depth = render_salient_frames(demo_motion(frames=slice(30, 31)), seed=3, progress=False, noise=None,
+                                  background=False)
+    assert (f.area_mm2[0] <= depth.area_mm2[0] + 1e-3).all() and float(f.area_mm2[0].sum()) > 0
+    # the nail points are pale pixels: brighter than the mean of the hand's skin around them
+    img = f.image[0].astype(np.float32).sum(-1)
+    for (u, v), a in zip(f.uv[0], f.area_mm2[0]):
+        if a >= 40:
+            patch = img[int(round(v)) - 6: int(round(v)) + 7, int(round(u)) - 6: int(round(u)) + 7]
+            assert img[int(round(v)), int(round(u))] >= np.median(patch) - 1, (u, v)
+    with pytest.raises(ValueError, match="modality"):
+        render_salient_frames(demo_motion(frames=slice(0, 1)), modality="ir", progress=False)
+
+
+def test_shipped_nail_detector_finds_the_nails(colour_frames):
+    from torchhand.salient import DEFAULT_NAIL_ONNX, DEFAULT_NAIL_WEIGHTS
+    from torchhand.salient.training_data import VISIBLE_NAIL_MM2
+
+    assert DEFAULT_NAIL_WEIGHTS.stat().st_size < 1_000_000 and DEFAULT_NAIL_ONNX.stat().st_size < 1_000_000
+    det = SalientDetector.load(modality="colour")
+    ort_det = SalientDetector.load_onnx(modality="colour")
+    found = total = 0
+    for k in range(len(colour_frames.image)):
+        gt = colour_frames.uv[k][colour_frames.area_mm2[k] >= VISIBLE_NAIL_MM2]
+        d = det.detect(colour_frames.image[k])
+        top = d.uv[: len(gt)].numpy()  # as many detections as nails, the best first
+        dist = np.linalg.norm(gt[:, None] - top[None], axis=-1)
+        found += int((dist.min(1) <= 6.0).sum()) if dist.size else 0
+        total += len(gt)
+        o = ort_det.detect(colour_frames.image[k])
+        torch.testing.assert_close(d.uv, o.uv, atol=1e-3, rtol=0)
+    assert found >= 0.7 * total, (found, total)
+
+
+def test_colour_training_batches_and_targets():
+    from train.salient_detector import sample_batch, targets
+
+    g = np.random.default_rng(0)
+    n = 4
+    image = (255 * g.random((n, 96, 128, 3))).astype(np.uint8)
+    uv = np.full((n, 10, 2), np.nan, np.float32)
+    z = np.full((n, 10), np.nan, np.float32)
+    area = np.zeros((n, 10), np.float32)
+    uv[:, :2] = g.uniform(20, 70, (n, 2, 2))
+    z[:, :2] = 600.0
+    area[:, :2] = [60.0, 5.0]  # one nail visible, one barely
+    data = SalientFrames(image, uv, z, area, np.array(["fake"] * n))
+    cfg = _tiny_cfg(modality="colour", crop=48, batch_size=4)
+    x, tips, visible, ignore = sample_batch(data, cfg, torch.Generator().manual_seed(0))
+    assert x.shape == (4, 3, 48, 48) and float(x.min()) >= 0 and float(x.max()) <= 255
+    assert visible[:, 0].all() and ignore[:, 1].all()
+    positive, weight, _ = targets(x, tips, visible, ignore, cfg)
+    assert positive.shape == (4, 12, 12) and bool(positive.any()) and float(weight.min()) == 0.0

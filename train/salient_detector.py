@@ -1,17 +1,23 @@
-"""Train the fingertip detector (torchhand.salient.SalientNet) on rendered depth.
+"""Train the salient point detector (torchhand.salient.SalientNet): fingertips on
+rendered depth (the default), or finger nails on rendered colour (``"modality":
+"colour"``, Ballan et al. 2012; ``train/configs/nails_rgb.json``).
 
     python -m train.salient_detector --out runs/salient [--config cfg.json] [--cache DIR] [--force] [--resume]
 
 1. Renders (or reuses from the cache) training frames: the thesis motions of the
    training sequences, random poses within the joint limits of one or two hands with
    and without objects, random backgrounds, the Kinect noise model
-   (:func:`torchhand.salient.training_data.render_salient_frames`). The validation frames are
+   (:func:`torchhand.salient.training_data.render_salient_frames`); for colour, shaded
+   renders seen by a ring of cameras, with Ballan's structural noise on a share
+   ``circles`` of the frames. The validation frames are
    whole held-out thesis sequences (split by sequence) plus random poses of another seed.
 2. Trains with AdamW and a one-cycle schedule on random crops (scale and flip
-   augmentation), checkpointing every ``checkpoint_every`` steps. ``--resume``
+   augmentation; colour also brightness, contrast, white balance and pixel noise),
+   checkpointing every ``checkpoint_every`` steps. ``--resume``
    continues exactly where the last checkpoint stopped (model, optimizer, scheduler,
    RNG states, step); it refuses a config that differs from the run's ``config.json``.
-3. Writes ``RUN/salient_fingertips.pt`` (and ``.onnx``), ``RUN/log.jsonl`` and
+3. Writes ``RUN/salient_fingertips.pt`` (colour: ``RUN/salient_nails_rgb.pt``) and its
+   ``.onnx``, ``RUN/log.jsonl`` and
    ``RUN/done.json``. A finished or started run is never overwritten without ``--force``.
 
 ``--config`` is a JSON object overriding fields of :class:`TrainConfig`.
@@ -50,8 +56,8 @@ import torch.distributed as dist
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from torchhand.salient.training_data import (VISIBLE_MM2, SalientFrames, concat_frames, load_frames, render_salient_frames,
-                                    save_frames)
+from torchhand.salient.training_data import (SalientFrames, concat_frames, load_frames, render_salient_frames,
+                                             save_frames, visible_mm2)
 from torchhand.salient.detector import (DEFAULT_MAX_DETECTIONS, DEFAULT_THRESHOLD, STRIDE, SalientConfig, SalientNet,
                                         detect_peaks, export_onnx)
 from torchhand.salient.precision_recall import average_precision
@@ -62,8 +68,11 @@ FOCAL_PX = 525.0  # the thesis camera; positive radius in px = radius_mm * f / z
 
 
 #: Version of the rendered frames: caches of another version are rendered again
-#: (2: the visible fingertip area counts only pixels with a sensor measurement).
-DATA_VERSION = 2
+#: (2: the visible fingertip area counts only pixels with a sensor measurement;
+#: 3: colour frames).
+DATA_VERSION = 3
+#: Weight file name of a run, per modality.
+WEIGHT_NAMES = {"depth": "salient_fingertips", "colour": "salient_nails_rgb"}
 
 
 @dataclass
@@ -71,6 +80,7 @@ class TrainConfig:
     """Everything that determines a training run (``--config`` JSON overrides fields)."""
 
     seed: int = 0
+    modality: str = "depth"  # "depth" (fingertips) or "colour" (nails); sets the network's too
     # --- data (a change re-renders; cached under a hash of these fields)
     train_sequences: List[str] = field(default_factory=lambda: [
         "01", "02", "04", "06", "08", "09", "11", "12", "13", "15", "16", "17", "19"])
@@ -86,6 +96,7 @@ class TrainConfig:
     data_seed: int = 1
     val_seed: int = 1001
     background_spheres: int = 0  # distractor spheres per training background (at most)
+    circles: float = 0.5  # colour: share of the frames with Ballan's structural noise
     # --- network
     network: dict = field(default_factory=dict)  # SalientConfig fields
     # --- optimisation
@@ -101,6 +112,8 @@ class TrainConfig:
     focal_alpha: float = 0.25
     focal_gamma: float = 2.0
     offset_weight: float = 0.1
+    colour_jitter: float = 0.25  # colour: brightness/contrast range (+-), a fifth of it per channel
+    pixel_noise: float = 6.0  # colour: at most this std of Gaussian pixel noise (0..255)
     checkpoint_every: int = 250
     threads: int = 2
     # --- fine-tuning: start from these weights (a SalientNet.save file) instead of random
@@ -111,7 +124,9 @@ class TrainConfig:
         d.update({k: getattr(self, k) for k in ("train_sequences", "val_sequences", "sequence_frames",
                                            "val_sequence_frames", "random_scenes", "random_frames",
                                            "val_random_frames", "random_distance_mm", "data_seed", "val_seed",
-                                           "background_spheres")})
+                                           "background_spheres", "modality")})
+        if self.modality == "colour":
+            d["circles"] = self.circles
         return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -131,31 +146,40 @@ def load_config(path: Optional[Path]) -> TrainConfig:
     if unknown:
         raise SystemExit(f"{path}: unknown config field(s) {unknown}; known fields: {sorted(known)}")
     cfg = dataclasses.replace(cfg, **data)
+    if cfg.modality not in WEIGHT_NAMES:
+        raise SystemExit(f"{path}: field 'modality' must be one of {sorted(WEIGHT_NAMES)}, got {cfg.modality!r}")
+    if cfg.network.get("modality", cfg.modality) != cfg.modality:
+        raise SystemExit(f"{path}: network.modality {cfg.network['modality']!r} differs from modality {cfg.modality!r}")
     try:
-        SalientConfig(**cfg.network)
+        net_config(cfg)
     except (TypeError, ValueError) as e:
         raise SystemExit(f"{path}: field 'network': {e}")
     return cfg
 
 
+def net_config(cfg: TrainConfig) -> SalientConfig:
+    """The network of a run: ``cfg.network`` with the run's modality."""
+    return SalientConfig(**{**cfg.network, "modality": cfg.modality})
+
+
 # ----------------------------------------------------------------------------- data
 
 
-def _sequence_frames(hia_root: Path, seq: str, n: int, seed: int, spheres: int = 0) -> SalientFrames:
+def _sequence_frames(hia_root: Path, seq: str, n: int, seed: int, spheres: int = 0, **kw) -> SalientFrames:
     from torchhand.data.synth import thesis_motion
     from torchhand.io.thesis import sequence_models
 
     _, bounds = sequence_models(hia_root, seq)
     step = max(1, bounds.total_aligned // n)
     frames = thesis_motion(hia_root, seq, frames=slice(0, step * n, step), dtype=torch.float32)
-    return render_salient_frames(frames, seed=seed, progress=False, spheres=spheres)
+    return render_salient_frames(frames, seed=seed, progress=False, spheres=spheres, **kw)
 
 
-def _random_frames(scene: List[str], n: int, seed: int, distance, spheres: int = 0) -> SalientFrames:
+def _random_frames(scene: List[str], n: int, seed: int, distance, spheres: int = 0, **kw) -> SalientFrames:
     from torchhand.data.synth import random_poses
 
     frames = random_poses(scene, n, seed=seed, distance=tuple(distance), dtype=torch.float32)
-    return render_salient_frames(frames, seed=seed, progress=False, spheres=spheres)
+    return render_salient_frames(frames, seed=seed, progress=False, spheres=spheres, **kw)
 
 
 def build_datasets(cfg: TrainConfig, hia_root: Path, cache: Path) -> tuple:
@@ -177,11 +201,12 @@ def build_datasets(cfg: TrainConfig, hia_root: Path, cache: Path) -> tuple:
     for split, js in (("train", jobs), ("val", val_jobs)):
         parts = []
         spheres = cfg.background_spheres if split == "train" else 0  # validation as evaluated
+        kw = {"modality": cfg.modality, "circles": cfg.circles} if cfg.modality == "colour" else {}
         for kind, what, n, seed in tqdm(js, desc=f"render {split}", unit="set"):
             if kind == "seq":
-                parts.append(_sequence_frames(hia_root, what, n, seed, spheres))
+                parts.append(_sequence_frames(hia_root, what, n, seed, spheres, **kw))
             else:
-                parts.append(_random_frames(what, n, seed, cfg.random_distance_mm, spheres))
+                parts.append(_random_frames(what, n, seed, cfg.random_distance_mm, spheres, **kw))
         out[split] = concat_frames(parts)
         tmp = d / f"{split}.tmp.npz"
         save_frames(out[split], tmp)
@@ -200,27 +225,36 @@ def sample_batch(data: SalientFrames, cfg: TrainConfig, g: torch.Generator, part
     (``cfg.batch_size``, the same on every rank), the crops only those of the rank's
     contiguous share (the distributed sampler of DDP training).
 
-    Returns (depth (B, 1, C, C) mm, tips (B, P, 3) [u, v, z] in crop pixels (NaN =
-    none), visible (B, P) bool, ignore (B, P) bool (barely visible fingertips)),
-    B = ``batch_size / world``.
+    Returns (image (B, 1, C, C) depth mm, or (B, 3, C, C) RGB 0..255, tips (B, P, 3)
+    [u, v, z] in crop pixels (NaN = none), visible (B, P) bool, ignore (B, P) bool
+    (barely visible fingertips)), B = ``batch_size / world``.
     """
-    N, H, W = data.depth.shape
+    colour = data.image.ndim == 4
+    N, H, W = data.image.shape[:3]
     B, C = cfg.batch_size, cfg.crop
     P = data.uv.shape[1]
+    vis_mm2 = visible_mm2(data)
     idx = torch.randint(0, N, (B,), generator=g).numpy()
     lo, hi = cfg.scale_range
     scale = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(B, generator=g)).numpy()
     on_tip = (torch.rand(B, generator=g) < cfg.p_crop_on_tip).numpy()
     pick = torch.rand(B, 2, generator=g).numpy()
     flip = (torch.rand(B, generator=g) < 0.5).numpy()
+    if colour:  # photometric draws: contrast, brightness, per-channel gain, noise std
+        j = cfg.colour_jitter
+        contrast = (1 + j * (2 * torch.rand(B, generator=g) - 1)).numpy()
+        bright = (j * 127.5 * (2 * torch.rand(B, generator=g) - 1)).numpy()
+        gain = (1 + 0.2 * j * (2 * torch.rand(B, 3, generator=g) - 1)).numpy()
+        sigma = (cfg.pixel_noise * torch.rand(B, generator=g)).numpy()
+        noise_seed = torch.randint(0, 2 ** 31, (B,), generator=g).numpy()
     rank, world = part
     share = range(rank * B // world, (rank + 1) * B // world)
-    depth = np.zeros((len(share), 1, C, C), np.float32)
+    image = np.zeros((len(share), 3 if colour else 1, C, C), np.float32)
     tips = np.full((len(share), P, 3), np.nan, np.float32)
     for i, b in enumerate(share):
         f, s = idx[b], scale[b]
         size = int(round(C / s))  # source window, resized to C x C
-        vis = np.nonzero(data.area_mm2[f] >= VISIBLE_MM2)[0]
+        vis = np.nonzero(data.area_mm2[f] >= vis_mm2)[0]
         if on_tip[b] and len(vis):
             t = vis[int(pick[b, 0] * len(vis)) % len(vis)]
             cu, cv = data.uv[f, t]
@@ -231,43 +265,51 @@ def sample_batch(data: SalientFrames, cfg: TrainConfig, g: torch.Generator, part
             r0 = int(pick[b, 1] * (H - size))
         c0 = min(max(c0, 0), W - size)
         r0 = min(max(r0, 0), H - size)
-        win = data.depth[f, r0: r0 + size, c0: c0 + size].astype(np.float32)
+        win = data.image[f, r0: r0 + size, c0: c0 + size].astype(np.float32)
         # Nearest-neighbour resize (no mixing of depths across edges); zooming in by s
         # is the same as moving the scene s times closer, so depth is divided by s.
         src = np.minimum((np.arange(C) / s).astype(np.int64), size - 1)
-        win = win[src][:, src] / s
+        win = win[src][:, src]
         uv = (data.uv[f] - np.array([c0, r0], np.float32) + 0.5) * s - 0.5
         if flip[b]:
             win = win[:, ::-1]
             uv[:, 0] = C - 1 - uv[:, 0]
-        depth[i, 0] = win
+        if colour:
+            win = (win - 127.5) * contrast[b] + 127.5 + bright[b]
+            win = win * gain[b] + np.random.default_rng(noise_seed[b]).normal(0.0, sigma[b], win.shape)
+            image[i] = np.clip(win, 0, 255).transpose(2, 0, 1)
+        else:
+            image[i, 0] = win / s
         tips[i, :, :2] = uv
         tips[i, :, 2] = data.tip_depth[f] / s
     area = data.area_mm2[idx[share.start : share.stop]]
-    visible = area >= VISIBLE_MM2
+    visible = area >= vis_mm2
     ignore = (area > 0) & ~visible
-    return (torch.from_numpy(depth), torch.from_numpy(tips), torch.from_numpy(visible), torch.from_numpy(ignore))
+    return (torch.from_numpy(image), torch.from_numpy(tips), torch.from_numpy(visible), torch.from_numpy(ignore))
 
 
-def targets(depth: torch.Tensor, tips: torch.Tensor, visible: torch.Tensor, ignore: torch.Tensor,
+def targets(image: torch.Tensor, tips: torch.Tensor, visible: torch.Tensor, ignore: torch.Tensor,
             cfg: TrainConfig) -> tuple:
     """Per-cell labels: positive (B, h, w), loss weight (B, h, w), offset target (B, 2, h, w).
 
     A cell is positive if its centre is within ``positive_radius_mm * f / z`` px of a
-    visible fingertip centre and its depth within ``positive_depth_mm`` of the tip's;
-    cells near barely visible fingertips get no classification loss.
+    visible fingertip centre and (depth input only) its depth within
+    ``positive_depth_mm`` of the tip's; cells near barely visible fingertips get no
+    classification loss.
     """
-    B, _, Hc, Wc = depth.shape
+    B, channels, Hc, Wc = image.shape
     h, w = Hc // STRIDE, Wc // STRIDE
     ys = torch.arange(h, dtype=torch.float32) * STRIDE + 1.5
     xs = torch.arange(w, dtype=torch.float32) * STRIDE + 1.5
     cells = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(1, h * w, 1, 2)
-    cell_depth = depth[:, 0, 1::STRIDE, 1::STRIDE].reshape(B, h * w, 1)
     uv = torch.nan_to_num(tips[..., :2], nan=-1e4)
     z = torch.nan_to_num(tips[..., 2], nan=1e4)
     dist = (cells - uv[:, None]).norm(dim=-1)  # (B, hw, P)
     radius = (cfg.positive_radius_mm * FOCAL_PX / z.clamp_min(100.0))[:, None]  # (B, 1, P)
-    near_z = (cell_depth - z[:, None]).abs() <= cfg.positive_depth_mm
+    near_z = torch.ones_like(dist, dtype=torch.bool)
+    if channels == 1:  # depth: the cell must lie on the fingertip, not on what is behind it
+        cell_depth = image[:, 0, 1::STRIDE, 1::STRIDE].reshape(B, h * w, 1)
+        near_z = (cell_depth - z[:, None]).abs() <= cfg.positive_depth_mm
     pos_tip = (dist <= radius) & near_z & visible[:, None]
     dist_pos = torch.where(pos_tip, dist, torch.full_like(dist, float("inf")))
     nearest = dist_pos.argmin(-1)  # (B, hw)
@@ -303,9 +345,11 @@ def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = DEFAULT
     was_training = net.training
     net.eval()
     dets_uv, dets_s, gts, igns = [], [], [], []
+    vis_mm2 = visible_mm2(data)
     with torch.no_grad():
-        for s in range(0, len(data.depth), batch):
-            x = torch.from_numpy(data.depth[s: s + batch].astype(np.float32))[:, None]
+        for s in range(0, len(data.image), batch):
+            x = torch.from_numpy(data.image[s: s + batch].astype(np.float32))
+            x = x.permute(0, 3, 1, 2) if x.ndim == 4 else x[:, None]
             out = net(x.to(next(net.parameters()).device))
             for b, d in enumerate(detect_peaks(out.hough, threshold=threshold, max_detections=DEFAULT_MAX_DETECTIONS,
                                                logits=out.logits)):
@@ -313,8 +357,8 @@ def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = DEFAULT
                 dets_uv.append(d.uv.cpu().numpy())
                 dets_s.append(d.score.cpu().numpy())
                 a = data.area_mm2[f]
-                gts.append(data.uv[f][a >= VISIBLE_MM2])
-                igns.append(data.uv[f][(a > 0) & (a < VISIBLE_MM2)])
+                gts.append(data.uv[f][a >= vis_mm2])
+                igns.append(data.uv[f][(a > 0) & (a < vis_mm2)])
     net.train(was_training)
     return average_precision(dets_uv, dets_s, gts, radius=10.0, gt_ignore=igns).ap
 
@@ -362,7 +406,7 @@ def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: Sali
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     g = torch.Generator().manual_seed(cfg.seed)
-    net = SalientNet(SalientConfig(**cfg.network))
+    net = SalientNet(net_config(cfg))
     if cfg.init_weights:
         start = SalientNet.load(cfg.init_weights)
         if start.config != net.config:
@@ -398,13 +442,13 @@ def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: Sali
     bar = tqdm(total=cfg.steps, initial=step, desc="train salient", unit="step", disable=not progress or rank != 0)
     t0 = time.perf_counter()
     while step < cfg.steps:
-        depth, tips, visible, ignore = sample_batch(train_data, cfg, g, (rank, size))
-        positive, weight, offset = targets(depth, tips, visible, ignore, cfg)
-        positive, weight, offset, depth = (x.to(device) for x in (positive, weight, offset, depth))
+        image, tips, visible, ignore = sample_batch(train_data, cfg, g, (rank, size))
+        positive, weight, offset = targets(image, tips, visible, ignore, cfg)
+        positive, weight, offset, image = (x.to(device) for x in (positive, weight, offset, image))
         npos = positive.float().sum()
         if size > 1:  # normalised by the whole batch; DDP averages the ranks' gradients, hence x size
             dist.all_reduce(npos)
-        loss, cls, reg = loss_fn(model(depth), positive, weight, offset, cfg, npos)
+        loss, cls, reg = loss_fn(model(image), positive, weight, offset, cfg, npos)
         opt.zero_grad(set_to_none=True)
         (loss * size).backward()
         opt.step()
@@ -435,7 +479,7 @@ def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: Sali
     bar.close()
     if log is not None:
         log.close()
-    plain = SalientNet(SalientConfig(**cfg.network))
+    plain = SalientNet(net_config(cfg))
     plain.load_state_dict({k: v.cpu() for k, v in net.state_dict().items()})  # SyncBatchNorm: same keys
     return plain.eval()
 
@@ -495,7 +539,7 @@ def main(argv=None) -> int:
         train_data, val_data = build_datasets(cfg, args.hia_root, args.cache or out / "cache")
     t_data = time.perf_counter() - t_start
     if rank == 0:
-        print(f"frames: {len(train_data.depth)} train, {len(val_data.depth)} val ({t_data:.0f} s)"
+        print(f"frames: {len(train_data.image)} train, {len(val_data.image)} val ({t_data:.0f} s)"
               + (f"; {size} ranks of {cfg.batch_size // size} crops each" if size > 1 else ""))
     net = train(cfg, out, train_data, val_data, args.resume, progress=not args.no_progress, stop_at=args.stop_at)
     if args.stop_at is not None and args.stop_at < cfg.steps:
@@ -504,11 +548,12 @@ def main(argv=None) -> int:
         return 0
     t_total = time.perf_counter() - t_start
     if rank == 0:
-        net.save(out / "salient_fingertips.pt")
-        export_onnx(net, out / "salient_fingertips.onnx")
+        name = WEIGHT_NAMES[cfg.modality]
+        net.save(out / f"{name}.pt")
+        export_onnx(net, out / f"{name}.onnx")
         val_ap = evaluate_ap(net, val_data)
         done = {"steps": cfg.steps, "val_ap": val_ap, "seconds_data": t_data, "seconds_total": t_total,
-                "train_frames": int(len(train_data.depth)), "val_frames": int(len(val_data.depth)),
+                "train_frames": int(len(train_data.image)), "val_frames": int(len(val_data.image)),
                 "world_size": size}
         (out / "done.json").write_text(json.dumps(done, indent=2))
         print(json.dumps(done, indent=2))

@@ -1,12 +1,14 @@
-"""Fingertip (salient point) detector: a tiny fully-convolutional network with Hough voting.
+"""Salient point detector: a tiny fully-convolutional network with Hough voting, on
+depth (the thesis' fingertips) or on colour (Ballan et al.'s finger nails).
 
 The thesis (Ch. 4.2, Eq. 4.14-4.15; Sec. 4.3.1.5) and Ballan et al. (ECCV 2012, Sec. 4)
 detect fingertips with a Hough forest: every image patch casts a weighted vote for the
 position of the fingertip centre, and detections are the maxima of the accumulated
 votes. :class:`SalientNet` keeps the voting and replaces the forest by a small network:
 
-1. the depth map (mm, 0 = invalid) is normalised inside the network (see
-   :func:`normalise_depth`);
+1. the input is normalised inside the network: a depth map (mm, 0 = invalid) by
+   :func:`normalise_depth`, a colour image (RGB, 0..255) by :func:`normalise_colour`
+   (``SalientConfig.modality``);
 2. a stride-4 encoder predicts, per output cell, a fingertip score (logit) and a 2D
    offset (px) from the cell centre to the fingertip centre;
 3. each cell votes at ``cell centre + offset`` with weight ``sigmoid(score)``; votes
@@ -17,7 +19,11 @@ Peak picking (:func:`detect_peaks`: max-pool non-maximum suppression, threshold,
 top-k, sub-cell refinement, and the confidence of each peak: its Hough value times the
 squared score probability of the cell under it) is post-processing outside ``forward``.
 :class:`SalientDetector` (torch) and :class:`OnnxSalientDetector` (ONNX Runtime) wrap
-network, padding, input checks and peak picking behind one ``detect(depth)`` call.
+network, padding, input checks and peak picking behind one ``detect(image)`` call.
+
+Two networks ship: ``models/salient_fingertips.pt`` (depth, fingertips, thesis Ch. 4)
+and ``models/salient_nails_rgb.pt`` (colour, nail centres, Ballan et al. Sec. 4.1),
+each with its ONNX export; ``SalientDetector.load(modality="colour")`` picks the second.
 
 Pixel coordinates follow :mod:`torchhand.geometry.camera`: pixel centres at integer
 coordinates, ``u`` = column (x), ``v`` = row (y).
@@ -44,6 +50,7 @@ __all__ = [
     "Detections",
     "SalientNet",
     "normalise_depth",
+    "normalise_colour",
     "hough_votes",
     "detect_peaks",
     "SalientDetector",
@@ -51,6 +58,10 @@ __all__ = [
     "export_onnx",
     "DEFAULT_WEIGHTS",
     "DEFAULT_ONNX",
+    "DEFAULT_NAIL_WEIGHTS",
+    "DEFAULT_NAIL_ONNX",
+    "MODALITIES",
+    "shipped_weights",
     "WEIGHTS_FORMAT",
 ]
 
@@ -69,6 +80,12 @@ def _shipped(name: str) -> Path:
 DEFAULT_WEIGHTS = _shipped("salient_fingertips.pt")
 #: The same network exported to ONNX (dynamic batch, height and width).
 DEFAULT_ONNX = _shipped("salient_fingertips.onnx")
+#: The colour network of Ballan et al.'s nails (``train/salient_detector.py --config
+#: train/configs/nails_rgb.json``) and its ONNX export.
+DEFAULT_NAIL_WEIGHTS = _shipped("salient_nails_rgb.pt")
+DEFAULT_NAIL_ONNX = _shipped("salient_nails_rgb.onnx")
+#: Input kinds of :class:`SalientNet`: channels of the image it takes, ONNX input name.
+MODALITIES = {"depth": (1, "depth"), "colour": (3, "rgb")}
 #: Tag stored in weight files written by :meth:`SalientNet.save`.
 WEIGHTS_FORMAT = "torchhand.salient.SalientNet/1"
 
@@ -98,6 +115,8 @@ class SalientConfig:
         depth_clip: normalised depths are clipped to [0, depth_clip].
         offset_scale_px: the head's raw offset output is multiplied by this (px).
         hough_sigma: std of the Gaussian smoothing the Hough map, in Hough cells.
+        modality: ``"depth"`` ((B, 1, H, W) mm, 0 = invalid) or ``"colour"``
+            ((B, 3, H, W) RGB in 0..255); weight files without it are depth networks.
     """
 
     channels: tuple = (12, 20)
@@ -106,8 +125,11 @@ class SalientConfig:
     depth_clip: float = 3.0
     offset_scale_px: float = 8.0
     hough_sigma: float = 1.0
+    modality: str = "depth"
 
     def __post_init__(self) -> None:
+        if self.modality not in MODALITIES:
+            raise ValueError(f"SalientConfig.modality must be one of {sorted(MODALITIES)}, got {self.modality!r}")
         object.__setattr__(self, "channels", tuple(int(c) for c in self.channels))
         object.__setattr__(self, "dilations", tuple(int(d) for d in self.dilations))
         if len(self.channels) != 2 or min(self.channels) < 1:
@@ -121,7 +143,7 @@ class SalientConfig:
 
 
 class SalientOutput(NamedTuple):
-    """Raw outputs of :class:`SalientNet` for a (B, 1, H, W) input.
+    """Raw outputs of :class:`SalientNet` for a (B, C, H, W) input.
 
     Attributes:
         logits: (B, 1, H/4, W/4) fingertip score logits per cell.
@@ -137,7 +159,7 @@ class SalientOutput(NamedTuple):
 
 
 class Detections(NamedTuple):
-    """Fingertip detections of one depth frame, sorted by decreasing score.
+    """Salient point detections of one frame, sorted by decreasing score.
 
     Attributes:
         uv: (N, 2) float pixel coordinates in the input image (u = column, v = row).
@@ -145,7 +167,8 @@ class Detections(NamedTuple):
             the number of cells voting for it times their mean score) times the squared
             score probability of the cell under it, as the detectors report it; the Hough
             value alone from :func:`detect_peaks` without ``logits``.
-        depth: (N,) input depth (mm) at the rounded pixel; 0 where invalid.
+        depth: (N,) input depth (mm) at the rounded pixel; 0 where invalid, and 0 for
+            colour frames.
     """
 
     uv: torch.Tensor
@@ -176,6 +199,14 @@ def normalise_depth(depth: torch.Tensor, scale_mm: float, clip: float) -> torch.
     rel = ((depth - near) / scale_mm).clamp(0.0, clip)
     rel = torch.where(valid, rel, depth.new_full((1,), clip))
     return torch.cat([valid.to(depth.dtype), rel], 1)
+
+
+def normalise_colour(rgb: torch.Tensor) -> torch.Tensor:
+    """Network input from colour: ``rgb / 127.5 - 1`` per channel, (B, 3, H, W) RGB in
+    0..255 -> [-1, 1]. A fixed map (no per-image statistics), so that a crop and the
+    whole frame see the same values; brightness changes are left to the training's
+    augmentation."""
+    return rgb / 127.5 - 1.0
 
 
 def hough_votes(scores: torch.Tensor, offsets: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -238,13 +269,14 @@ def _conv(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequent
 
 
 class SalientNet(nn.Module):
-    """Fingertip score, offset and Hough-vote network on depth.
+    """Salient point score, offset and Hough-vote network on depth or colour.
 
     Args:
-        config: the architecture (default :class:`SalientConfig`).
+        config: the architecture (default :class:`SalientConfig`: depth).
 
-    ``forward(depth)`` takes (B, 1, H, W) depth in mm (0 = invalid) with H and W
-    multiples of 4 and returns a :class:`SalientOutput`. The same code runs on any
+    ``forward(image)`` takes (B, 1, H, W) depth in mm (0 = invalid), or (B, 3, H, W)
+    RGB in 0..255 for a colour network, with H and W multiples of 4 and returns a
+    :class:`SalientOutput`. The same code runs on any
     device and dtype; it is traced as-is into ONNX by :func:`export_onnx`.
     """
 
@@ -252,7 +284,8 @@ class SalientNet(nn.Module):
         super().__init__()
         self.config = config if config is not None else SalientConfig()
         c1, c2 = self.config.channels
-        layers = [_conv(2, c1, stride=2), _conv(c1, c2, stride=2)]
+        cin = 2 if self.config.modality == "depth" else 3  # depth: [valid, rel]
+        layers = [_conv(cin, c1, stride=2), _conv(c1, c2, stride=2)]
         layers += [_conv(c2, c2, dilation=d) for d in self.config.dilations]
         self.encoder = nn.Sequential(*layers)
         self.head = nn.Conv2d(c2, 3, 1)
@@ -261,15 +294,22 @@ class SalientNet(nn.Module):
             self.head.bias.copy_(torch.tensor([-4.0, 0.0, 0.0]))  # start with few, weak votes
         self.register_buffer("smooth", _gaussian_kernel(self.config.hough_sigma), persistent=False)
 
-    def forward(self, depth: torch.Tensor) -> SalientOutput:
+    @property
+    def modality(self) -> str:
+        return self.config.modality
+
+    def forward(self, image: torch.Tensor) -> SalientOutput:
         if not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
-            _check_net_input(depth)
+            _check_net_input(image, self.config.modality)
         cfg = self.config
-        x = normalise_depth(depth, cfg.depth_scale_mm, cfg.depth_clip)
+        if cfg.modality == "depth":
+            x = normalise_depth(image, cfg.depth_scale_mm, cfg.depth_clip)
+        else:
+            x = normalise_colour(image)
         out = self.head(self.encoder(x))
         logits = out[:, :1]
         offsets = out[:, 1:] * cfg.offset_scale_px
-        H, W = depth.shape[2], depth.shape[3]
+        H, W = image.shape[2], image.shape[3]
         hough = hough_votes(torch.sigmoid(logits), offsets, H // HOUGH_STRIDE, W // HOUGH_STRIDE)
         pad = self.smooth.shape[-1] // 2
         hough = F.conv2d(hough, self.smooth.to(hough.dtype), padding=pad)
@@ -309,15 +349,18 @@ class SalientNet(nn.Module):
         return net.to(map_location).eval()
 
 
-def _check_net_input(depth) -> None:
-    if not isinstance(depth, torch.Tensor):
-        raise TypeError(f"depth must be a torch.Tensor of shape (B, 1, H, W), got {type(depth).__name__}")
-    if depth.ndim != 4 or depth.shape[1] != 1:
-        raise ValueError(f"depth must have shape (B, 1, H, W) (one depth channel), got {tuple(depth.shape)}")
-    if not depth.is_floating_point():
-        raise TypeError(f"depth must be a floating point tensor (mm), got {depth.dtype}")
-    if depth.shape[2] % STRIDE or depth.shape[3] % STRIDE:
-        raise ValueError(f"depth height and width must be multiples of {STRIDE}, got {tuple(depth.shape[2:])}; "
+def _check_net_input(image, modality: str = "depth") -> None:
+    channels, name = MODALITIES[modality]
+    what = "one depth channel, mm" if modality == "depth" else "RGB in 0..255"
+    if not isinstance(image, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (B, {channels}, H, W), got {type(image).__name__}")
+    if image.ndim != 4 or image.shape[1] != channels:
+        raise ValueError(f"{name} must have shape (B, {channels}, H, W) ({what}) for a {modality} network, "
+                         f"got {tuple(image.shape)}")
+    if not image.is_floating_point():
+        raise TypeError(f"{name} must be a floating point tensor ({what}), got {image.dtype}")
+    if image.shape[2] % STRIDE or image.shape[3] % STRIDE:
+        raise ValueError(f"{name} height and width must be multiples of {STRIDE}, got {tuple(image.shape[2:])}; "
                          "SalientDetector.detect pads any size")
 
 
@@ -452,12 +495,35 @@ def _check_frame(depth) -> np.ndarray | torch.Tensor:
     return depth
 
 
-def _padded(depth: np.ndarray) -> np.ndarray:
-    """(H, W) -> (1, 1, H', W') float32, zero-padded (invalid) at the bottom/right to multiples of 4."""
-    H, W = depth.shape
+def _check_colour_frame(rgb) -> np.ndarray:
+    """Validate one (H, W, 3) RGB frame (uint8, or float in 0..255); returns float32 numpy."""
+    if not isinstance(rgb, (np.ndarray, torch.Tensor)):
+        raise TypeError(f"rgb must be a numpy array or torch tensor of shape (H, W, 3), got {type(rgb).__name__}")
+    arr = rgb.detach().cpu().numpy() if isinstance(rgb, torch.Tensor) else rgb
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"rgb must have shape (H, W, 3) (one RGB frame) for a colour detector, got {tuple(arr.shape)}")
+    if min(arr.shape[:2]) < 1:
+        raise ValueError(f"rgb must not be empty, got shape {tuple(arr.shape)}")
+    if arr.dtype == np.uint8:
+        return arr.astype(np.float32)
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise TypeError(f"rgb must be uint8 or float in 0..255, got dtype {arr.dtype}")
+    if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 255:
+        raise ValueError(f"rgb values must be finite and in 0..255, got {float(np.nanmin(arr))}..{float(np.nanmax(arr))}")
+    return arr.astype(np.float32, copy=False)
+
+
+def _padded(image: np.ndarray) -> np.ndarray:
+    """(H, W) depth or (H, W, 3) RGB -> (1, C, H', W') float32, zero-padded at the
+    bottom/right to multiples of 4 (invalid depth; black)."""
+    H, W = image.shape[:2]
     Hp, Wp = -(-H // STRIDE) * STRIDE, -(-W // STRIDE) * STRIDE
+    if image.ndim == 3:
+        out = np.zeros((1, 3, Hp, Wp), np.float32)
+        out[0, :, :H, :W] = image.transpose(2, 0, 1)
+        return out
     out = np.zeros((1, 1, Hp, Wp), np.float32)
-    out[0, 0, :H, :W] = np.where(np.isfinite(depth), depth, 0)  # +inf counts as invalid
+    out[0, 0, :H, :W] = np.where(np.isfinite(image), image, 0)  # +inf counts as invalid
     return out
 
 
@@ -478,8 +544,14 @@ def _empty(device="cpu") -> Detections:
 
 def _detect_frame(detector, depth: ArrayLike, forward: Callable[[np.ndarray], SalientOutput], device="cpu") -> Detections:
     """The ``detect`` of both detectors: input checks, padding, ``forward`` (a padded
-    (1, 1, H', W') float32 array -> :class:`SalientOutput`), peak picking with the
-    detector's settings and confidence, and the depth at each detection."""
+    (1, C, H', W') float32 array -> :class:`SalientOutput`), peak picking with the
+    detector's settings and confidence, and the depth at each detection (0 for colour)."""
+    if detector.modality == "colour":
+        rgb = _check_colour_frame(depth)
+        out = forward(_padded(rgb))
+        dets = detect_peaks(out.hough, detector.threshold, detector.max_detections, detector.nms_radius,
+                            rgb.shape[:2], logits=out.logits)[0]
+        return Detections(*(x.to(device) for x in dets))
     depth = _check_frame(depth)
     depth_np = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else depth
     depth_np = depth_np.astype(np.float32, copy=False)
@@ -492,14 +564,15 @@ def _detect_frame(detector, depth: ArrayLike, forward: Callable[[np.ndarray], Sa
 
 
 class SalientDetector:
-    """Fingertip detection on single depth frames with a :class:`SalientNet`.
+    """Salient point detection on single frames with a :class:`SalientNet`: fingertips
+    on depth, or nails on colour (the network's ``modality``).
 
     Args:
         net: the network (moved to ``device`` and set to eval mode).
         device: where the network runs ("cpu", "cuda", ...).
         threshold, max_detections, nms_radius: see :func:`detect_peaks`.
 
-    ``detect`` pads any (H, W) frame with invalid pixels to multiples of 4.
+    ``detect`` pads any frame to multiples of 4 (invalid depth, black colour).
     """
 
     def __init__(self, net: SalientNet, device="cpu", threshold: float = DEFAULT_THRESHOLD,
@@ -509,31 +582,37 @@ class SalientDetector:
         self.threshold = float(threshold)
         self.max_detections = int(max_detections)
         self.nms_radius = int(nms_radius)
+        self.modality = self.net.config.modality
 
     @classmethod
-    def load(cls, path=None, device="cpu", **kwargs) -> "SalientDetector":
-        """Detector from a weights file (default: the shipped ``models/salient_fingertips.pt``)."""
-        return cls(SalientNet.load(DEFAULT_WEIGHTS if path is None else path), device=device, **kwargs)
+    def load(cls, path=None, device="cpu", modality: str = "depth", **kwargs) -> "SalientDetector":
+        """Detector from a weights file (default: the shipped network of ``modality``,
+        ``models/salient_fingertips.pt`` for depth, ``models/salient_nails_rgb.pt`` for
+        colour)."""
+        return cls(SalientNet.load(shipped_weights(modality, onnx=False) if path is None else path), device=device, **kwargs)
 
     @classmethod
-    def load_onnx(cls, path=None, threads: int = 2, **kwargs) -> "OnnxSalientDetector":
-        """ONNX Runtime detector (default: the shipped ``models/salient_fingertips.onnx``)."""
-        return OnnxSalientDetector(DEFAULT_ONNX if path is None else path, threads=threads, **kwargs)
+    def load_onnx(cls, path=None, threads: int = 2, modality: str = "depth", **kwargs) -> "OnnxSalientDetector":
+        """ONNX Runtime detector (default: the shipped export of ``modality``)."""
+        return OnnxSalientDetector(shipped_weights(modality, onnx=True) if path is None else path, threads=threads, **kwargs)
 
-    def detect(self, depth: ArrayLike) -> Detections:
-        """Fingertips in one depth frame.
+    def detect(self, image: ArrayLike) -> Detections:
+        """Salient points in one frame.
 
         Args:
-            depth: (H, W) depth in mm (float or integer, numpy or torch), 0 = invalid.
+            image: a depth network's (H, W) depth in mm (float or integer, numpy or
+                torch), 0 = invalid; a colour network's (H, W, 3) RGB (uint8, or float
+                in 0..255).
 
         Returns:
             :class:`Detections` on ``self.device`` (float32), pixel coordinates of the
-            input frame. A frame without valid pixels gives zero detections.
+            input frame. A depth frame without valid pixels gives zero detections.
 
         Raises:
-            TypeError / ValueError: not a 2D numeric array, NaN or negative values.
+            TypeError / ValueError: an array of the wrong shape or type for the
+            network's modality, NaN or negative values.
         """
-        return _detect_frame(self, depth, self._forward, self.device)
+        return _detect_frame(self, image, self._forward, self.device)
 
     def _forward(self, x: np.ndarray) -> SalientOutput:
         with torch.no_grad():
@@ -565,28 +644,41 @@ class OnnxSalientDetector:
             raise ValueError(f"{self.path}: not a loadable ONNX model ({type(e).__name__}: {e})") from None
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
-        if inputs != ["depth"] or outputs != list(SalientOutput._fields):
+        names = {name: m for m, (_, name) in MODALITIES.items()}
+        if len(inputs) != 1 or inputs[0] not in names or outputs != list(SalientOutput._fields):
             raise ValueError(f"{self.path}: not a salient detector graph (inputs {inputs}, outputs {outputs}; "
-                             f"expected ['depth'] and {list(SalientOutput._fields)})")
+                             f"expected one of {[[n] for n in names]} and {list(SalientOutput._fields)})")
+        self.input_name = inputs[0]
+        self.modality = names[inputs[0]]
         self.threshold = float(threshold)
         self.max_detections = int(max_detections)
         self.nms_radius = int(nms_radius)
 
-    def run(self, depth: np.ndarray) -> SalientOutput:
-        """Raw outputs for a (B, 1, H, W) float32 array (H, W multiples of 4)."""
-        outs = self.session.run(None, {"depth": np.ascontiguousarray(depth, np.float32)})
+    def run(self, image: np.ndarray) -> SalientOutput:
+        """Raw outputs for a (B, C, H, W) float32 array (H, W multiples of 4)."""
+        outs = self.session.run(None, {self.input_name: np.ascontiguousarray(image, np.float32)})
         return SalientOutput(*(torch.from_numpy(o) for o in outs))
 
-    def detect(self, depth: ArrayLike) -> Detections:
+    def detect(self, image: ArrayLike) -> Detections:
         """Same contract as :meth:`SalientDetector.detect`; tensors on the CPU."""
-        return _detect_frame(self, depth, self.run)
+        return _detect_frame(self, image, self.run)
+
+
+def shipped_weights(modality: str = "depth", onnx: bool = False) -> Path:
+    """The shipped network of ``modality`` (``"depth"``: fingertips, ``"colour"``:
+    nails): its weights file, or its ONNX export with ``onnx``."""
+    if modality not in MODALITIES:
+        raise ValueError(f"modality must be one of {sorted(MODALITIES)}, got {modality!r}")
+    if modality == "depth":
+        return DEFAULT_ONNX if onnx else DEFAULT_WEIGHTS
+    return DEFAULT_NAIL_ONNX if onnx else DEFAULT_NAIL_WEIGHTS
 
 
 def export_onnx(net: SalientNet, path, height: int = 240, width: int = 320, opset: int = 17) -> Path:
     """Export ``net`` (legacy TorchScript-based exporter) with dynamic batch, height, width.
 
-    Inputs: ``depth`` (B, 1, H, W) float32 mm; outputs ``logits``, ``offsets``, ``hough``
-    as in :class:`SalientOutput`. The Hough voting exports as ScatterElements with
+    Inputs: ``depth`` (B, 1, H, W) float32 mm, or ``rgb`` (B, 3, H, W) float32 0..255 for
+    a colour network; outputs ``logits``, ``offsets``, ``hough`` as in :class:`SalientOutput`. The Hough voting exports as ScatterElements with
     ``reduction="add"`` (opset >= 16).
     """
     if opset < 16:
@@ -594,14 +686,15 @@ def export_onnx(net: SalientNet, path, height: int = 240, width: int = 320, opse
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     net = net.to("cpu", torch.float32).eval()
-    example = torch.zeros(1, 1, height, width)
-    example[0, 0, height // 4: 3 * height // 4, width // 4: 3 * width // 4] = 600.0
+    channels, name = MODALITIES[net.config.modality]
+    example = torch.zeros(1, channels, height, width)
+    example[0, :, height // 4: 3 * height // 4, width // 4: 3 * width // 4] = 600.0 if channels == 1 else 128.0
     cells = {0: "batch", 2: "height_4", 3: "width_4"}
-    axes = {"depth": {0: "batch", 2: "height", 3: "width"}, "logits": cells, "offsets": cells,
+    axes = {name: {0: "batch", 2: "height", 3: "width"}, "logits": cells, "offsets": cells,
             "hough": {0: "batch", 2: "height_2", 3: "width_2"}}
     # the legacy (TorchScript) exporter on purpose: the dynamo exporter needs onnxscript
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(net, (example,), str(path), dynamo=False, opset_version=opset, input_names=["depth"],
+        torch.onnx.export(net, (example,), str(path), dynamo=False, opset_version=opset, input_names=[name],
                           output_names=list(SalientOutput._fields), dynamic_axes=axes)
     return path

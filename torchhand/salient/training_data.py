@@ -13,6 +13,18 @@ ground-truth point; one with less but at least one pixel is "barely visible" (ig
 by the evaluation and by the training loss). Pixels the sensor left invalid (nearer
 than the Kinect's 400 mm, in a projector shadow, at grazing angles) do not count: a
 fingertip that the depth frame does not show cannot be detected from it.
+
+Colour frames (``modality="colour"``, Ballan et al. 2012 Sec. 4.1: the salient points
+are the finger nails): the scene is shaded by :mod:`torchhand.data.appearance` (skin,
+pale nails, smooth light, a textured background drawn anew for every frame) and seen by
+a ring of eight cameras around it (:func:`torchhand.data.synth.with_camera_ring`; frame
+``k`` by camera ``k mod 8``), so that backs, palms and sides of the hands all occur. The
+ground-truth point of a finger is the projection of its nail vertex
+(:func:`torchhand.model.fingertips.nail_vertices`, the point the tracker's ``S`` term
+pulls on) and its visible area counts the rendered pixels of its nail faces only: a
+finger seen from the palm side has no visible nail. Optionally, a share of the frames
+gets the structural noise of Ballan's protocol (:func:`torchhand.data.ballan_protocol.
+structural_noise`: 100 bright or dark circles).
 """
 
 from __future__ import annotations
@@ -23,18 +35,29 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchhand.geometry.camera import Camera
+from torchhand.data.appearance import background_texture, face_albedo, shade
+from torchhand.data.ballan_protocol import structural_noise
 from torchhand.data.noise import apply_kinect_noise, noise_model
-from torchhand.data.synth import SyntheticFrames
+from torchhand.data.synth import SyntheticFrames, with_camera_ring
+from torchhand.geometry.camera import Camera
 from torchhand.geometry.render import Renderer
-from torchhand.model.fingertips import FingertipSets, fingertip_faces
+from torchhand.model.fingertips import FingertipSets, fingertip_faces, nail_faces, nail_vertices
 
 __all__ = ["FingertipTargets", "SalientFrames", "fingertip_targets",
            "random_background", "render_salient_frames", "concat_frames", "save_frames", "load_frames",
-           "VISIBLE_MM2"]
+           "VISIBLE_MM2", "VISIBLE_NAIL_MM2", "visible_mm2", "nail_sets", "RING_VIEWS"]
 
-#: Visible fingertip area (mm^2) from which a fingertip is a ground-truth point.
+#: Visible fingertip area (mm^2) from which a fingertip is a ground-truth point (depth).
 VISIBLE_MM2 = 30.0
+#: Visible nail area (mm^2) from which a nail is a ground-truth point (colour).
+VISIBLE_NAIL_MM2 = 15.0
+#: Cameras of the ring that sees the colour frames.
+RING_VIEWS = 8
+
+
+def visible_mm2(frames: "SalientFrames") -> float:
+    """The ground-truth area threshold of ``frames``' modality."""
+    return VISIBLE_NAIL_MM2 if frames.image.ndim == 4 else VISIBLE_MM2
 
 
 class FingertipTargets(NamedTuple):
@@ -53,17 +76,19 @@ class FingertipTargets(NamedTuple):
 
 
 class SalientFrames(NamedTuple):
-    """Rendered frames with fingertip ground truth (numpy, CPU).
+    """Rendered frames with salient point ground truth (numpy, CPU).
 
     Attributes:
-        depth: (N, H, W) uint16 noisy depth (mm), 0 = invalid.
-        uv: (N, P, 2) float32 fingertip centres (px), P padded to 10 with NaN.
+        image: (N, H, W) uint16 noisy depth (mm), 0 = invalid; or (N, H, W, 3) uint8
+            RGB for colour frames (the modality follows from the shape).
+        uv: (N, P, 2) float32 fingertip centres (nail vertices for colour) (px), P
+            padded to 10 with NaN.
         tip_depth: (N, P) float32 camera-frame z (mm) of the centres; NaN for padding.
-        area_mm2: (N, P) float32 visible fingertip area; 0 for padding.
+        area_mm2: (N, P) float32 visible fingertip (nail) area; 0 for padding.
         source: (N,) str name of the sequence / random set of each frame.
     """
 
-    depth: np.ndarray
+    image: np.ndarray
     uv: np.ndarray
     tip_depth: np.ndarray
     area_mm2: np.ndarray
@@ -163,6 +188,16 @@ def random_background(far_mm: torch.Tensor, height: int, width: int, generator: 
     return torch.where(torch.isfinite(bg), bg, torch.zeros_like(bg))
 
 
+def nail_sets(scene) -> FingertipSets:
+    """:class:`FingertipSets` of the scene's nails for :func:`fingertip_targets`: each
+    finger's nail vertex as its only vertex (the projected point) and its nail faces as
+    its faces (the visible area)."""
+    tips = fingertip_faces(scene)
+    index = nail_vertices(scene)[:, None]
+    face_tip = torch.where(nail_faces(scene), tips.face_tip, torch.full_like(tips.face_tip, -1))
+    return FingertipSets(index, torch.ones_like(index, dtype=torch.bool), face_tip, tips.names)
+
+
 def render_salient_frames(
     frames: SyntheticFrames,
     seed: int = 0,
@@ -172,19 +207,31 @@ def render_salient_frames(
     progress: bool = True,
     max_tips: int = 10,
     spheres: int = 0,
+    modality: str = "depth",
+    circles: float = 0.0,
 ) -> SalientFrames:
-    """Render depth frames with fingertip ground truth (see the module docstring).
+    """Render frames with salient point ground truth (see the module docstring).
 
     Args:
         frames: poses and camera (e.g. :func:`torchhand.data.synth.thesis_motion` or
-            :func:`~torchhand.data.synth.random_poses`); the first camera is used.
+            :func:`~torchhand.data.synth.random_poses`); the first camera is used for
+            depth, a ring of :data:`RING_VIEWS` around it for colour.
         seed: seeds backgrounds and sensor noise.
-        background: composite a :func:`random_background` behind the models.
-        noise: sensor noise model name (:func:`torchhand.data.noise.noise_model`), or None.
+        background: composite a :func:`random_background` behind the models (depth),
+            a :func:`~torchhand.data.appearance.background_texture` (colour; a grey
+            background without).
+        noise: sensor noise model name (:func:`torchhand.data.noise.noise_model`), or
+            None (depth only).
         max_tips: P of the output arrays (10 = two hands).
         spheres: at most this many distractor spheres in each background
-            (:func:`random_background`'s ``max_spheres``).
+            (:func:`random_background`'s ``max_spheres``; depth only).
+        modality: ``"depth"`` or ``"colour"``.
+        circles: share of the colour frames that get Ballan's structural noise.
     """
+    if modality == "colour":
+        return _render_colour(frames, seed, background, batch_size, progress, max_tips, circles)
+    if modality != "depth":
+        raise ValueError(f"modality must be 'depth' or 'colour', got {modality!r}")
     params = noise_model(noise) if noise is not None else None
     g = torch.Generator().manual_seed(seed)
     scene, theta = frames.scene, frames.theta
@@ -226,6 +273,54 @@ def render_salient_frames(
         bar.update(b)
     bar.close()
     return SalientFrames(out_depth, out_uv, out_z, out_area, np.array([frames.name] * N))
+
+
+def _render_colour(frames: SyntheticFrames, seed: int, background: bool, batch_size: int, progress: bool,
+                   max_tips: int, circles: float) -> SalientFrames:
+    """The colour branch of :func:`render_salient_frames`."""
+    if not 0.0 <= circles <= 1.0:
+        raise ValueError(f"circles must be a share in [0, 1], got {circles}")
+    rng = np.random.default_rng(seed)
+    scene, theta = frames.scene, frames.theta
+    cams = with_camera_ring(frames, RING_VIEWS).cameras
+    tips = nail_sets(scene)
+    P = len(tips.names)
+    if P > max_tips:
+        raise ValueError(f"scene {scene.names} has {P} nails, more than max_tips={max_tips}")
+    albedo = face_albedo(scene)
+    N, H, W = len(theta), cams[0].height, cams[0].width
+    out_rgb = np.zeros((N, H, W, 3), np.uint8)
+    out_uv = np.full((N, max_tips, 2), np.nan, np.float32)
+    out_z = np.full((N, max_tips), np.nan, np.float32)
+    out_area = np.zeros((N, max_tips), np.float32)
+    bar = tqdm(total=N, desc=f"render {frames.name}", unit="frame", disable=not progress, leave=False)
+    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id)
+    for c, cam in enumerate(cams):
+        idx = np.arange(c, N, len(cams))
+        for s in range(0, len(idx), batch_size):
+            sel = idx[s: s + batch_size]
+            th = theta[torch.as_tensor(sel)].to(scene.lower.dtype)
+            with torch.no_grad():
+                verts = scene(th).vertices
+            camd = cam.to(dtype=verts.dtype)
+            res = renderer(verts, camd)
+            rgb = shade(res, verts, scene.faces, albedo, camd).cpu().numpy()
+            empty = (res.face_id < 0).cpu().numpy()
+            for b, k in enumerate(sel):
+                img = rgb[b]
+                if background:  # a new room for every frame
+                    bg = background_texture(H, W, seed=int(rng.integers(2 ** 31)))
+                    img[empty[b]] = (bg[empty[b]] * 255).round().astype(np.uint8)
+                if rng.uniform() < circles:
+                    img = structural_noise(img, rng)[0]
+                out_rgb[k] = img
+            t = fingertip_targets(verts, res.face_id, camd, tips)
+            out_uv[sel, :P] = t.uv.float().cpu().numpy()
+            out_z[sel, :P] = t.depth.float().cpu().numpy()
+            out_area[sel, :P] = t.area_mm2.float().cpu().numpy()
+            bar.update(len(sel))
+    bar.close()
+    return SalientFrames(out_rgb, out_uv, out_z, out_area, np.array([frames.name] * N))
 
 
 def concat_frames(parts: List[SalientFrames]) -> SalientFrames:
