@@ -215,3 +215,39 @@ def test_a_rig_of_mixed_image_sizes_is_refused_by_name(tmp_path):
     [summary] = track_sequences([seq], tmp_path / "out", TrackerConfig(energy="E+C"), progress=False)
     assert summary["status"] == "failed" and "camera 1 is 320x240 px" in summary["error"]
     assert not (tmp_path / "out" / "demo").exists()
+
+
+def test_nail_detections_come_from_salient_json_or_the_shipped_detector(tmp_path):
+    """``--nails auto`` reads each camera's ``salient.json``; ``--nails detector`` (and a
+    camera without the file, e.g. a user's own recording) runs the shipped colour nail
+    detector, whose detections lie on the nails."""
+    import json
+
+    from torchhand.app.cli import main
+    from torchhand.app.runner import NAIL_DETECTIONS, _Frames
+
+    seq = tmp_path / "views"
+    assert main(["synth", "--demo", "--frames", ":2", "--views", "3", "--protocol", "ballan", "--out", str(seq)]) == 0
+    info = read_sequence_info(seq)
+    listed = json.loads((camera_dir(seq, 1) / "salient.json").read_text())["frames"][0]
+    auto = _Frames([seq], [info], 2, [None], views=3, depth=False, colour=True, salient="auto")._colour_view(0, 1, 0)
+    np.testing.assert_allclose(auto.salient, np.reshape(listed, (-1, 2)))  # the file's, as written
+    frames = _Frames([seq], [info], 2, [None], views=3, depth=False, colour=True, salient="detector")
+    uv, seen = np.load(seq / "gt" / "salient_2d.npy"), np.load(seq / "gt" / "salient_visible.npy")
+    found = total = on_nail = detections = 0
+    for c in range(3):
+        det = frames._colour_view(0, c, 0).salient
+        assert det.shape[1] == 2 and len(det) <= NAIL_DETECTIONS
+        if len(det):  # on a nail, seen or partly hidden (its centre vertex behind the finger)
+            on_nail += int((np.linalg.norm(det[:, None] - uv[0, c][None], axis=-1).min(1) <= 8.0).sum())
+            detections += len(det)
+        gt = uv[0, c][seen[0, c]]
+        if len(det) and len(gt):
+            found += int((np.linalg.norm(gt[:, None] - det[None], axis=-1).min(1) <= 8.0).sum())
+        total += len(gt)
+    # under the protocol's 100 circles a frame: most detections are nails, most seen nails found
+    assert total >= 10 and found >= 0.7 * total and on_nail >= 0.6 * detections, (found, total, on_nail, detections)
+    out = tmp_path / "out"
+    assert main(["track", str(seq), "--energy", "E+C+S", "--nails", "detector", "--out", str(out)]) == 0
+    log = json.loads((out / info.name / "track_log.json").read_text())
+    assert log["settings"]["nails"] == "detector"

@@ -211,7 +211,7 @@ def _track(args) -> int:
     job = TrackJob(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
                    write_vertices=args.write_vertices, reinit_iou=args.reinit_iou,
                    models=tuple(args.models.split(",")) if args.models else None,
-                   threads=args.threads)
+                   threads=args.threads, nails=args.nails)
     run = track_many(dirs, args.out, job, workers=args.workers, ray=args.ray, batch=args.batch, resume=args.resume,
                      force=args.force, retries=args.retries)
     summaries = run["sequences"]
@@ -479,6 +479,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reinit-iou", type=float, default=0.5,
                    help="re-initialise a frame whose fitted hands overlap their data with a silhouette IoU below this "
                         "(particle swarm seeded from the frame's blobs and the pose tracked; 0: never)")
+    p.add_argument("--nails", choices=("auto", "detector"), default="auto",
+                   help="nail detections of colour views (S): auto = each camera's salient.json where it has one, "
+                        "else the shipped colour nail detector; detector = the shipped detector everywhere")
     p.add_argument("--write-render", action="store_true",
                    help="also write each frame's rendered model depth (OUT/<sequence>/render/NNNNNN.png, 16-bit mm)")
     p.add_argument("--write-vertices", action="store_true",

@@ -37,12 +37,23 @@ from torchhand.tracking.segmentation import Segmentation, SegmentConfig, Segment
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
 __all__ = ["track_sequences", "track_settings", "output_names", "automatic_init", "initialize_sequence",
-           "calibrate_sequence", "REINIT_IOU"]
+           "calibrate_sequence", "REINIT_IOU", "NAIL_SCORE", "NAIL_DETECTIONS", "NAIL_SOURCES"]
 
 #: A frame whose fitted hands overlap their data with a silhouette IoU below this is
 #: re-initialised (0.5: a tracked hand scores 0.8-0.95 on renders and 0.7-0.9 on the real
 #: frames; a hand that was lost, or that came back into view elsewhere, scores below 0.3).
 REINIT_IOU = 0.5
+
+#: Nail detections of a colour view without ``salient.json``: the shipped colour
+#: detector's peaks above this confidence, at most ten per view (two hands' nails).
+#: 0.07 is its precision-0.95 point on held-out renders (recall 0.87; at 0.2: precision
+#: 0.99, recall 0.75; ``eval/eval_salient.py --modality colour``, docs/salient.md).
+NAIL_SCORE = 0.07
+NAIL_DETECTIONS = 10
+#: Where the nail detections of colour views come from: ``"auto"``, a camera's
+#: ``salient.json`` where it has one and the shipped detector elsewhere; ``"detector"``,
+#: the shipped detector everywhere.
+NAIL_SOURCES = ("auto", "detector")
 
 
 def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(), device: str = "cpu",
@@ -52,7 +63,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
                     reinit_iou: float = REINIT_IOU, init_config: InitConfig = InitConfig(),
                     models: Optional[Sequence[str]] = None, names: Optional[Sequence[str]] = None,
                     on_frames: Optional[Callable[[int], None]] = None, init_poses: Optional[Sequence] = None,
-                    write_vertices: bool = False) -> List[dict]:
+                    write_vertices: bool = False, nails: str = "auto") -> List[dict]:
     """Track sequence folders and write their results.
 
     Sequences with the same models are solved as one batch, frame by frame; the
@@ -101,7 +112,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
     found the first pose itself, e.g. ``torchhand rig`` with a model it just built).
     ``write_vertices``: also ``vertices/<model>.npy`` per model, its posed vertices per
     frame in camera 0's coordinates ((N, V, 3) float32 mm), for scoring any model against
-    ground-truth vertices.
+    ground-truth vertices. ``nails``: the source of the colour views' nail detections
+    (:data:`NAIL_SOURCES`).
 
     Returns:
         one dict per sequence, in the order of ``roots``: ``sequence``, ``status``
@@ -118,7 +130,9 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         raise ValueError(f"init_poses: one theta per sequence, got {len(init_poses)} for {len(roots)} sequences")
     if len(names) != len(roots) or len(set(names)) != len(names):
         raise ValueError(f"names: one distinct output name per sequence, got {names} for {len(roots)} sequences")
-    settings = track_settings(config, segment, reinit_iou, init_config, models, device)
+    if nails not in NAIL_SOURCES:
+        raise ValueError(f"nails must be one of {NAIL_SOURCES}, got {nails!r}")
+    settings = track_settings(config, segment, reinit_iou, init_config, models, device, nails)
     out = Path(out)
     targets = [out / n for n in names]
     for t in targets:
@@ -170,7 +184,8 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame", disable=not progress)
         results: List[FrameResult] = []
         frames = _Frames([roots[k] for k in members], [infos[k] for k in members], n_frames, segs, keep_masks=viz,
-                         views=V, depth="depth" in needs, colour="colour" in needs)
+                         views=V, depth="depth" in needs, colour="colour" in needs,
+                         salient=("salient" in needs) and nails)
         refit = _Refit(tracker, scene, cams, frames, initializer if reinit_iou > 0 else None, reinit_iou,
                        [_segment_for_search(segs[i], scene) for i in range(len(members))])
         read_errors = frames.errors
@@ -212,11 +227,6 @@ def _unusable(root: Path, info: SequenceInfo, needs: set, segment: Optional[Segm
                 f"with --depth for an RGB-D rig")
     if "colour" in needs and not info.has_rgb:
         return f"{root}: the energy's colour terms (E, O) read rgb/ images, and sequence.json says it has none"
-    missing = [str(camera_dir(root, c) / "salient.json") for c in range(len(info.cameras))
-               if not (camera_dir(root, c) / "salient.json").is_file()]
-    if "salient" in needs and missing:
-        return (f"{root}: S on colour views reads the nail detections of every camera, and {missing[0]} is missing "
-                f"(synth --protocol ballan writes simulated ones)")
     sizes = [(c.width, c.height) for c in info.cameras]
     if len(set(sizes)) > 1:
         k = next(k for k, size in enumerate(sizes) if size != sizes[0])
@@ -238,14 +248,15 @@ def output_names(infos: Sequence[SequenceInfo]) -> List[str]:
 
 
 def track_settings(config: TrackerConfig, segment: Optional[SegmentConfig], reinit_iou: float,
-                   init_config: InitConfig, models: Optional[Sequence[str]], device: str = "cpu") -> dict:
+                   init_config: InitConfig, models: Optional[Sequence[str]], device: str = "cpu",
+                   nails: str = "auto") -> dict:
     """Everything of a run that changes its tracked poses, as JSON (``track_log.json``
     ``settings``; ``--resume`` refuses a folder tracked with other settings)."""
     return json.loads(json.dumps({
         "command": "track", "tracker": dataclasses.asdict(config),
         "segment": None if segment is None else dataclasses.asdict(segment), "reinit_iou": reinit_iou,
         "init": dataclasses.asdict(init_config), "models": None if models is None else list(models),
-        "device": str(device)}))
+        "device": str(device), "nails": nails}))
 
 
 def _failed(name: str, error: str) -> dict:
@@ -428,9 +439,10 @@ class _Frames:
 
     def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
                  segments: List[Optional[SegmentConfig]], keep_masks: bool = False, views: int = 1,
-                 depth: bool = True, colour: bool = False):
+                 depth: bool = True, colour: bool = False, salient=None):
         self.roots, self.infos, self.n_frames, self.segments = roots, infos, n_frames, segments
         self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
+        self.salient, self._nail_detector = salient or None, None  # None, or a NAIL_SOURCES entry
         self.errors: List[List[str]] = []
         self.depths: List[Optional[np.ndarray]] = []
         self.segmentations: List[Optional[Segmentation]] = []
@@ -454,7 +466,7 @@ class _Frames:
                                 for c in range(self.views)]
                         depth = view[0]
                     if self.colour:
-                        colour = [_read_colour(root, c, f, self._salient(i, c)) for c in range(self.views)]
+                        colour = [self._colour_view(i, c, f) for c in range(self.views)]
                         colour = colour[0] if self.views == 1 else colour
                 except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
                     depth, view, colour, err = None, None, None, str(e)
@@ -468,6 +480,23 @@ class _Frames:
         self.errors.append(why)
         self.depths, self.segmentations, self._views, self._colours = depths, segs, views, colours
         self._frame = f
+
+    def _colour_view(self, i: int, camera: int, f: int) -> ColourView:
+        """Frame ``f`` of a colour view, with its nail detections when the energy reads
+        them: the camera's ``salient.json`` where it has one (``salient="auto"``), else
+        the shipped colour nail detector's (:data:`NAIL_SCORE`, at most
+        :data:`NAIL_DETECTIONS`)."""
+        detections = self._salient(i, camera) if self.salient == "auto" else None
+        view = _read_colour(self.roots[i], camera, f, detections)
+        if self.salient and detections is None:
+            if self._nail_detector is None:
+                from torchhand.salient import SalientDetector
+
+                self._nail_detector = SalientDetector.load_onnx(modality="colour", threshold=NAIL_SCORE,
+                                                                max_detections=NAIL_DETECTIONS)
+            found = self._nail_detector.detect(view.image)
+            view = view._replace(salient=found.uv.numpy().astype(np.float64))
+        return view
 
     def _salient(self, i: int, camera: int) -> Optional[list]:
         """The salient point detections of sequence ``i``'s camera (``salient.json``: per

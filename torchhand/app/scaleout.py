@@ -74,6 +74,7 @@ class TrackJob:
     init_config: InitConfig = field(default_factory=InitConfig)
     models: Optional[tuple] = None
     threads: int = 1
+    nails: str = "auto"  # the colour views' nail detections (runner.NAIL_SOURCES)
 
 
 @dataclass(frozen=True)
@@ -307,7 +308,7 @@ def _track_task(spec: dict, report: _Report) -> List[dict]:
     return track_sequences(spec["roots"], spec["out"], job.config, device=job.device, viz=job.viz,
                            force=spec["force"], progress=False, segment=job.segment, write_render=job.write_render,
                            write_vertices=job.write_vertices, init_config=job.init_config, models=job.models,
-                           names=spec["names"],
+                           names=spec["names"], nails=job.nails,
                            on_frames=lambda n: report("frames", n), **extra)
 
 
@@ -386,7 +387,7 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     out = Path(out).resolve()
     names = output_names(infos)
     reinit = REINIT_IOU if job.reinit_iou is None else job.reinit_iou
-    settings = track_settings(job.config, job.segment, reinit, job.init_config, job.models, job.device)
+    settings = track_settings(job.config, job.segment, reinit, job.init_config, job.models, job.device, job.nails)
     done: Dict[int, dict] = {}
     taken = []
     for k, n in enumerate(names):
