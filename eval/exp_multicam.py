@@ -12,8 +12,10 @@ with nails and textured backgrounds, and the noise protocol of the paper's Sec. 
 (``--protocol ballan``: 100 circles per image, salient detections deleted at 30 %,
 outliers within 200 px, 5 px jitter). Each row is tracked by ``torchhand track``'s
 runner from the first frame's true pose, with the energies E (edges), E+C (collisions),
-E+C+O (optical flow) and E+C+O+S (salient points: the nails), all by the library's
-Levenberg-Marquardt ("LO"); the HOPE rows run the particle swarm over the same energy
+E+C+O (optical flow) and E+C+O+S (salient points: the nails, the protocol's simulated
+detections), all by the library's Levenberg-Marquardt ("LO"); ``LO+ECOS-net`` is E+C+O+S
+with the nails found by the shipped colour detector in the noisy images instead
+(``track --nails detector``); the HOPE rows run the particle swarm over the same energy
 (``--hope 64,128``; 40 generations).
 
 Columns, as in the paper: the joint position error (the 21 joints of each hand against
@@ -40,8 +42,10 @@ from torchhand.data.layout import read_poses
 from torchhand.data.synth import thesis_motion, with_camera_ring, write_synthetic_sequence
 from torchhand.tracking.tracker import TrackerConfig
 
-#: (row label, --energy)
-ROWS = [("LO+E", "E"), ("LO+EC", "E+C"), ("LO+ECO", "E+C+O"), ("LO+ECOS", "E+C+O+S")]
+#: (row label, --energy, --nails): the paper's rows with the protocol's simulated
+#: detections, and one with the shipped colour nail detector instead
+ROWS = [("LO+E", "E", "auto"), ("LO+EC", "E+C", "auto"), ("LO+ECO", "E+C+O", "auto"), ("LO+ECOS", "E+C+O+S", "auto"),
+        ("LO+ECOS-net", "E+C+O+S", "detector")]
 SEQUENCES = ("03", "16")
 
 
@@ -99,22 +103,23 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--views", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--rows", default=",".join(label for label, _ in ROWS), help="comma-separated row labels")
+    p.add_argument("--rows", default=",".join(label for label, *_ in ROWS), help="comma-separated row labels")
     p.add_argument("--hope", default="", help="particle counts of the HOPE rows, e.g. 64,128 (slow)")
     p.add_argument("--generations", type=int, default=40, help="of the HOPE rows (the paper: 40)")
+    p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
     args = p.parse_args(argv)
     roots = render_sequences(args.hia_root, args.work, args.sequences.split(","), args.start, args.frames,
                              args.views, args.seed)
-    rows = [(label, energy, None) for label, energy in ROWS if label in args.rows.split(",")]
-    rows += [(f"HOPE{n}+ECOS", "E+C+O+S", int(n)) for n in args.hope.split(",") if n]
+    rows = [(label, energy, nails, None) for label, energy, nails in ROWS if label in args.rows.split(",")]
+    rows += [(f"HOPE{n}+ECOS", "E+C+O+S", "auto", int(n)) for n in args.hope.split(",") if n]
     table = {}
-    for label, energy, particles in rows:
+    for label, energy, nails, particles in rows:
         out = args.work / "tracks" / label.replace("+", "_")
         t0 = time.perf_counter()
-        config = TrackerConfig(energy=energy)
+        config = TrackerConfig(energy=energy, min_joint_motion=args.min_motion)
         if particles is not None:  # the swarm over the same terms
             config = dataclasses.replace(config, solver="pso", particles=particles, generations=args.generations)
-        summaries = track_sequences(roots, out, config, force=True, progress=True)
+        summaries = track_sequences(roots, out, config, force=True, progress=True, nails=nails)
         seconds = time.perf_counter() - t0
         parts = []
         for root, summary in zip(roots, summaries):
@@ -122,11 +127,12 @@ def main(argv=None) -> int:
                 raise RuntimeError(f"{label}: {root}: {summary.get('error')}")
             parts.append({"sequence": root.name, **score(Path(summary["out"]), root / "gt"),
                           "seconds_per_frame": summary["seconds_per_frame"]})
-        table[label] = {"energy": energy, **pooled(parts), "sequences": parts,
+        table[label] = {"energy": energy, "nails": nails, **pooled(parts), "sequences": parts,
                         "seconds_per_frame": seconds / sum(len(q["per_frame_mm"]) for q in parts)}
         print(f"{label}: joints {table[label]['joint_mm'][0]:.2f} mm, bones {table[label]['bone_deg'][0]:.2f} deg, "
               f"{table[label]['seconds_per_frame']:.2f} s/frame", flush=True)
     result = {"sequences": [r.name for r in roots], "frames": args.frames, "views": args.views, "seed": args.seed,
+              "min_motion_mm": args.min_motion,
               "protocol": "ballan", "table": table}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=1))

@@ -181,6 +181,14 @@ def test_synth_bad_frames_and_noise_are_usage_errors(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("value", ["0", "-1", "abc", "nan"])
+def test_track_bad_min_motion_is_a_usage_error(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as ex:
+        main(["track", str(tmp_path), "--out", str(tmp_path / "o"), "--min-motion", value])
+    assert ex.value.code == 2 and "--min-motion" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_track_unknown_energy(synth_out, tmp_path, capsys):
     out = tmp_path / "track"
     assert main(["track", str(synth_out), "--out", str(out), "--energy", "XY"]) == 2
@@ -264,10 +272,12 @@ def test_track_writes_labelled_overlays_and_eval_counts_flagged_frames(tmp_path,
     shutil.copytree(REPO / "datasets" / "sample", seq)
     (seq / "depth" / "000002.png").unlink()  # a missing frame: flagged, previous pose kept
     out = tmp_path / "out"
-    args = ["track", str(seq), "--out", str(out), "--iterations", "2", "--first-iterations", "2", "--viz"]
+    args = ["track", str(seq), "--out", str(out), "--iterations", "2", "--first-iterations", "2", "--viz",
+            "--min-motion", "0.1"]
     assert main(args) == 0
     name = json.loads((seq / "sequence.json").read_text())["name"]
     log = json.loads((out / name / "track_log.json").read_text())
+    assert log["settings"]["tracker"]["min_joint_motion"] == 0.1 and log["settings"]["nails"] == "auto"
     assert [f["valid"] for f in log["frames"]] == [True, True, False, True]
     assert "depth frame not found" in log["frames"][2]["notes"]
     img = cv2.imread(str(out / name / "overlays" / "000001.png"))

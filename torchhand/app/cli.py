@@ -202,9 +202,9 @@ def _track(args) -> int:
 
     parse_energy(args.energy)  # reject unknown energies before reading any data
     cfg = TrackerConfig(energy=args.energy, metric=args.metric, max_iterations=args.iterations,
-                        first_frame_iterations=args.first_iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter, seed=args.seed, backend=args.backend,
-                        labels=args.labels, solver=args.solver, particles=args.particles,
+                        min_joint_motion=args.min_motion, first_frame_iterations=args.first_iterations,
+                        prediction=args.prediction, prediction_limiter=args.prediction_limiter, seed=args.seed,
+                        backend=args.backend, labels=args.labels, solver=args.solver, particles=args.particles,
                         generations=args.generations)
     segment = _segment_config(args, "none") if args.segment else None
     dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
@@ -309,6 +309,16 @@ def _positive_int(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {n}")
     return n
+
+
+def _positive_float(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not x > 0 or x == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return x
 
 
 def _scale_options(p: argparse.ArgumentParser) -> None:
@@ -459,6 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which model a data pixel belongs to: the model nearest in 3D, or the nearest rendered "
                         "model in the image (docs/results.md)")
     p.add_argument("--iterations", type=int, default=50, help="max iterations per frame")
+    p.add_argument("--min-motion", type=_positive_float, default=0.2,
+                   help="a frame has converged when the joints move less than this (mm) in an iteration (the "
+                        "thesis' 0.2; 0.1 tracks colour rigs closer at about 1.8x the time, docs/results.md)")
     p.add_argument("--first-iterations", type=int, default=50, help="iterations on the first frame")
     p.add_argument("--prediction", type=float, default=None,
                    help="start each frame from the previous pose + P x its last step (minmod-limited, see "
