@@ -306,7 +306,8 @@ def test_energy_forms_agree_and_jacobian_matches_finite_differences(demo):
 
 
 def test_parse_energy_with_collisions():
-    assert [t.name for t in parse_energy("LO+C")] == ["m2d", "d2m", "collision", "anatomy", "regularization"]
+    assert [t.name for t in parse_energy("LO+C")] == ["m2d", "d2m", "collision", "anatomy", "regularization",
+                                                      "chain_smoothness"]
     with pytest.raises(ValueError, match="twice"):
         parse_energy("LO+CC")
 

@@ -147,6 +147,6 @@ def test_salient_term_drops_detections_off_the_surface_or_below_min_score(hand_f
 
 
 def test_parse_energy_with_salient_points():
-    assert [t.name for t in parse_energy("LO+S")] == ["m2d", "d2m", "salient", "anatomy", "regularization"]
-    assert [t.name for t in parse_energy("LO+CS")] == ["m2d", "d2m", "collision", "salient", "anatomy",
-                                                       "regularization"]
+    priors = ["anatomy", "regularization", "chain_smoothness"]
+    assert [t.name for t in parse_energy("LO+S")] == ["m2d", "d2m", "salient", *priors]
+    assert [t.name for t in parse_energy("LO+CS")] == ["m2d", "d2m", "collision", "salient", *priors]

@@ -55,9 +55,9 @@ def _unwrap(term):
 
 @pytest.mark.parametrize("term", [ModelToData(metric="point-to-point"), ModelToData(metric="point-to-plane"),
                                   default_data_to_model(), DataToModel(), Robust(ModelToData(), Huber(2.0)),
-                                  FreeSpace(), default_free_space(), *default_priors()],
+                                  FreeSpace(), default_free_space(), *default_priors()[:2]],
                          ids=["m2d-point", "m2d-plane", "d2m", "d2m-plain", "m2d-huber", "free", "free-default",
-                              "anatomy", "regularization"])
+                              "anatomy", "regularization"])  # chain smoothness: test_chain_smoothness.py
 def test_term_jacobian_matches_finite_differences(hand_frame, term):
     scene, theta, cam, depth = hand_frame
     tracker = Tracker(scene, TrackerConfig(), terms=[ModelToData(), term])
@@ -280,7 +280,7 @@ def test_far_off_initial_pose_is_flagged_and_finite(hand_frame):
 
 
 def test_parse_energy_rejects_unknown_and_future_components():
-    assert [t.name for t in parse_energy("LO")] == ["m2d", "d2m", "anatomy", "regularization"]
+    assert [t.name for t in parse_energy("LO")] == ["m2d", "d2m", "anatomy", "regularization", "chain_smoothness"]
     with pytest.raises(ValueError, match="unknown components"):
         parse_energy("LO+X")
     with pytest.raises(ValueError, match="unknown components"):
@@ -289,7 +289,8 @@ def test_parse_energy_rejects_unknown_and_future_components():
         parse_energy("C")
     with pytest.raises(ValueError, match="LO twice"):
         parse_energy("LO+LO")
-    assert [t.name for t in parse_energy("E+C+O")] == ["edges", "flow", "collision", "anatomy", "regularization"]
+    assert [t.name for t in parse_energy("E+C+O")] == ["edges", "flow", "collision", "anatomy", "regularization",
+                                                       "chain_smoothness"]
     assert [t.needs for t in parse_energy("LO+E")][:3] == ["depth", "depth", "colour"]
 
 

@@ -8,21 +8,22 @@ weights and losses: ``LO`` is model-to-data plus data-to-model (depth), ``C`` ad
 components in any order); ``E`` (edges) and ``O`` (optical flow) read colour images
 (Ballan et al. 2012: ``E+C+O+S`` on colour views, ``LO+E`` on RGB-D); ``S`` is the
 fingertips detected in depth when the energy has ``LO``, the nails detected in colour
-views (:mod:`~torchhand.tracking.energies.nails`) when it has not; anatomy and
-regularisation are always added.
+views (:mod:`~torchhand.tracking.energies.nails`) when it has not; anatomy,
+regularisation and the chain smoothness of ropes are always added.
 """
 
 from __future__ import annotations
 
 from typing import List, Optional
 
-from torchhand.tracking.energies import (anatomy, collision, data_to_model, edges, free_space, nails,
-                                         optical_flow, physics, regularization)
+from torchhand.tracking.energies import (anatomy, chain_smoothness, collision, data_to_model, edges, free_space,
+                                         nails, optical_flow, physics, regularization)
 from torchhand.tracking.energies.edges import Edges
 from torchhand.tracking.energies.nails import Nails
 from torchhand.tracking.energies.optical_flow import OpticalFlow
 from torchhand.tracking.energies.anatomy import Anatomy
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
+from torchhand.tracking.energies.chain_smoothness import ChainSmoothness
 from torchhand.tracking.energies.collision import Collision
 from torchhand.tracking.energies.data_to_model import DataToModel
 from torchhand.tracking.energies.free_space import FreeSpace
@@ -33,8 +34,9 @@ from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
 __all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
-           "FreeSpace", "Physics", "Edges", "OpticalFlow", "Nails", "Anatomy", "Regularization", "Weighted", "Robust", "parse_energy", "default_data_to_model",
-           "default_free_space", "default_priors", "ENERGY_COMPONENTS"]
+           "FreeSpace", "Physics", "Edges", "OpticalFlow", "Nails", "Anatomy", "Regularization", "ChainSmoothness",
+           "Weighted", "Robust", "parse_energy", "default_data_to_model", "default_free_space", "default_priors",
+           "ENERGY_COMPONENTS"]
 
 #: components understood by parse_energy after ``LO``
 ENERGY_COMPONENTS = {"E": "edges of colour images (rendered occluding contours to Canny edges, DCH-Thres)",
@@ -59,9 +61,11 @@ def default_free_space(**kwargs) -> EnergyTerm:
 
 
 def default_priors() -> List[EnergyTerm]:
-    """Anatomy (gamma_a = 0.0015 C_all) and regularisation (gamma_r = 0.02 C_all)."""
+    """Anatomy (gamma_a = 0.0015 C_all), regularisation (gamma_r = 0.02 C_all) and the
+    chain smoothness of ropes (0.2 C_all; no residuals in scenes without such chains)."""
     return [Weighted(Anatomy(), anatomy.DEFAULT_WEIGHT, per_correspondence=True),
-            Weighted(Regularization(), regularization.DEFAULT_WEIGHT, per_correspondence=True)]
+            Weighted(Regularization(), regularization.DEFAULT_WEIGHT, per_correspondence=True),
+            Weighted(ChainSmoothness(), chain_smoothness.DEFAULT_WEIGHT, per_correspondence=True)]
 
 
 def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[str] = None) -> List[EnergyTerm]:

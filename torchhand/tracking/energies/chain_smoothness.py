@@ -1,0 +1,76 @@
+"""E_chain: the joints of a chain of like bones (the rope) bend alike.
+
+``E = sum_(j, k) (theta_j - theta_k)^2`` over the pairs of a bone's DoF and the same DoF
+of its only child, where both turn about the same axis of their own frames (the rope's
+35 joints about y and z); hands are left out (their finger joints do not bend alike),
+and so are rigid objects, the pipe's single joint and any joint whose neighbour turns
+about another axis. The tracker weights it by 0.2 per data correspondence
+(:data:`DEFAULT_WEIGHT`), like the temporal term.
+
+Not in the thesis, which tracks the rope with the generic terms. Why: a tube is thin
+under the sensor's noise and uniform along its length, so nothing in the data stops one
+joint under a hand from folding while its neighbours stay straight, and the rest of the
+rope then slides along its own axis (docs/results.md, "Two hands and the rope": the
+rope in the pipe's place lost in 14 of 400 frames, 7.4 mm on average, without the term;
+none lost and 2.5 mm with it). A real rope or cable resists such kinks: its bending
+stiffness spreads a bend over its length.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchhand.model.scene import Scene
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, prepared
+
+__all__ = ["ChainSmoothness", "DEFAULT_WEIGHT", "chain_pairs"]
+
+#: weight per data correspondence (the rope in the pipe's place, docs/results.md)
+DEFAULT_WEIGHT = 0.2
+
+_SLOTS = {"x": 0, "y": 1, "z": 2}
+
+
+def chain_pairs(scene: Scene) -> torch.Tensor:
+    """(P, 2) int64 scene DoF indices (parent's, child's) of the pairs of E_chain."""
+    pairs = []
+    for name, model in zip(scene.names, scene.models):
+        if model.kind == "hand":
+            continue
+        start = scene.slices[name].start
+        parents = [int(p) for p in model.parents]
+        children = {b: [c for c, p in enumerate(parents) if p == b] for b in range(len(parents))}
+        slots = {}
+        for k, dof in enumerate(model.dof_names):
+            bone, _, axis = dof.partition(":")
+            if bone != "root" and axis in _SLOTS:
+                slots[(int(model.dof_bone[k]), _SLOTS[axis])] = start + k
+        for (bone, slot), k in slots.items():
+            kids = children[bone]
+            if len(kids) == 1 and (kids[0], slot) in slots and torch.allclose(
+                    model.slot_axes[bone, slot], model.slot_axes[kids[0], slot], atol=1e-6):
+                pairs.append((k, slots[(kids[0], slot)]))
+    return torch.tensor(sorted(pairs), dtype=torch.int64).reshape(-1, 2)
+
+
+class ChainSmoothness(EnergyTerm):
+    """E_chain (module docstring). A scene without such chains has no residuals."""
+
+    name = "chain_smoothness"
+    prior = True
+
+    def prepare(self, state: TrackState) -> Prepared:
+        if getattr(self, "_scene", None) is not state.scene:  # the pairs, once per scene
+            self.pairs, self._scene = chain_pairs(state.scene).to(state.theta.device), state.scene
+        return prepared(state.theta.shape[0], device=state.theta.device)
+
+    def residuals(self, theta, posed, jacobian=True):
+        a, b = self.pairs[:, 0], self.pairs[:, 1]
+        r = theta[:, a] - theta[:, b]
+        J = None
+        if jacobian:
+            J = theta.new_zeros(theta.shape[0], len(a), theta.shape[1])
+            rows = torch.arange(len(a), device=theta.device)
+            J[:, rows, a] = 1.0
+            J[:, rows, b] = -1.0
+        return Residuals(r, J)
