@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import torch
 
+from torchhand.data.chains import chain_object
+from torchhand.model.articulated import ArticulatedModel
 from torchhand.model.scene import Scene
 from torchhand.tracking.energies import ChainSmoothness, default_priors, parse_energy
-from torchhand.tracking.energies.chain_smoothness import chain_pairs
+from torchhand.tracking.energies.chain_smoothness import MIN_JOINTS, chain_pairs
 
 F64 = torch.float64
 
@@ -24,6 +26,11 @@ def test_pairs_are_the_ropes_consecutive_joints_only():
         assert na.split(":")[1] == nb.split(":")[1] and int(nb[4:7]) == int(na[4:7]) + 1
     for names in (["hand_right", "hand_left", "ball"], ["pipe"], ["cube"]):
         assert chain_pairs(Scene.from_names(names)).shape == (0, 2)
+    # a mechanism: hinges about the same axis, but too few to be a rope; a long one is
+    few = Scene([ArticulatedModel(chain_object([60.0] * 4, ("z",) * 3))], names=["links"])
+    assert chain_pairs(few).shape == (0, 2)
+    many = Scene([ArticulatedModel(chain_object([30.0] * MIN_JOINTS + [30.0], ("z",) * MIN_JOINTS))], names=["links"])
+    assert chain_pairs(many).shape == (MIN_JOINTS - 1, 2)
     assert any(isinstance(getattr(t, "term", None), ChainSmoothness) for t in default_priors())
     assert any(isinstance(getattr(t, "term", None), ChainSmoothness) for t in parse_energy("E+C+O+S"))
 

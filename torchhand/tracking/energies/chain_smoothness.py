@@ -1,10 +1,11 @@
 """E_chain: the joints of a chain of like bones (the rope) bend alike.
 
 ``E = sum_(j, k) (theta_j - theta_k)^2`` over the pairs of a bone's DoF and the same DoF
-of its only child, where both turn about the same axis of their own frames (the rope's
-35 joints about y and z); hands are left out (their finger joints do not bend alike),
-and so are rigid objects, the pipe's single joint and any joint whose neighbour turns
-about another axis. The tracker weights it by 0.2 per data correspondence
+of its only child, where both turn about the same axis of their own frames, in runs of
+at least :data:`MIN_JOINTS` such joints (the rope's 35 joints about y and z); hands are
+left out (their finger joints do not bend alike), and so are rigid objects, the pipe's
+single joint, a mechanism's few hinges (a rigged or generated chain of links) and any
+joint whose neighbour turns about another axis. The tracker weights it by 0.2 per data correspondence
 (:data:`DEFAULT_WEIGHT`), like the temporal term.
 
 Not in the thesis, which tracks the rope with the generic terms. Why: a tube is thin
@@ -23,16 +24,20 @@ import torch
 from torchhand.model.scene import Scene
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, prepared
 
-__all__ = ["ChainSmoothness", "DEFAULT_WEIGHT", "chain_pairs"]
+__all__ = ["ChainSmoothness", "DEFAULT_WEIGHT", "MIN_JOINTS", "chain_pairs"]
 
 #: weight per data correspondence (the rope in the pipe's place, docs/results.md)
 DEFAULT_WEIGHT = 0.2
+
+#: the shortest run of like joints that counts as a chain (the rope has 35)
+MIN_JOINTS = 8
 
 _SLOTS = {"x": 0, "y": 1, "z": 2}
 
 
 def chain_pairs(scene: Scene) -> torch.Tensor:
-    """(P, 2) int64 scene DoF indices (parent's, child's) of the pairs of E_chain."""
+    """(P, 2) int64 scene DoF indices (parent's, child's) of the pairs of E_chain: runs of
+    at least :data:`MIN_JOINTS` like joints (a mechanism's few hinges are left alone)."""
     pairs = []
     for name, model in zip(scene.names, scene.models):
         if model.kind == "hand":
@@ -45,11 +50,18 @@ def chain_pairs(scene: Scene) -> torch.Tensor:
             bone, _, axis = dof.partition(":")
             if bone != "root" and axis in _SLOTS:
                 slots[(int(model.dof_bone[k]), _SLOTS[axis])] = start + k
-        for (bone, slot), k in slots.items():
+        link = {}  # (bone, slot) -> (its only child, slot) turning about the same axis
+        for (bone, slot) in slots:
             kids = children[bone]
             if len(kids) == 1 and (kids[0], slot) in slots and torch.allclose(
                     model.slot_axes[bone, slot], model.slot_axes[kids[0], slot], atol=1e-6):
-                pairs.append((k, slots[(kids[0], slot)]))
+                link[(bone, slot)] = (kids[0], slot)
+        for head in set(link) - set(link.values()):  # each run from its first joint
+            run = [head]
+            while run[-1] in link:
+                run.append(link[run[-1]])
+            if len(run) >= MIN_JOINTS:
+                pairs += [(slots[a], slots[b]) for a, b in zip(run, run[1:])]
     return torch.tensor(sorted(pairs), dtype=torch.int64).reshape(-1, 2)
 
 
