@@ -5,15 +5,15 @@ of its only child, where both turn about the same axis of their own frames, in r
 at least :data:`MIN_JOINTS` such joints (the rope's 35 joints about y and z); hands are
 left out (their finger joints do not bend alike), and so are rigid objects, the pipe's
 single joint, a mechanism's few hinges (a rigged or generated chain of links) and any
-joint whose neighbour turns about another axis. The tracker weights it by 0.2 per data correspondence
-(:data:`DEFAULT_WEIGHT`), like the temporal term.
+joint whose neighbour turns about another axis. The tracker weights it by 0.2 per data
+correspondence (:data:`DEFAULT_WEIGHT`), like the temporal term.
 
 Not in the thesis, which tracks the rope with the generic terms. Why: a tube is thin
 under the sensor's noise and uniform along its length, so nothing in the data stops one
 joint under a hand from folding while its neighbours stay straight, and the rest of the
 rope then slides along its own axis (docs/results.md, "Two hands and the rope": the
-rope in the pipe's place lost in 14 of 400 frames, 7.4 mm on average, without the term;
-none lost and 2.5 mm with it). A real rope or cable resists such kinks: its bending
+rope in the pipe's place, 400 frames, 6.5 mm on average and 101 frames above 10 mm
+without the term, 2.5 mm and one frame above 10 mm with it). A real rope or cable resists such kinks: its bending
 stiffness spreads a bend over its length.
 """
 
