@@ -189,6 +189,14 @@ def test_track_bad_min_motion_is_a_usage_error(tmp_path, capsys, value):
     assert not (tmp_path / "o").exists()
 
 
+def test_track_nails_choices_are_the_runners():
+    from torchhand.app.cli import build_parser
+    from torchhand.app.runner import NAIL_SOURCES
+
+    track = build_parser()._subparsers._group_actions[0].choices["track"]
+    assert tuple(next(a for a in track._actions if a.dest == "nails").choices) == NAIL_SOURCES
+
+
 def test_track_unknown_energy(synth_out, tmp_path, capsys):
     out = tmp_path / "track"
     assert main(["track", str(synth_out), "--out", str(out), "--energy", "XY"]) == 2

@@ -230,9 +230,12 @@ def test_nail_detections_come_from_salient_json_or_the_shipped_detector(tmp_path
     assert main(["synth", "--demo", "--frames", ":2", "--views", "3", "--protocol", "ballan", "--out", str(seq)]) == 0
     info = read_sequence_info(seq)
     listed = json.loads((camera_dir(seq, 1) / "salient.json").read_text())["frames"][0]
-    auto = _Frames([seq], [info], 2, [None], views=3, depth=False, colour=True, salient="auto")._colour_view(0, 1, 0)
-    np.testing.assert_allclose(auto.salient, np.reshape(listed, (-1, 2)))  # the file's, as written
-    frames = _Frames([seq], [info], 2, [None], views=3, depth=False, colour=True, salient="detector")
+    (camera_dir(seq, 2) / "salient.json").unlink()  # camera 2 as a user's own recording
+    auto = _Frames([seq], [info], 2, [None], views=3, depth=False, colour=True, nails="auto")
+    np.testing.assert_allclose(auto._colour_view(0, 1, 0).salient, np.reshape(listed, (-1, 2)))  # the file's
+    frames = _Frames([seq], [info], 2, [None], views=3, depth=False, colour=True, nails="detector")
+    assert not np.array_equal(frames._colour_view(0, 1, 0).salient, auto._colour_view(0, 1, 0).salient)
+    np.testing.assert_array_equal(auto._colour_view(0, 2, 0).salient, frames._colour_view(0, 2, 0).salient)
     uv, seen = np.load(seq / "gt" / "salient_2d.npy"), np.load(seq / "gt" / "salient_visible.npy")
     found = total = on_nail = detections = 0
     for c in range(3):

@@ -492,6 +492,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reinit-iou", type=float, default=0.5,
                    help="re-initialise a frame whose fitted hands overlap their data with a silhouette IoU below this "
                         "(particle swarm seeded from the frame's blobs and the pose tracked; 0: never)")
+    # runner.NAIL_SOURCES, spelled out: importing the runner would slow every command's parsing by seconds
     p.add_argument("--nails", choices=("auto", "detector"), default="auto",
                    help="nail detections of colour views (S): auto = each camera's salient.json where it has one, "
                         "else the shipped colour nail detector; detector = the shipped detector everywhere")

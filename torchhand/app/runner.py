@@ -28,6 +28,7 @@ from torchhand.io.thesis import write_motion
 from torchhand.model.motion import theta_to_motion
 from torchhand.model.articulated import ArticulatedModel, load_model
 from torchhand.model.scene import Scene, SceneOutput
+from torchhand.salient import SalientDetector
 from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.calibration import CalibrationConfig, calibrate_hand
 from torchhand.tracking.energies import EnergyTerm, parse_energy
@@ -185,7 +186,7 @@ def track_sequences(roots: Sequence, out, config: TrackerConfig = TrackerConfig(
         results: List[FrameResult] = []
         frames = _Frames([roots[k] for k in members], [infos[k] for k in members], n_frames, segs, keep_masks=viz,
                          views=V, depth="depth" in needs, colour="colour" in needs,
-                         salient=("salient" in needs) and nails)
+                         nails=nails if "salient" in needs else None)
         refit = _Refit(tracker, scene, cams, frames, initializer if reinit_iou > 0 else None, reinit_iou,
                        [_segment_for_search(segs[i], scene) for i in range(len(members))])
         read_errors = frames.errors
@@ -439,10 +440,10 @@ class _Frames:
 
     def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
                  segments: List[Optional[SegmentConfig]], keep_masks: bool = False, views: int = 1,
-                 depth: bool = True, colour: bool = False, salient=None):
+                 depth: bool = True, colour: bool = False, nails: Optional[str] = None):
         self.roots, self.infos, self.n_frames, self.segments = roots, infos, n_frames, segments
         self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
-        self.salient, self._nail_detector = salient or None, None  # None, or a NAIL_SOURCES entry
+        self.nails, self._nail_detector = nails, None  # a NAIL_SOURCES entry; None: no nails read
         self.errors: List[List[str]] = []
         self.depths: List[Optional[np.ndarray]] = []
         self.segmentations: List[Optional[Segmentation]] = []
@@ -483,15 +484,13 @@ class _Frames:
 
     def _colour_view(self, i: int, camera: int, f: int) -> ColourView:
         """Frame ``f`` of a colour view, with its nail detections when the energy reads
-        them: the camera's ``salient.json`` where it has one (``salient="auto"``), else
-        the shipped colour nail detector's (:data:`NAIL_SCORE`, at most
+        them (``nails``): the camera's ``salient.json`` where it has one (``"auto"``),
+        else the shipped colour nail detector's (:data:`NAIL_SCORE`, at most
         :data:`NAIL_DETECTIONS`)."""
-        detections = self._salient(i, camera) if self.salient == "auto" else None
+        detections = self._salient(i, camera) if self.nails == "auto" else None
         view = _read_colour(self.roots[i], camera, f, detections)
-        if self.salient and detections is None:
-            if self._nail_detector is None:
-                from torchhand.salient import SalientDetector
-
+        if self.nails is not None and detections is None:
+            if self._nail_detector is None:  # loaded once, where a view first needs it
                 self._nail_detector = SalientDetector.load_onnx(modality="colour", threshold=NAIL_SCORE,
                                                                 max_detections=NAIL_DETECTIONS)
             found = self._nail_detector.detect(view.image)

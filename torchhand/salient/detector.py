@@ -509,7 +509,8 @@ def _check_colour_frame(rgb) -> np.ndarray:
     if not np.issubdtype(arr.dtype, np.floating):
         raise TypeError(f"rgb must be uint8 or float in 0..255, got dtype {arr.dtype}")
     if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 255:
-        raise ValueError(f"rgb values must be finite and in 0..255, got {float(np.nanmin(arr))}..{float(np.nanmax(arr))}")
+        raise ValueError(f"rgb values must be finite and in 0..255, got "
+                         f"{float(np.nanmin(arr))}..{float(np.nanmax(arr))}")
     return arr.astype(np.float32, copy=False)
 
 
@@ -589,12 +590,14 @@ class SalientDetector:
         """Detector from a weights file (default: the shipped network of ``modality``,
         ``models/salient_fingertips.pt`` for depth, ``models/salient_nails_rgb.pt`` for
         colour)."""
-        return cls(SalientNet.load(shipped_weights(modality, onnx=False) if path is None else path), device=device, **kwargs)
+        path = shipped_weights(modality, onnx=False) if path is None else path
+        return cls(SalientNet.load(path), device=device, **kwargs)
 
     @classmethod
     def load_onnx(cls, path=None, threads: int = 2, modality: str = "depth", **kwargs) -> "OnnxSalientDetector":
         """ONNX Runtime detector (default: the shipped export of ``modality``)."""
-        return OnnxSalientDetector(shipped_weights(modality, onnx=True) if path is None else path, threads=threads, **kwargs)
+        path = shipped_weights(modality, onnx=True) if path is None else path
+        return OnnxSalientDetector(path, threads=threads, **kwargs)
 
     def detect(self, image: ArrayLike) -> Detections:
         """Salient points in one frame.
@@ -678,7 +681,8 @@ def export_onnx(net: SalientNet, path, height: int = 240, width: int = 320, opse
     """Export ``net`` (legacy TorchScript-based exporter) with dynamic batch, height, width.
 
     Inputs: ``depth`` (B, 1, H, W) float32 mm, or ``rgb`` (B, 3, H, W) float32 0..255 for
-    a colour network; outputs ``logits``, ``offsets``, ``hough`` as in :class:`SalientOutput`. The Hough voting exports as ScatterElements with
+    a colour network; outputs ``logits``, ``offsets``, ``hough`` as in
+    :class:`SalientOutput`. The Hough voting exports as ScatterElements with
     ``reduction="add"`` (opset >= 16).
     """
     if opset < 16:
