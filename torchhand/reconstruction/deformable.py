@@ -29,6 +29,13 @@ Choices the thesis leaves open, made here:
   frame has no data (the Laplacian does not see translations).
 - Correspondences are searched again ``iterations`` times per frame (ICP), each time
   followed by an exact solve of the quadratic problem.
+- Two terms the thesis does not have keep a tube seen from one side in shape
+  (docs/rigging.md has the measurements): ``rigidity`` |V - R T|^2 over the cotangent-
+  weighted edges, as rigid as possible against the template T (Sorkine and Alexa's
+  local rotations R), and ``stretch``, each edge at its template length along its
+  current direction. The Laplacian does not see a tube stretching or sliding along
+  itself (a linear stretch is harmonic); the edge-length term does, and leaves bending
+  free. Both are linearised at the current estimate and share the ARAP system matrix.
 
 Everything is in world coordinates (mm); several depth cameras add their
 correspondences to the same system (multi-view depth).
@@ -61,7 +68,12 @@ class DeformConfig:
     10 mm^2, 0.05 above). max_distance (mm), max_normal_angle (degrees): the thesis'
     model-to-data gates. edge_radius_px: the data-to-model gate. iterations: searches
     and solves per frame. eps: the regularising weight relative to gamma_def.
-    max_vertices: a larger template is tracked as a decimated copy that carries it."""
+    max_vertices: a larger template is tracked as a decimated copy that carries it.
+    point_to_plane: the model-to-data term along the data normal instead of Eq. 6.2's
+    point-to-point. predict: each frame's search starts from the constant-velocity
+    prediction. rigidity: weight of the as-rigid-as-possible term against the template
+    (0: the thesis' objective). stretch: weight of the edge-length term, every edge at
+    its template length along its current direction (bending free; 0: off)."""
 
     gamma_def: float = 0.005
     max_distance: float = 10.0
@@ -73,6 +85,7 @@ class DeformConfig:
     point_to_plane: bool = False
     predict: bool = True
     rigidity: float = 0.005
+    stretch: float = 0.05
 
 
 class DeformResult(NamedTuple):
@@ -133,6 +146,9 @@ def _gates(config: DeformConfig) -> None:
         raise ValueError(f"iterations must be >= 1, got {config.iterations}")
     if config.max_vertices < 100:
         raise ValueError(f"max_vertices must be >= 100, got {config.max_vertices}")
+    for name in ("rigidity", "stretch"):
+        if not getattr(config, name) >= 0:
+            raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(config, name)}")
 
 
 class Embedding(NamedTuple):
@@ -235,6 +251,19 @@ def _arap_rhs(problem: _Problem, current: torch.Tensor) -> np.ndarray:
     return rhs.numpy()
 
 
+def _stretch_rhs(problem: _Problem, current: torch.Tensor) -> np.ndarray:
+    """The right-hand side of the edge-length term: every edge at its template length
+    along its current direction (each edge turns freely: bending costs nothing)."""
+    i, j, w = problem.arap_i, problem.arap_j, torch.as_tensor(problem.arap_w)
+    T, X = problem.template, current
+    l0 = (T[i] - T[j]).norm(dim=-1)
+    e1 = X[i] - X[j]
+    u = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    rhs = torch.zeros_like(T)
+    rhs.index_add_(0, torch.as_tensor(i), (w * l0)[:, None] * u)
+    return rhs.numpy()
+
+
 def _data_points(frame: DepthFrame, camd: Camera) -> tuple:
     """The frame's valid points and normals in world coordinates."""
     R_wc, t_wc = camd.T_wc[:3, :3], camd.T_wc[:3, 3]
@@ -325,6 +354,9 @@ def deform_frame(problem: _Problem, previous: torch.Tensor, frames: Sequence[Dep
         if cfg.rigidity > 0:
             A = A + cfg.rigidity * problem.K3
             b = b + cfg.rigidity * _arap_rhs(problem, current).reshape(-1)
+        if cfg.stretch > 0:
+            A = A + cfg.stretch * problem.K3
+            b = b + cfg.stretch * _stretch_rhs(problem, current).reshape(-1)
         current = torch.as_tensor(splu(A.tocsc(), permc_spec="COLAMD").solve(b).reshape(V, 3))
     return current, m2d, d2m
 
