@@ -15,15 +15,16 @@ the cluster of the sample nearest to it along the mesh (Dijkstra over the mesh e
 scipy).
 
 The thesis compares frames ``dt = 2 max_i,t |V_i,t - V_i,t-1|`` apart (Eq. 6.7, the
-displacement in mm read as a number of frames); here dt is at most a quarter of the
-sequence, so that a fast motion still gives many intervals. ``interval="sequence"``
-compares any two frames instead (the range of each distance over the sequence). On exact
-trajectories that is independent of the speed (the same three-link motion sampled at 40
-and at 100 frames: second and third eigenvalues 0.37, 0.81 and 0.73, 0.96 with the
-thesis' interval, 0.20, 0.57 for both over the sequence), but the slow drift of a
-deformable tracking adds up over the sequence and splits rigid links (a tracked two-link
-chain: 4 parts at lambda_thr 0.7 against the thesis' 2), so the thesis' interval is the
-default.
+displacement in mm read as a number of frames; here at most a quarter of the sequence):
+``interval="thesis"``. The default, ``interval="sequence"``, compares any two frames
+(the range of each distance over the sequence). Eq. 6.7's interval makes the result
+depend on the speed: the same three-link motion sampled at 40 and at 100 frames has
+second and third eigenvalues 0.37, 0.81 and 0.73, 0.96 with it, 0.20, 0.57 for both over
+the sequence; and on the exact trajectories of ``eval/exp_rig.py``'s slowly bent chains
+(dt 3-8 frames) it finds a single part for each of them at lambda_thr 0.7 (third
+eigenvalue of the three-link chain 0.95), where the whole sequence finds 2, 2 and 3. (An earlier deformable
+tracking drifted along tubes, and over a whole sequence the drift split rigid links;
+with the tracking's edge-length term and the merge below it no longer does.)
 
 Choices the thesis leaves open, made here: a cluster that falls apart on the mesh is
 split into its connected pieces, and pieces under ``min_part`` of the vertices join the
@@ -51,7 +52,7 @@ import torch
 
 from torchhand.geometry.mesh import vertex_normals
 
-__all__ = ["Segmentation", "segment_motion", "merge_rigid_parts", "rigid_residual", "mesh_edges", "sample_vertices",
+__all__ = ["Segmentation", "segment_motion", "merge_rigid_parts", "rigid_residual", "mesh_edges", "mesh_graph", "sample_vertices",
            "SegmentationError"]
 
 
@@ -100,7 +101,8 @@ def sample_vertices(vertices: np.ndarray, count: int) -> np.ndarray:
     return np.unique(ids)
 
 
-def _graph(vertices: np.ndarray, faces: np.ndarray):
+def mesh_graph(vertices: np.ndarray, faces: np.ndarray):
+    """The (V, V) sparse graph of the mesh edges weighted by their lengths (mm)."""
     import scipy.sparse as sp
 
     e = mesh_edges(faces)
@@ -145,11 +147,11 @@ def trajectory_distances(traj: torch.Tensor, normals: torch.Tensor, dt: Optional
 
 def segment_motion(trajectories: np.ndarray, template: np.ndarray, faces: np.ndarray, lambda_thr: float = 0.7,
                    samples: int = 1000, lam: float = 0.1, use_normals: bool = True, min_part: float = 0.005,
-                   interval: str = "thesis", seed: int = 0, merge_ratio: float = 1.5) -> Segmentation:
+                   interval: str = "sequence", seed: int = 0, merge_ratio: float = 1.5) -> Segmentation:
     """Segment the mesh by the motion of its (T, V, 3) vertex trajectories (module
     docstring). ``template``: (V, 3) the rigging-pose vertices (where samples are drawn
-    and distances along the mesh measured). ``interval``: ``"thesis"`` (default) compares
-    frames dt apart (Eq. 6.7), ``"sequence"`` any two frames. ``merge_ratio``: redundant
+    and distances along the mesh measured). ``interval``: ``"sequence"`` (default) compares
+    any two frames, ``"thesis"`` frames dt apart (Eq. 6.7). ``merge_ratio``: redundant
     parts are joined (:func:`merge_rigid_parts`; 0 keeps the clusters as they are)."""
     from scipy.linalg import eigh
     from scipy.sparse.csgraph import dijkstra
@@ -181,7 +183,7 @@ def segment_motion(trajectories: np.ndarray, template: np.ndarray, faces: np.nda
         cl = np.zeros(len(ids), np.int64)
     else:
         cl = spectral_clustering(phi, n_clusters=k, random_state=seed, assign_labels="kmeans").astype(np.int64)
-    graph = _graph(np.asarray(template, np.float64), faces)
+    graph = mesh_graph(np.asarray(template, np.float64), faces)
     _, _, src = dijkstra(graph, indices=ids, min_only=True, return_predecessors=True)
     lookup = np.full(V, -1, np.int64)
     lookup[ids] = cl

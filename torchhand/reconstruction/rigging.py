@@ -45,7 +45,7 @@ from torchhand.io.assets import ModelAssets, rigid_assets
 from torchhand.model.kinematics import so3_log
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.reconstruction.deformable import cotangent_weights
-from torchhand.reconstruction.motion_segments import mesh_edges
+from torchhand.reconstruction.motion_segments import mesh_edges, mesh_graph
 from torchhand.reconstruction.registration import kabsch_batch
 
 __all__ = ["RigConfig", "Rig", "Skeleton", "curve_skeleton", "part_transforms", "build_rig", "fit_rig"]
@@ -58,13 +58,16 @@ class RigConfig:
     skin_width: mm, about the width of the blend across a part boundary. skin_bones:
     weights kept per vertex. joint_search: mm, how far along the skeleton from the
     boundary centroid a joint moves to the point that the two parts' motions agree on
-    best (0: the snapped centroid, as the thesis places it)."""
+    best (0: the snapped centroid, as the thesis places it). joint_core: mm along the
+    mesh; the two parts' motions for that search come from their vertices at least this
+    far from their boundary (the deformable tracking bends a part most there)."""
 
     axis_ratio: float = 0.3
     limit_margin_deg: float = 15.0
     skin_width: float = 5.0
     skin_bones: int = 4
     joint_search: float = 40.0
+    joint_core: float = 20.0
 
 
 class Skeleton(NamedTuple):
@@ -177,6 +180,21 @@ def part_transforms(trajectories: np.ndarray, template: np.ndarray, parts: np.nd
     return torch.stack(Rs, 1).numpy(), torch.stack(ts, 1).numpy()
 
 
+def _core_motion(trajectories: np.ndarray, template: np.ndarray, parts: np.ndarray, part: int, boundary: np.ndarray,
+                 graph, core: float, R: np.ndarray, t: np.ndarray) -> tuple:
+    """The rigid motion (T, 3, 3), (T, 3) of the part's vertices at least ``core`` mm
+    along the mesh from ``boundary``; the whole part's (R, t) when fewer than 10 are."""
+    from scipy.sparse.csgraph import dijkstra
+
+    far = dijkstra(graph, indices=boundary, min_only=True, limit=core) >= core
+    ids = np.nonzero((parts == part) & far)[0]
+    if len(ids) < 10:
+        return R, t
+    Rc, tc = kabsch_batch(torch.as_tensor(np.asarray(template, np.float64)[ids]),
+                          torch.as_tensor(np.asarray(trajectories, np.float64)[:, ids]))
+    return Rc.numpy(), tc.numpy()
+
+
 def _tree(adjacency: np.ndarray, sizes: np.ndarray) -> tuple:
     """(order, parent) of the parts: breadth first from the graph centre."""
     from scipy.sparse.csgraph import shortest_path
@@ -265,6 +283,7 @@ def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray,
     # joints: boundary centroids snapped to the skeleton, then moved along it to where
     # the parent's and the child's motions move the joint alike
     R, tr = part_transforms(trajectories, template, parts)
+    graph = mesh_graph(template, faces) if config.joint_search > 0 and config.joint_core > 0 else None
     joint_of: Dict[int, np.ndarray] = {}
     for p in order[1:]:
         q = parent[p]
@@ -274,7 +293,11 @@ def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray,
         joint_of[p] = snapped
         if config.joint_search > 0:
             cand = _skeleton_points(skeleton, snapped, config.joint_search)
-            A, b = R[:, q] - R[:, p], tr[:, q] - tr[:, p]  # (T, 3, 3), (T, 3)
+            Rq, tq, Rp, tp = R[:, q], tr[:, q], R[:, p], tr[:, p]
+            if config.joint_core > 0:
+                Rq, tq = _core_motion(trajectories, template, parts, q, boundary, graph, config.joint_core, Rq, tq)
+                Rp, tp = _core_motion(trajectories, template, parts, p, boundary, graph, config.joint_core, Rp, tp)
+            A, b = Rq - Rp, tq - tp  # (T, 3, 3), (T, 3)
             cost = np.linalg.norm(np.einsum("tij,sj->tsi", A, cand) + b[:, None], axis=-1).mean(0)
             joint_of[p] = cand[np.argmin(cost)]
             at_centroid = cost[np.argmin(np.linalg.norm(cand - snapped, axis=1))]
