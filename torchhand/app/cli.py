@@ -120,10 +120,12 @@ def _rig(args) -> int:
     deform = DeformConfig(gamma_def=args.gamma_def)
     if args.rigidity is not None:
         deform = dataclasses.replace(deform, rigidity=args.rigidity)
+    if args.stretch is not None:
+        deform = dataclasses.replace(deform, stretch=args.stretch)
     log = rig_folder(args.seq, args.template, args.out, hands=[h for h in args.hands.split(",") if h],
                      name=args.name, template_pose=pose, deform=deform, lambda_thr=args.lambda_thr,
                      use_normals=not args.no_normals, config=RigConfig(skin_width=args.skin_width),
-                     merge_ratio=args.merge_ratio,
+                     merge_ratio=args.merge_ratio, interval=args.interval,
                      near=args.near, far=args.far, frames=args.frames, force=args.force, track=not args.no_track)
     joints = ", ".join(f"{d} DoF" for d in log["joint_dofs"]) or "none"
     print(f"rigged {log['frames']} frames: {log['parts']} parts, joints: {joints}; {log['seconds']['total']:.0f} s -> "
@@ -415,6 +417,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "higher finds more, smaller parts (thesis: 0.7, 0.98 for small parts)")
     p.add_argument("--rigidity", type=float, default=None, help="weight of the as-rigid-as-possible term added "
                    "to the deformable tracking (default 0.005; 0: the thesis' Laplacian alone, docs/rigging.md)")
+    p.add_argument("--stretch", type=float, default=None, help="weight of the edge-length term added to the "
+                   "deformable tracking (default 0.05; 0: off, docs/rigging.md)")
+    p.add_argument("--interval", choices=("sequence", "thesis"), default="sequence", help="frames the motion "
+                   "segmentation compares: any two, or the thesis' Eq. 6.7 interval (docs/rigging.md)")
     p.add_argument("--no-normals", action="store_true", help="segment by distance changes alone (no d^n, Eq. 6.10)")
     p.add_argument("--merge-ratio", type=float, default=1.5, help="join neighbouring parts that one rigid motion "
                    "fits within this factor of their own residual (redundant bones; 0: keep every cluster)")
