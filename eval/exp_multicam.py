@@ -6,7 +6,10 @@ added in turn, on synthetic sequences with the paper's noise.
 The paper's two synthetic sequences were "fingers crossing and folding" and "holding
 and passing a ball"; their analogues here are windows of the shared thesis motions 03
 (two hands, fingers interacting) and 16 (two hands and a ball), ``--frames`` frames
-from ``--start``. Each is rendered by ``torchhand synth``'s machinery with ``--views``
+each, from ``--start`` or from the frame a sequence names as ``NN@START``. The default
+window of 03 starts at frame 44, where its fingers cross (the hands are in contact from
+about frame 44 to 132; over frames 0-40 they only approach, 13-40 mm apart, and
+collisions have nothing to do); that of 16 at frame 0, the ball held and passed. Each is rendered by ``torchhand synth``'s machinery with ``--views``
 cameras around the scene (:func:`torchhand.data.synth.with_camera_ring`), shaded colour
 with nails and textured backgrounds, and the noise protocol of the paper's Sec. 5
 (``--protocol ballan``: 100 circles per image, salient detections deleted at 30 %,
@@ -46,13 +49,26 @@ from torchhand.tracking.tracker import TrackerConfig
 #: detections, and one with the shipped colour nail detector instead
 ROWS = [("LO+E", "E", "auto"), ("LO+EC", "E+C", "auto"), ("LO+ECO", "E+C+O", "auto"), ("LO+ECOS", "E+C+O+S", "auto"),
         ("LO+ECOS-net", "E+C+O+S", "detector")]
-SEQUENCES = ("03", "16")
+#: the sequences and the first frame of each one's window (``NN@START``)
+SEQUENCES = ("03@44", "16@0")
 
 
-def render_sequences(hia_root: Path, work: Path, sequences, start: int, frames: int, views: int, seed: int) -> list:
-    """The synthetic multi-view sequences (one folder each, rendered once)."""
+def parse_windows(text: str, start: int) -> list:
+    """``"03@44,16"`` -> [("03", 44), ("16", start)]."""
+    windows = []
+    for item in text.split(","):
+        name, _, first = item.strip().partition("@")
+        if not name or (first and not first.isdigit()):
+            raise SystemExit(f"--sequences: expected NN or NN@START items, got {item!r}")
+        windows.append((name, int(first) if first else start))
+    return windows
+
+
+def render_sequences(hia_root: Path, work: Path, windows, frames: int, views: int, seed: int) -> list:
+    """The synthetic multi-view sequences of the (sequence, first frame) ``windows`` (one
+    folder each, rendered once)."""
     roots = []
-    for s in sequences:
+    for s, start in windows:
         root = work / f"seq{s}_{start}_{frames}_v{views}_seed{seed}"
         if not (root / "sequence.json").is_file():
             motion = thesis_motion(hia_root, s, slice(start, start + frames))
@@ -98,8 +114,9 @@ def main(argv=None) -> int:
     p.add_argument("--hia-root", type=Path, required=True)
     p.add_argument("--json", type=Path, required=True)
     p.add_argument("--work", type=Path, default=Path("out/exp_multicam"), help="rendered sequences and tracks")
-    p.add_argument("--sequences", default=",".join(SEQUENCES))
-    p.add_argument("--start", type=int, default=0)
+    p.add_argument("--sequences", default=",".join(SEQUENCES), help="comma-separated thesis sequences, each "
+                   "NN (from --start) or NN@START")
+    p.add_argument("--start", type=int, default=0, help="first frame of the sequences given without @START")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--views", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
@@ -108,7 +125,7 @@ def main(argv=None) -> int:
     p.add_argument("--generations", type=int, default=40, help="of the HOPE rows (the paper: 40)")
     p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
     args = p.parse_args(argv)
-    roots = render_sequences(args.hia_root, args.work, args.sequences.split(","), args.start, args.frames,
+    roots = render_sequences(args.hia_root, args.work, parse_windows(args.sequences, args.start), args.frames,
                              args.views, args.seed)
     rows = [(label, energy, nails, None) for label, energy, nails in ROWS if label in args.rows.split(",")]
     rows += [(f"HOPE{n}+ECOS", "E+C+O+S", "auto", int(n)) for n in args.hope.split(",") if n]
