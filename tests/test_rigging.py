@@ -67,7 +67,7 @@ def test_motion_segmentation_finds_the_links(chain3):
     seg = segment_motion(traj, chain3.vertices, chain3.faces)
     assert seg.parts == 3
     # the thesis' interval (Eq. 6.7) sees this slow bend only at its higher threshold
-    assert segment_motion(traj, chain3.vertices, chain3.faces, interval="thesis").parts < 3
+    assert segment_motion(traj, chain3.vertices, chain3.faces, interval="thesis", refine=False).parts < 3
     assert segment_motion(traj, chain3.vertices, chain3.faces, interval="thesis", lambda_thr=0.9).parts == 3
     # each link's vertices (away from the blend zones) in one part
     x = chain3.vertices[:, 0]
@@ -81,6 +81,23 @@ def test_motion_segmentation_finds_the_links(chain3):
     with torch.no_grad():
         rigid = model(th).vertices.numpy()
     assert segment_motion(rigid, chain3.vertices, chain3.faces).parts == 1
+
+
+def test_refinement_keeps_an_extra_cluster_only_where_it_is_a_joint(chain3):
+    traj, _ = _trajectories(chain3)
+    ev = segment_motion(traj, chain3.vertices, chain3.faces, refine=False).eigenvalues
+    low = float(ev[1] + ev[2]) / 2  # a threshold that sees two clusters only
+    two = segment_motion(traj, chain3.vertices, chain3.faces, lambda_thr=low, refine=False)
+    assert two.clusters == 2 and two.parts == 2 and two.refined == ()
+    seg = segment_motion(traj, chain3.vertices, chain3.faces, lambda_thr=low)
+    # the third cluster survives the merge; the fourth is joined again, so it stops there
+    assert seg.clusters == 3 and seg.parts == 3 and len(seg.refined) == 1 and "kept" in seg.refined[0]
+    x = chain3.vertices[:, 0]
+    for lo, hi in ((-140, -50), (-30, 40), (60, 140)):
+        sel = (x > lo) & (x < hi)
+        assert np.bincount(seg.labels[sel]).max() > 0.98 * sel.sum()
+    # without the merge there is nothing to test a cut with: no refinement
+    assert segment_motion(traj, chain3.vertices, chain3.faces, lambda_thr=low, merge_ratio=0).clusters == 2
 
 
 def test_redundant_parts_are_joined(chain3):

@@ -125,7 +125,7 @@ def _rig(args) -> int:
     log = rig_folder(args.seq, args.template, args.out, hands=[h for h in args.hands.split(",") if h],
                      name=args.name, template_pose=pose, deform=deform, lambda_thr=args.lambda_thr,
                      use_normals=not args.no_normals, config=RigConfig(skin_width=args.skin_width),
-                     merge_ratio=args.merge_ratio, interval=args.interval,
+                     merge_ratio=args.merge_ratio, interval=args.interval, refine=not args.no_refine,
                      near=args.near, far=args.far, frames=args.frames, force=args.force, track=not args.no_track)
     joints = ", ".join(f"{d} DoF" for d in log["joint_dofs"]) or "none"
     print(f"rigged {log['frames']} frames: {log['parts']} parts, joints: {joints}; {log['seconds']['total']:.0f} s -> "
@@ -421,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "deformable tracking (default 0.05; 0: off, docs/rigging.md)")
     p.add_argument("--interval", choices=("sequence", "thesis"), default="sequence", help="frames the motion "
                    "segmentation compares: any two, or the thesis' Eq. 6.7 interval (docs/rigging.md)")
+    p.add_argument("--no-refine", action="store_true", help="take the count of eigenvalues below --lambda-thr as "
+                   "the number of clusters (the thesis); by default one more cluster is tried while it survives the "
+                   "merge of redundant parts (docs/rigging.md)")
     p.add_argument("--no-normals", action="store_true", help="segment by distance changes alone (no d^n, Eq. 6.10)")
     p.add_argument("--merge-ratio", type=float, default=1.5, help="join neighbouring parts that one rigid motion "
                    "fits within this factor of their own residual (redundant bones; 0: keep every cluster)")

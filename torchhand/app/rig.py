@@ -112,7 +112,7 @@ def _template_placement(root: Path, info, template: np.ndarray, template_pose) -
 def rig_folder(root, template, out, hands: Sequence[str] = (), name: Optional[str] = None,
                template_pose=None, deform: DeformConfig = DeformConfig(), lambda_thr: float = 0.7,
                use_normals: bool = True, samples: int = 1000, config: RigConfig = RigConfig(),
-               merge_ratio: float = 1.5, interval: str = "sequence",
+               merge_ratio: float = 1.5, interval: str = "sequence", refine: bool = True,
                near: float = 200.0, far: float = 1500.0, dilation: int = 5, frames: Optional[int] = None,
                force: bool = False, progress: bool = True, track: bool = True) -> dict:
     """Rig the object of the sequence folder ``root`` (module docstring) into the new
@@ -135,7 +135,7 @@ def rig_folder(root, template, out, hands: Sequence[str] = (), name: Optional[st
     work = partial_dir(final)
     try:
         log = _rig_into(work, root, info, n, tv, tf, what, T0, hands, name or f"rig_{info.name}", deform, lambda_thr,
-                        use_normals, samples, config, near, far, dilation, progress, track, merge_ratio, interval)
+                        use_normals, samples, config, near, far, dilation, progress, track, merge_ratio, interval, refine)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)  # nothing half-written stays behind
         raise
@@ -170,7 +170,7 @@ def _hand_masks(root: Path, work: Path, info, hands: list, n: int, dilation: int
 def _rig_into(work: Path, root: Path, info, n: int, tv, tf, what: str, T0: np.ndarray, hands: list, name: str,
               deform: DeformConfig, lambda_thr: float, use_normals: bool, samples: int, config: RigConfig,
               near: float, far: float, dilation: int, progress: bool, track: bool, merge_ratio: float,
-              interval: str) -> dict:
+              interval: str, refine: bool) -> dict:
     t0 = time.perf_counter()
     seconds = {}
     hand_theta, masks = None, None
@@ -206,7 +206,7 @@ def _rig_into(work: Path, root: Path, info, n: int, tv, tf, what: str, T0: np.nd
     traj = res.vertices.astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
     t2 = time.perf_counter()
     seg = segment_motion(traj, tv, tf, lambda_thr=lambda_thr, samples=samples, use_normals=use_normals,
-                         merge_ratio=merge_ratio, interval=interval)
+                         merge_ratio=merge_ratio, interval=interval, refine=refine)
     rig = build_rig(tv, tf, traj, seg.labels, name, config, source=f"torchhand rig of {root} ({what})")
     seconds["rigging"] = time.perf_counter() - t2
     save_assets(rig.assets, work / "model.npz")
@@ -218,12 +218,12 @@ def _rig_into(work: Path, root: Path, info, n: int, tv, tf, what: str, T0: np.nd
     (work / "skeleton.json").write_text(json.dumps(rig.to_json()))
     log = {"sequence": str(root), "template": what, "frames": n, "name": name, "parts": seg.parts,
            "clusters": seg.clusters, "eigenvalues": seg.eigenvalues.round(5).tolist(), "dt": seg.dt,
-           "joints_mm": rig.joints.round(3).tolist(), "joint_dofs": rig.joint_dofs.tolist(), "notes": list(seg.merged) + rig.notes,
+           "joints_mm": rig.joints.round(3).tolist(), "joint_dofs": rig.joint_dofs.tolist(), "notes": list(seg.refined) + list(seg.merged) + rig.notes,
            "deformable": {"model_to_data": res.model_to_data.tolist(), "data_to_model": res.data_to_model.tolist(),
                           "seconds": res.seconds.round(4).tolist()},
            "template_pose": T0.tolist(), "hands": hands,
            "settings": {"deform": dataclasses.asdict(deform), "lambda_thr": lambda_thr, "use_normals": use_normals,
-                        "merge_ratio": merge_ratio, "interval": interval,
+                        "merge_ratio": merge_ratio, "interval": interval, "refine": refine,
                         "samples": samples, "rig": dataclasses.asdict(config), "near": near, "far": far,
                         "dilation": dilation}}
     if seg.parts == 1:
