@@ -92,7 +92,7 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
     if "E" in extra:
         terms.append(Robust(Edges(backend=backend), edges.DEFAULT_LOSS))
     if "O" in extra:
-        terms.append(Robust(OpticalFlow(), optical_flow.DEFAULT_LOSS))
+        terms.append(Weighted(Robust(OpticalFlow(), optical_flow.DEFAULT_LOSS), optical_flow.DEFAULT_WEIGHT))
     if "C" in extra:
         terms.append(Weighted(Collision(), collision.DEFAULT_WEIGHT))
     if "S" in extra:  # fingertips in depth with the depth terms, else the nails of colour views

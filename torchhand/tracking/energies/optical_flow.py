@@ -30,10 +30,15 @@ from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
                                               prepared, project_views, stride_subsample)
 
-__all__ = ["OpticalFlow", "dense_flow", "DEFAULT_LOSS"]
+__all__ = ["OpticalFlow", "dense_flow", "DEFAULT_LOSS", "DEFAULT_WEIGHT"]
 
 #: the pairs' robust loss, as the edges' (flow is wrong at occlusions and in textureless skin)
 DEFAULT_LOSS = Cauchy(scale=3.0)
+#: the term's weight against the edges' 1 (Ballan et al. do not give theirs). Table 1's
+#: run (eval/exp_multicam.py, docs/results.md), LO+ECO / LO+ECOS joint error: weight 1
+#: 2.22 / 1.93 mm, 0.5 1.92 / 1.78 mm, 0.25 1.83 / 2.44 mm (a finger lost on the crossing
+#: fingers: the flow no longer holds it where the edges are ambiguous)
+DEFAULT_WEIGHT = 0.5
 
 PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
            "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
