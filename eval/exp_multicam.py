@@ -9,7 +9,8 @@ and passing a ball"; their analogues here are windows of the shared thesis motio
 each, from ``--start`` or from the frame a sequence names as ``NN@START``. The default
 window of 03 starts at frame 44, where its fingers cross (the hands are in contact from
 about frame 44 to 132; over frames 0-40 they only approach, 13-40 mm apart, and
-collisions have nothing to do); that of 16 at frame 0, the ball held and passed. Each is rendered by ``torchhand synth``'s machinery with ``--views``
+collisions have nothing to do); that of 16 at frame 0, the ball held and passed. Each
+is rendered by ``torchhand synth``'s machinery with ``--views``
 cameras around the scene (:func:`torchhand.data.synth.with_camera_ring`), shaded colour
 with nails and textured backgrounds, and the noise protocol of the paper's Sec. 5
 (``--protocol ballan``: 100 circles per image, salient detections deleted at 30 %,
