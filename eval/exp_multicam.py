@@ -11,8 +11,11 @@ window of 03 starts at frame 44, where its fingers cross (the hands are in conta
 about frame 44 to 132; over frames 0-40 they only approach, 13-40 mm apart, and
 collisions have nothing to do); that of 16 at frame 0, the ball held and passed. Each
 is rendered by ``torchhand synth``'s machinery with ``--views``
-cameras around the scene (:func:`torchhand.data.synth.with_camera_ring`), shaded colour
-with nails and textured backgrounds, and the noise protocol of the paper's Sec. 5
+cameras around the scene (:func:`torchhand.data.synth.with_camera_ring`) at
+``--image-scale`` times 640x480 (default 2: 1280x960 with f = 1050 px, the same field
+of view; the paper's cameras recorded FullHD, and the pixel amounts of its noise are
+those images'), shaded colour with nails and textured backgrounds, and the noise
+protocol of the paper's Sec. 5
 (``--protocol ballan``: 100 circles per image, salient detections deleted at 30 %,
 outliers within 200 px, 5 px jitter). Each row is tracked by ``torchhand track``'s
 runner from the first frame's true pose, with the energies E (edges), E+C (collisions),
@@ -65,16 +68,18 @@ def parse_windows(text: str, start: int) -> list:
     return windows
 
 
-def render_sequences(hia_root: Path, work: Path, windows, frames: int, views: int, seed: int) -> list:
+def render_sequences(hia_root: Path, work: Path, windows, frames: int, views: int, seed: int,
+                     scale: float = 1.0) -> list:
     """The synthetic multi-view sequences of the (sequence, first frame) ``windows`` (one
     folder each, rendered once)."""
     roots = []
     for s, start in windows:
-        root = work / f"seq{s}_{start}_{frames}_v{views}_seed{seed}"
+        size = "" if scale == 1 else f"_x{scale:g}"
+        root = work / f"seq{s}_{start}_{frames}_v{views}{size}_seed{seed}"
         if not (root / "sequence.json").is_file():
             motion = thesis_motion(hia_root, s, slice(start, start + frames))
             motion = dataclasses.replace(motion, name=f"seq{s}")
-            write_synthetic_sequence(with_camera_ring(motion, views), root, noise="none", seed=seed, force=True,
+            write_synthetic_sequence(with_camera_ring(motion, views, scale), root, noise="none", seed=seed, force=True,
                                      colour="shaded", depth=False, protocol="ballan", progress=False)
         roots.append(root)
     return roots
@@ -120,6 +125,9 @@ def main(argv=None) -> int:
     p.add_argument("--start", type=int, default=0, help="first frame of the sequences given without @START")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--views", type=int, default=8)
+    p.add_argument("--image-scale", type=float, default=2.0, help="each view's image size over 640x480, the "
+                   "same field of view (default 2: 1280x960; the paper's cameras were FullHD, and its noise "
+                   "protocol is in their pixels)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rows", default=",".join(label for label, *_ in ROWS), help="comma-separated row labels")
     p.add_argument("--hope", default="", help="particle counts of the HOPE rows, e.g. 64,128 (slow)")
@@ -127,7 +135,7 @@ def main(argv=None) -> int:
     p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
     args = p.parse_args(argv)
     roots = render_sequences(args.hia_root, args.work, parse_windows(args.sequences, args.start), args.frames,
-                             args.views, args.seed)
+                             args.views, args.seed, args.image_scale)
     rows = [(label, energy, nails, None) for label, energy, nails in ROWS if label in args.rows.split(",")]
     rows += [(f"HOPE{n}+ECOS", "E+C+O+S", "auto", int(n)) for n in args.hope.split(",") if n]
     table = {}
@@ -149,7 +157,8 @@ def main(argv=None) -> int:
                         "seconds_per_frame": seconds / sum(len(q["per_frame_mm"]) for q in parts)}
         print(f"{label}: joints {table[label]['joint_mm'][0]:.2f} mm, bones {table[label]['bone_deg'][0]:.2f} deg, "
               f"{table[label]['seconds_per_frame']:.2f} s/frame", flush=True)
-    result = {"sequences": [r.name for r in roots], "frames": args.frames, "views": args.views, "seed": args.seed,
+    result = {"sequences": [r.name for r in roots], "frames": args.frames, "views": args.views,
+              "image_scale": args.image_scale, "seed": args.seed,
               "min_motion_mm": args.min_motion,
               "protocol": "ballan", "table": table}
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -246,6 +246,26 @@ def test_kinect_camera_and_dict_round_trip():
     torch.testing.assert_close(back.T_cw, cam2.T_cw)
 
 
+def test_scaled_camera_agrees_with_cv2_resize(gen):
+    """A camera ``scaled`` by s sees what cv2.resize by s makes of its image: a point
+    projects to s (u + 1/2) - 1/2, the image's outer edges stay put."""
+    cam = Camera(_K(), _rigid([0, 1, 0], 0.3, [10.0, -5.0, 20.0]), 640, 480)
+    big = cam.scaled(2.5)
+    assert (big.width, big.height) == (1600, 1200)
+    pts = _random_points(gen, (1, 50))
+    assert torch.allclose(big.project(pts), 2.5 * (cam.project(pts) + 0.5) - 0.5, atol=1e-9)
+    # a white pixel at (u, v) = (100, 40), resized by an integer factor: the same place
+    img = np.zeros((480, 640), np.uint8)
+    img[40, 100] = 255
+    up = cv2.resize(img, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
+    rows, cols = np.nonzero(up)
+    ray_point = cam.backproject(torch.full((1, 480, 640), 700.0, dtype=torch.float64))[0, 40, 100]
+    centre = cam.scaled(3).project(ray_point.reshape(1, 1, 3))[0, 0]
+    assert torch.allclose(centre, torch.tensor([cols.mean(), rows.mean()], dtype=torch.float64), atol=1e-9)
+    with pytest.raises(ValueError, match="factor"):
+        cam.scaled(0)
+
+
 def test_camera_rig(gen):
     T = _rigid([0, 1, 0], 0.5, [-200.0, 0.0, 100.0], torch.float32)
     rig = CameraRig([kinect_camera(), kinect_camera(T)])

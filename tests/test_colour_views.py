@@ -134,7 +134,16 @@ def test_synth_views_command_line(tmp_path, capsys):
     assert main(["synth", "--demo", "--frames", ":2", "--views", "2", "--out", str(tmp_path / "c")]) == 0
     assert main(["track", str(tmp_path / "c"), "--out", str(tmp_path / "t")]) != 0
     assert "colour views only" in capsys.readouterr().err
-    for bad in (["--protocol", "ballan"], ["--depth"]):
+    # larger images of the same ring: 1.5 x 640x480, the focal length scaled with them
+    assert main(["synth", "--demo", "--frames", ":1", "--views", "2", "--image-scale", "1.5",
+                 "--out", str(tmp_path / "big")]) == 0
+    big = read_sequence_info(tmp_path / "big")
+    assert [(c.width, c.height, c.fx) for c in big.cameras] == [(960, 720, 787.5)] * 2
+    assert read_rgb(camera_dir(tmp_path / "big", 1) / "rgb" / frame_name(0)).shape == (720, 960, 3)
+    assert main(["synth", "--demo", "--frames", ":1", "--views", "2", "--image-scale", "0",
+                 "--out", str(tmp_path / "y")]) == 2
+    assert "--image-scale" in capsys.readouterr().err and not (tmp_path / "y").exists()
+    for bad in (["--protocol", "ballan"], ["--depth"], ["--image-scale", "2"]):
         assert main(["synth", "--demo", "--frames", ":2", "--out", str(tmp_path / "x"), *bad]) == 2
         assert "--views" in capsys.readouterr().err
         assert not (tmp_path / "x").exists()

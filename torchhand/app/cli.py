@@ -70,8 +70,8 @@ def _synth(args) -> int:
             raise ValueError("give --hia-root and --sequence (or --random, or --demo)")
         frames = thesis_motion(args.hia_root, args.sequence, args.frames)
     if args.views is None:
-        if args.depth or args.protocol != "none":
-            raise ValueError("--depth and --protocol go with --views N (colour cameras)")
+        if args.depth or args.protocol != "none" or args.image_scale != 1:
+            raise ValueError("--depth, --protocol and --image-scale go with --views N (colour cameras)")
         out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
                                        rgb=not args.no_rgb, backend=args.backend)
         print(f"wrote {len(frames.theta)} frames of {', '.join(frames.scene.names)} to {out} "
@@ -79,7 +79,7 @@ def _synth(args) -> int:
         return 0
     if args.no_rgb:
         raise ValueError("--views renders colour cameras: --no-rgb does not apply")
-    frames = with_camera_ring(frames, args.views)
+    frames = with_camera_ring(frames, args.views, args.image_scale)
     out = write_synthetic_sequence(frames, args.out, noise=args.noise, seed=args.seed, force=args.force,
                                    backend=args.backend, colour="shaded", depth=args.depth,
                                    protocol=args.protocol)
@@ -374,6 +374,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="N colour cameras around the scene (camera 0 the thesis' view; docs/multicam.md): shaded "
                         "colour with nails and a textured background in cam<k>/rgb, no depth unless --depth")
     p.add_argument("--depth", action="store_true", help="with --views: also write each view's depth (RGB-D rig)")
+    p.add_argument("--image-scale", type=float, default=1.0,
+                   help="with --views: each camera's image this many times 640x480 in each direction, the same field "
+                        "of view (2: 1280x960, f = 1050 px)")
     p.add_argument("--protocol", default="none", choices=["none", "ballan"],
                    help="with --views: Ballan et al.'s noise (100 circles per image, salient detections deleted, "
                         "outliers within 200 px, 5 px jitter) and simulated nail detections in salient.json")

@@ -135,21 +135,27 @@ def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(40
     return SyntheticFrames(scene, theta, [cam], f"random_{seed}", source)
 
 
-def with_camera_ring(frames: SyntheticFrames, views: int) -> SyntheticFrames:
+def with_camera_ring(frames: SyntheticFrames, views: int, scale: float = 1.0) -> SyntheticFrames:
     """``frames`` seen by :func:`~torchhand.geometry.camera.camera_ring` of ``views``
     cameras, centred at the depth of the scene's first frame on camera 0's axis (camera
-    0 keeps its place, so world coordinates are unchanged)."""
+    0 keeps its place, so world coordinates are unchanged). ``scale`` enlarges every
+    camera's image (:meth:`~torchhand.geometry.camera.Camera.scaled`: the same field of
+    view, ``scale`` times the pixels in each direction)."""
     from torchhand.geometry.camera import camera_ring
 
     if isinstance(views, bool) or not isinstance(views, int) or views < 1:
         raise ValueError(f"--views must be a positive number of cameras, got {views!r}")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
+        raise ValueError(f"--image-scale must be a number > 0, got {scale!r}")
     with torch.no_grad():
         v = frames.scene(frames.theta[:1].to(frames.scene.lower.dtype)).vertices[0]
     cam0 = frames.cameras[0]
     distance = float(cam0.to(dtype=v.dtype).to_camera(v[None])[0, :, 2].median())
-    cams = camera_ring(views, distance, like=cam0)
-    return dataclasses.replace(frames, cameras=[c.to(dtype=cam0.dtype) for c in cams],
-                               source={**frames.source, "views": views, "ring_distance_mm": round(distance, 1)})
+    cams = camera_ring(views, distance, like=cam0 if scale == 1 else cam0.scaled(scale))
+    source = {**frames.source, "views": views, "ring_distance_mm": round(distance, 1)}
+    if scale != 1:
+        source["image_scale"] = scale
+    return dataclasses.replace(frames, cameras=[c.to(dtype=cam0.dtype) for c in cams], source=source)
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:

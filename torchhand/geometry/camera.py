@@ -446,6 +446,21 @@ class Camera:
         K = self.K.to(device=device, dtype=dtype)
         return dataclasses.replace(self, K=K, T_cw=self.T_cw.to(device=device, dtype=dtype))
 
+    def scaled(self, factor: float) -> Camera:
+        """The same camera with an image ``factor`` times as large in each direction
+        (``width`` and ``height`` rounded): focal lengths times ``factor``, and the
+        principal point moved so that the image's outer edges stay where they were
+        (pixel centres at integers: x' = factor (x + 1/2) - 1/2, as cv2.resize)."""
+        if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not factor > 0:
+            raise ValueError(f"factor must be a number > 0, got {factor!r}")
+        width, height = round(self.width * factor), round(self.height * factor)
+        if width < 1 or height < 1:
+            raise ValueError(f"factor {factor} leaves a {self.width}x{self.height} camera with no pixels")
+        K = self.K.clone()
+        K[:2, :2] = K[:2, :2] * factor
+        K[:2, 2] = factor * (K[:2, 2] + 0.5) - 0.5
+        return dataclasses.replace(self, K=K, width=width, height=height)
+
     # ---------------------------------------------------------------- geometry
 
     def _matrices_for(self, name: str, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
