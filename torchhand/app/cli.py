@@ -181,7 +181,7 @@ def _eval(args) -> int:
               f"{worst['worst_frame_mm']:.1f} mm); {result['lost_frames']} lost frames (a model above 20 mm)")
     if "penetration" in result:
         p = result["penetration"]
-        print(f"penetration: {p['pairs_per_frame']} intersecting triangle pairs per frame, "
+        print(f"penetration: {p['pairs_per_frame']:.1f} intersecting triangle pairs per frame, "
               f"max depth {p['max_depth_mm']:.1f} mm")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
