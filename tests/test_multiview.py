@@ -77,6 +77,26 @@ def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
     assert np.mean(errors) < limit, errors
 
 
+def test_larger_images_of_the_ring_are_tracked_closer(tmp_path):
+    """Nothing in the colour terms assumes 640x480, and the pixel is what limits them: from
+    the true pose, the edges of 4 views at twice the size (the same field of view) keep
+    the hands closer to it than at the thesis' size."""
+    errors = []
+    for scale in (1, 2):
+        frames = with_camera_ring(demo_motion(slice(0, 1), dtype=F64), 4, scale=scale)
+        root = write_synthetic_sequence(frames, tmp_path / f"x{scale}", noise="none", colour="shaded", depth=False,
+                                        progress=False)
+        info = read_sequence_info(root)
+        assert {(c.width, c.height, c.fx) for c in info.cameras} == {(640 * scale, 480 * scale, 525.0 * scale)}
+        colour = [read_rgb(camera_dir(root, k) / "rgb" / frame_name(0)) for k in range(4)]
+        gt = torch.as_tensor(np.load(root / "gt" / "theta.npy"))
+        res = Tracker(frames.scene, TrackerConfig(energy="E+C")).track_frame(None, [info.cameras], gt, first=True,
+                                                                              colours=[colour])
+        assert bool(res.valid[0]), res.notes
+        errors.append(_keypoint_error(frames.scene, res.theta, gt))
+    assert errors[1] < 2.0 and errors[1] < 0.8 * errors[0], errors
+
+
 def test_edge_pairs_at_the_true_pose_are_close(ring):
     scene, cams, gt, colour, _, _ = ring
     tracker = Tracker(scene, TrackerConfig(energy="E"))
