@@ -12,7 +12,8 @@ at each of ``--iterations`` rounds the model is rendered in every view, the vert
 its silhouette's boundary (with the image direction of their normals) are paired with
 the test frame's contour by one distance of Sec. 3.4 (:mod:`torchhand.geometry.chamfer`:
 CH, DCH-Thres with tau 22.5 deg signed and unsigned, DCH-Quant, DCH-Quant2, DCH-DT3 with
-lambda 25 and 16 bins), and their reprojection errors are minimised (the library's
+lambda 25 and 16 bins, and unsigned with 8 bins over 180 deg, the same bin width, as colour
+edges need), and their reprojection errors are minimised (the library's
 Levenberg-Marquardt): this is the tracker's edge term ``E``
 (:mod:`torchhand.tracking.energies.edges`) with silhouettes for image edges, so the
 distance that wins here is the one the term uses. The error is the mean distance of the 21 joints per hand to the
@@ -47,7 +48,8 @@ GAPS = (1, 5, 10, 15)
 DISTANCES = [("CH", ChamferConfig("CH")), ("DCH-Thres", ChamferConfig("DCH-Thres")),
              ("DCH-Thres (180)", ChamferConfig("DCH-Thres", signed=False)),
              ("DCH-Quant", ChamferConfig("DCH-Quant", bins=8)), ("DCH-Quant2", ChamferConfig("DCH-Quant2", bins=8)),
-             ("DCH-DT3", ChamferConfig("DCH-DT3", bins=16, lam=25.0))]
+             ("DCH-DT3", ChamferConfig("DCH-DT3", bins=16, lam=25.0)),
+             ("DCH-DT3 (180)", ChamferConfig("DCH-DT3", bins=8, lam=25.0, signed=False))]
 
 
 def hand_sequences(hia_root) -> dict:
