@@ -13,8 +13,8 @@ Per view and outer iteration:
    :func:`torchhand.tracking.preprocess.preprocess_colour`) by the Chamfer distance
    ``config`` (:mod:`torchhand.geometry.chamfer`): by default DCH-Thres, the nearest
    edge pixel within ``radius_px`` whose orientation differs by less than 22.5 degrees,
-   the winner of the frame-pair benchmark (``eval/exp_frame_pairs.py``,
-   docs/results.md). Image edges have no sign (the hand may be brighter or darker than
+   tied for best with DCH-DT3 in the frame-pair benchmark over 80 pairs and 3.7 times
+   cheaper (``eval/exp_frame_pairs.py``, docs/results.md). Image edges have no sign (the hand may be brighter or darker than
    what is behind it), so orientations are compared modulo 180 degrees; the thesis'
    signed variant needs silhouettes, which colour images do not give;
 3. per-bone outlier rejection (Ballan Sec. 3): a pair farther than the mean plus
