@@ -12,13 +12,13 @@ at each of ``--iterations`` rounds the model is rendered in every view, the vert
 its silhouette's boundary (with the image direction of their normals) are paired with
 the test frame's contour by one distance of Sec. 3.4 (:mod:`torchhand.geometry.chamfer`:
 CH, DCH-Thres with tau 22.5 deg signed and unsigned, DCH-Quant, DCH-Quant2, DCH-DT3 with
-lambda 25 and 16 bins, and unsigned with 8 bins over 180 deg, the same bin width, as colour
-edges need), and their reprojection errors are minimised (the library's
+lambda 25 and 16 bins, and unsigned with 8 bins over 180 deg, the same bin width, as
+colour edges need), and their reprojection errors are minimised (the library's
 Levenberg-Marquardt): this is the tracker's edge term ``E``
 (:mod:`torchhand.tracking.energies.edges`) with silhouettes for image edges, so the
-distance that wins here is the one the term uses. The error is the mean distance of the 21 joints per hand to the
-truth (mm), per gap, as the thesis' Table 3.1; and the share of pairs below each error
-(Fig. 3.2-3.4).
+distance that wins here is the one the term uses. The error is the mean distance of the
+21 joints per hand to the truth (mm), per gap, as the thesis' Table 3.1; and the share
+of pairs below each error (Fig. 3.2-3.4).
 """
 
 from __future__ import annotations
