@@ -14,9 +14,10 @@ Per view and outer iteration:
    ``config`` (:mod:`torchhand.geometry.chamfer`): by default DCH-Thres, the nearest
    edge pixel within ``radius_px`` whose orientation differs by less than 22.5 degrees,
    tied for best with DCH-DT3 in the frame-pair benchmark over 80 pairs and 3.7 times
-   cheaper (``eval/exp_frame_pairs.py``, docs/results.md). Image edges have no sign (the hand may be brighter or darker than
-   what is behind it), so orientations are compared modulo 180 degrees; the thesis'
-   signed variant needs silhouettes, which colour images do not give;
+   cheaper (``eval/exp_frame_pairs.py``, docs/results.md). Image edges have no sign
+   (the hand may be brighter or darker than what is behind it), so orientations are
+   compared modulo 180 degrees; the thesis' signed variant needs silhouettes, which
+   colour images do not give;
 3. per-bone outlier rejection (Ballan Sec. 3): a pair farther than the mean plus
    ``sigma`` standard deviations of its bone's pairs in the view is dropped;
 4. the vertex seen at the model edge pixel is pulled so that it projects onto its image
