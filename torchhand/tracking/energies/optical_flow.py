@@ -36,9 +36,9 @@ __all__ = ["OpticalFlow", "dense_flow", "DEFAULT_LOSS", "DEFAULT_WEIGHT"]
 DEFAULT_LOSS = Cauchy(scale=3.0)
 #: the term's weight against the edges' 1 (Ballan et al. do not give theirs). Table 1's
 #: run at 640x480 (eval/exp_multicam.py --image-scale 1, docs/results.md), LO+ECO /
-#: LO+ECOS joint error: weight 1
-#: 2.22 / 1.93 mm, 0.5 1.92 / 1.78 mm, 0.25 1.83 / 2.44 mm (a finger lost on the crossing
-#: fingers: the flow no longer holds it where the edges are ambiguous)
+#: LO+ECOS joint error: weight 1 2.22 / 1.93 mm, 0.5 1.92 / 1.78 mm, 0.25 1.83 / 2.44 mm
+#: (a finger lost on the crossing fingers: the flow no longer holds it where the edges
+#: are ambiguous)
 DEFAULT_WEIGHT = 0.5
 
 PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
