@@ -104,6 +104,23 @@ def test_nearest_marked_pixel_warp_equals_brute_force():
     assert (d[found] <= radius[found].double()).all()
 
 
+@pytest.mark.parametrize("backend", ["torch", "cpu"] + (["warp"] if HAVE_WARP else []))
+def test_query_rows_can_share_marks_images(backend):
+    """Rows that name their image (``images``) get what copies of it would give; a
+    wrong count is refused."""
+    marks, queries, groups, radius = _marks()
+    images = torch.tensor([1, 0, 1, 1])
+    q, g, r = queries[images.tolist()], groups[images.tolist()], radius[images.tolist()]
+    q[2:] = q[2:].flip(1)  # rows on one image need not be alike
+    want = nearest_marked_pixel(marks[images], q, g, r, 2, backend)
+    assert torch.equal(nearest_marked_pixel(marks, q, g, r, 2, backend, images=images), want)
+    assert int((want[..., 0] >= 0).sum()) > 400
+    with pytest.raises(ValueError, match="one marks image per query row"):
+        nearest_marked_pixel(marks, q, g, r, 2, backend, images=images[:3])
+    with pytest.raises(ValueError, match="one image per query row"):
+        nearest_marked_pixel(marks, q, g, r, 2, backend)
+
+
 def test_nearest_marked_pixel_scipy_is_exact_too():
     marks, queries, groups, radius = _marks()
     got = nearest_marked_pixel(marks, queries, groups, radius, 2, "cpu")

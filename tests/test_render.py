@@ -10,7 +10,7 @@ import trimesh
 
 from torchhand.geometry.camera import Camera, kinect_camera
 from torchhand.geometry.raycast import BACKENDS
-from torchhand.geometry.render import RenderResult, Renderer, render, silhouette_edges, visible_vertices
+from torchhand.geometry.render import RenderResult, Renderer, render, silhouette_edges, visible_vertices, window
 
 RADIUS = 50.0
 CENTRE_Z = 500.0
@@ -172,7 +172,43 @@ def test_normals_off_changes_nothing_else(sphere, backend):
     assert int(full.depth[1, :, -1].gt(0).sum()) > 0  # the second sphere leaves the image
     assert without.normals is None
     for name, a, b in zip(RenderResult._fields, full, without):
-        assert name == "normals" or torch.equal(a, b), name
+        assert name in ("normals", "origin") or torch.equal(a, b), name
+    assert full.origin is None and without.origin is None
+
+
+def test_a_cropped_render_is_the_box_of_the_whole_one(sphere, backend):
+    vertices, faces = sphere
+    batch = torch.stack([vertices + torch.tensor([-60.0, 10.0, 0.0]), vertices + torch.tensor([290.0, 0.0, 0.0])])
+    cam = kinect_camera()
+    renderer = Renderer(faces, backend=backend)
+    whole = renderer(batch, cam)
+    rows, cols = torch.nonzero(whole.depth.amax((0, 2)))[:, 0], torch.nonzero(whole.depth.amax((0, 1)))[:, 0]
+    r0, r1, c0, c1 = int(rows.min()) - 5, int(rows.max()) + 6, int(cols.min()) - 7, 640
+    box = (r0, r1, c0, c1)  # the meshes' box with an empty border (the right sphere leaves the image)
+    full = renderer(batch, cam, box=box)
+    crop = renderer(batch, cam, box=box, crop=True)
+    assert crop.origin == (r0, c0) and crop.depth.shape == (2, r1 - r0, c1 - c0)
+    assert int(crop.silhouette_edges.sum()) > 100
+    for name in RenderResult._fields[:7]:
+        a, b = getattr(full, name), getattr(crop, name)
+        assert torch.equal(a, getattr(whole, name)), name
+        assert torch.equal(a[:, r0:r1, c0:c1], b), name
+    back = window(crop, (0, 480, 0, 640))  # the whole images again
+    assert back.origin is None
+    for name in RenderResult._fields[:7]:
+        assert torch.equal(getattr(back, name), getattr(full, name)), name
+    # a window that reaches past the crop (and the image) is empty there
+    part = window(crop, (r1 - 30, r1 + 20, 600, 700))
+    assert part.origin == (r1 - 30, 600) and part.depth.shape == (2, 50, 100)
+    assert torch.equal(part.depth[:, :30, :40], full.depth[:, r1 - 30 : r1, 600:])
+    assert bool((part.face_id[:, 30:] == -1).all()) and bool((part.depth[:, :, 40:] == 0).all())
+    assert torch.equal(visible_vertices(crop, faces, len(vertices)), visible_vertices(full, faces, len(vertices), box))
+    # a box beyond the image is clamped to it; several cameras keep their own axis
+    edge = renderer(batch, [cam, cam], box=(-10, 500, 600, 700), crop=True)
+    assert edge.origin == (0, 600) and edge.depth.shape == (2, 2, 480, 40)
+    assert torch.equal(edge.depth[:, 1], whole.depth[:, :, 600:])
+    with pytest.raises(ValueError, match="crop needs the pixel box"):
+        renderer.caster(batch, renderer._views([cam], False, 2, batch.device), crop=True)
 
 
 def test_extrinsics_move_the_scene(sphere, backend):
@@ -311,7 +347,7 @@ def test_views_of_a_rig_and_per_problem_cameras(hands_and_ball, backend, per_pro
         pairs = [(b, c, x) for b in range(2) for c, x in enumerate([cam, other])]
     for b, c, camera in pairs:
         one = renderer(V[b : b + 1], camera)
-        for name, x, y in zip(RenderResult._fields, r, one):
+        for name, x, y in zip(RenderResult._fields[:7], r, one):
             torch.testing.assert_close(x[b, c], y[0], msg=name)
 
 
@@ -371,7 +407,7 @@ def test_render_cuda_agrees_with_the_cpu(hands_and_ball, backend):
     cpu = render(V, *args, backend=backend)
     r = render(V.cuda(), scene.faces.cuda(), cam.to("cuda"), scene.face_model_id.cuda(), scene.face_bone_id.cuda(),
                backend=backend)
-    assert all(x.is_cuda for x in r)
+    assert all(x.is_cuda for x in r[:7] if x is not None)
     assert (r.depth.cpu() - cpu.depth).abs().max() < 1e-3
     n, ties = _ties_only(r._replace(face_id=r.face_id.cpu()), cpu, scene.faces, V)
     assert n < 20 and ties

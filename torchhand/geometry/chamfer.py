@@ -161,23 +161,26 @@ def boundary_pixels(hit: torch.Tensor) -> torch.Tensor:
 
 
 def match_contour(config: ChamferConfig, marks: torch.Tensor, phi_image: torch.Tensor, queries: torch.Tensor,
-                  query_phi: torch.Tensor, query_ok: torch.Tensor, backend: Optional[str] = None) -> ContourMatch:
+                  query_phi: torch.Tensor, query_ok: torch.Tensor, backend: Optional[str] = None,
+                  images: Optional[torch.Tensor] = None) -> ContourMatch:
     """Pair each rim point with a contour pixel by the distance ``config.kind``.
 
     Args:
-        marks, phi_image: (B, H, W) of :func:`contour_marks`, one image per problem.
+        marks, phi_image: (B, H, W) of :func:`contour_marks`, one image per problem;
+            with ``images``, (I, H, W) images the problems share.
         queries: (B, n, 2) int64 (row, col) rim pixels; query_phi: (B, n) their
             orientations; query_ok: (B, n) bool real queries.
+        images: (B,) int64 the image of each problem (None: problem b has image b).
     """
     B, n = query_ok.shape
     dev = queries.device
     radius = torch.full((B, n), int(config.radius_px), dtype=torch.int64, device=dev)
     idx = torch.arange(n, device=dev).expand(B, n)
-    bidx = torch.arange(B, device=dev)[:, None]
+    bidx = torch.arange(B, device=dev)[:, None] if images is None else images.to(dev)[:, None]
 
     def search(groups, num_groups):
         g = torch.where(query_ok, groups, torch.full_like(groups, -1))
-        hit = nearest_marked_pixel(marks, queries, g, radius, num_groups, backend=backend)
+        hit = nearest_marked_pixel(marks, queries, g, radius, num_groups, backend=backend, images=images)
         return hit, (hit[..., 0] >= 0) & query_ok
 
     def dist(hit):

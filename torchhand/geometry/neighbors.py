@@ -168,28 +168,40 @@ def _nearest_brute_force(points, point_key, queries, key, radius, chunk: int = 4
 
 
 def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: torch.Tensor, radius: torch.Tensor,
-                         num_groups: int, backend: Optional[str] = None) -> torch.Tensor:
+                         num_groups: int, backend: Optional[str] = None,
+                         images: Optional[torch.Tensor] = None) -> torch.Tensor:
     """For each query pixel, the nearest pixel of its image marked with its group.
 
     Args:
-        marks: (B, H, W) int64 group of each pixel in [0, num_groups), -1 unmarked.
+        marks: (B, H, W) int64 group of each pixel in [0, num_groups), -1 unmarked; with
+            ``images``, (I, H, W) images that the B query rows share.
         queries: (B, n, 2) int64 (row, col) query pixels.
         groups: (B, n) int64 the group each query looks for, -1 skips it.
         radius: (B, n) int64 px, the largest Euclidean distance searched (inclusive).
         num_groups: G.
         backend: ``"warp"`` or ``"torch"`` (None: Warp when installed).
+        images: (B,) int64 the image of ``marks`` each query row searches (None: row b
+            searches image b); many rows on few images need no copies of them.
     Returns:
         (B, n, 2) int64 (row, col) of the nearest marked pixel, -1 where none within the
         radius; ties go to the smaller :func:`pixel_hash`.
     """
     backend = _check_backend(backend)
-    B, H, W = marks.shape
+    I, H, W = marks.shape
     if max(H, W) >= 32768:
         raise ValueError(f"marks must be smaller than 32768 px per side, got {H}x{W}")
+    B = queries.shape[0]
+    if images is not None and images.shape != (B,):
+        raise ValueError(f"images must hold one marks image per query row, shape ({B},), got {tuple(images.shape)}")
+    if images is None and I != B:
+        raise ValueError(f"marks must hold one image per query row ({B}), got {I}")
     if backend == "warp":
         from torchhand.geometry import warp_kernels
 
-        return warp_kernels.nearest_marked_pixel(marks, _group_boxes(marks, num_groups), queries, groups, radius)
+        return warp_kernels.nearest_marked_pixel(marks, _group_boxes(marks, num_groups), queries, groups, radius,
+                                                 images)
+    if images is not None:
+        marks = marks[images]
     if backend == "cpu":
         return _nearest_pixel_edt(marks, queries, groups, radius)
     out = torch.full((B, queries.shape[1], 2), -1, dtype=torch.int64, device=marks.device)

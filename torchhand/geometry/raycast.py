@@ -147,6 +147,14 @@ def _box_of(vertices: torch.Tensor, views: Views) -> torch.Tensor:
     return torch.where(behind[:, None], full, box).to(torch.int32)
 
 
+def clamp_box(box: tuple, height: int, width: int) -> tuple:
+    """(r0, r1, c0, c1) host ints within an image of ``height`` x ``width`` (empty boxes
+    keep r1 >= r0 and c1 >= c0)."""
+    r0, r1, c0, c1 = (int(x) for x in box)
+    r0, c0 = min(max(r0, 0), height), min(max(c0, 0), width)
+    return r0, max(min(r1, height), r0), c0, max(min(c1, width), c0)
+
+
 class RayCaster:
     """Casts the pixel rays of views against posed copies of one mesh.
 
@@ -175,7 +183,7 @@ class RayCaster:
         self._rays = None  # cached (views key, origins, directions)
 
     def __call__(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor] = None,
-                 box: Optional[tuple] = None, normals: bool = False) -> Hits:
+                 box: Optional[tuple] = None, normals: bool = False, crop: bool = False) -> Hits:
         """Hits of (B, V, 3) world-frame vertices in every view.
 
         ``slots``: (B,) int64 the problem slot of each row, for ``"warp-raycast"`` (a
@@ -183,21 +191,31 @@ class RayCaster:
         ``box``: (r0, r1, c0, c1) host ints, the pixels that can be hit (a caller that
         knows where its meshes project saves the rest of the image); None: the box of
         the projected vertices, found here (a host synchronisation). ``normals``: ask
-        the backend for the hit faces' normals if it computes them on the way.
+        the backend for the hit faces' normals if it computes them on the way. ``crop``:
+        return the pixels of ``box`` only (clamped to the image; it must be given), maps
+        of its size instead of whole images (``"warp"`` draws only those; the other
+        backends cut them out).
         Returns :class:`Hits` with N = B x C, problem-major.
         """
         B, V = vertices.shape[:2]
+        if crop and box is None:
+            raise ValueError("crop needs the pixel box (r0, r1, c0, c1)")
+        if self.backend == "warp" and self.faces.shape[0]:
+            return self._rasterize(vertices, views, box, normals, crop)
         if self.faces.shape[0] == 0:
             N = B * views.views
             shape = (N, views.height, views.width)
             dev = vertices.device
-            return Hits(torch.full(shape, -1, dtype=torch.int64, device=dev), torch.zeros(shape, device=dev),
+            hits = Hits(torch.full(shape, -1, dtype=torch.int64, device=dev), torch.zeros(shape, device=dev),
                         torch.zeros(*shape, 2, device=dev))
-        if self.backend == "warp":
-            return self._rasterize(vertices, views, box, normals)
-        if self.backend == "warp-raycast":
-            return self._warp_raycast(vertices, views, slots)
-        return self._open3d(vertices, views)
+        elif self.backend == "warp-raycast":
+            hits = self._warp_raycast(vertices, views, slots)
+        else:
+            hits = self._open3d(vertices, views)
+        if not crop:
+            return hits
+        r0, r1, c0, c1 = clamp_box(box, views.height, views.width)
+        return Hits(*(None if x is None else x[:, r0:r1, c0:c1].contiguous() for x in hits))
 
     # ------------------------------------------------------------------ warp
     def _faces_int32(self, device) -> torch.Tensor:
@@ -205,7 +223,8 @@ class RayCaster:
             self._faces32 = self.faces.to(device=device, dtype=torch.int32).contiguous()
         return self._faces32
 
-    def _rasterize(self, vertices: torch.Tensor, views: Views, box: Optional[tuple], normals: bool) -> Hits:
+    def _rasterize(self, vertices: torch.Tensor, views: Views, box: Optional[tuple], normals: bool,
+                   crop: bool = False) -> Hits:
         from torchhand.geometry import warp_kernels
 
         vertices = vertices.to(torch.float32)
@@ -214,7 +233,7 @@ class RayCaster:
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
         face, t, bary, nrm = warp_kernels.rasterize(vertices, self._faces_int32(vertices.device), views.intrinsics,
                                                     views.rotation, views.translation, views.views, views.height,
-                                                    views.width, self.cull_back_faces, box, normals)
+                                                    views.width, self.cull_back_faces, box, normals, crop)
         return Hits(face, t, bary, nrm)
 
     def _warp_raycast(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor]) -> Hits:

@@ -27,9 +27,9 @@ from torchhand.geometry.camera import Camera
 from torchhand.geometry.image_ops import max_filter_3x3
 from torchhand.geometry.mesh import face_corners, face_normals
 from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, _box_of, _listify, check_vertices_faces,
-                                       views_of)
+                                       clamp_box, views_of)
 
-__all__ = ["RenderResult", "Renderer", "render", "silhouette_edges", "visible_vertices", "model_masks",
+__all__ = ["RenderResult", "Renderer", "render", "window", "silhouette_edges", "visible_vertices", "model_masks",
            "DEFAULT_EDGE_THRESHOLD_MM", "BACKENDS"]
 
 #: Depth jump (mm) between neighbouring pixels that counts as a silhouette edge.
@@ -55,6 +55,10 @@ class RenderResult(NamedTuple):
         silhouette_edges: (..., H, W) bool, see :func:`silhouette_edges`.
         barycentric: (..., H, W, 2) float32 ``(u, v)`` of the hit, i.e. the hit point is
             ``(1 - u - v) * v0 + u * v1 + v * v2`` of the face's vertices; 0 where empty.
+        origin: None for whole images; for a render cropped to a pixel box
+            (``Renderer(..., crop=True)``), the image pixel (row, col) of the maps' (0, 0):
+            H x W is then the box's size, and image pixel (r, c) is map pixel
+            (r - row, c - col). :func:`window` cuts or pads either kind to any box.
     """
 
     depth: torch.Tensor
@@ -64,6 +68,44 @@ class RenderResult(NamedTuple):
     normals: Optional[torch.Tensor]
     silhouette_edges: torch.Tensor
     barycentric: torch.Tensor
+    origin: Optional[tuple] = None
+
+    def maps(self, fn) -> "RenderResult":
+        """The same render with ``fn`` applied to every map (None stays None)."""
+        return RenderResult(*(None if x is None else fn(x) for x in self[:7]), self.origin)
+
+
+#: the value of each map where nothing is hit
+_EMPTY = {"depth": 0, "face_id": -1, "model_id": -1, "bone_id": -1, "normals": 0, "silhouette_edges": False,
+          "barycentric": 0}
+
+
+def window(result: RenderResult, box: tuple) -> RenderResult:
+    """The maps of a render over the image pixels ``box`` (r0, r1, c0, c1), empty where
+    the render did not cover them (a cropped render's box, or outside the image); the
+    result is cropped at (r0, c0), or whole images when the box starts at (0, 0) and
+    the render covered the image. Shapes (..., H, W) as in :class:`RenderResult`."""
+    r0, r1, c0, c1 = (int(x) for x in box)
+    o_r, o_c = result.origin or (0, 0)
+    h, w = result.depth.shape[-2:]
+    if (r0, c0) == (o_r, o_c) and (r1 - r0, c1 - c0) == (h, w):
+        return result
+    out = []
+    for name, x in zip(RenderResult._fields[:7], result[:7]):
+        if x is None:
+            out.append(None)
+            continue
+        trail = 1 if name in ("normals", "barycentric") else 0  # their last dim is not a pixel dim
+        lead = x.shape[: x.dim() - 2 - trail]
+        y = x.new_full((*lead, r1 - r0, c1 - c0, *x.shape[x.dim() - trail:]), _EMPTY[name])
+        # the overlap of the two boxes, in each one's pixels
+        a0, a1, b0, b1 = max(r0, o_r), min(r1, o_r + h), max(c0, o_c), min(c1, o_c + w)
+        if a1 > a0 and b1 > b0:
+            dst = (Ellipsis, slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0)) + (slice(None),) * trail
+            src = (Ellipsis, slice(a0 - o_r, a1 - o_r), slice(b0 - o_c, b1 - o_c)) + (slice(None),) * trail
+            y[dst] = x[src]
+        out.append(y)
+    return RenderResult(*out, None if (r0, c0) == (0, 0) else (r0, c0))
 
 
 def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESHOLD_MM) -> torch.Tensor:
@@ -156,7 +198,8 @@ class Renderer:
         return self.caster(vertices, self._views(cams, per_problem, B, vertices.device), slots, box)
 
     def __call__(self, vertices: torch.Tensor, cameras: Cameras, *, normals: bool = True, per_problem: bool = False,
-                 slots: Optional[torch.Tensor] = None, box: Optional[tuple] = None) -> RenderResult:
+                 slots: Optional[torch.Tensor] = None, box: Optional[tuple] = None,
+                 crop: bool = False) -> RenderResult:
         """Render (B, V, 3) (or (V, 3)) world-frame vertices in mm.
 
         Args:
@@ -170,6 +213,9 @@ class Renderer:
                 2 px empty border around the meshes' projections (the derived maps are
                 computed there only; the rest of the image is empty). None: the box of
                 the projected vertices (found with a host synchronisation).
+            crop: return the maps of the box only (``RenderResult.origin`` says where
+                they lie): a caller that reads the pixels near the meshes saves whole-image
+                buffers, which dominate the cost of large images.
         """
         vertices, faces = check_vertices_faces(vertices, self.faces)
         if self.model_ids.device != vertices.device:
@@ -183,23 +229,24 @@ class Renderer:
         if box is None:
             b = _box_of(vertices.to(torch.float32), views)
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
-        H, W = views.height, views.width
-        box = (max(int(box[0]), 0), min(int(box[1]), H), max(int(box[2]), 0), min(int(box[3]), W))
-        hits = self.caster(vertices, views, slots, box, normals)
+        box = clamp_box(box, views.height, views.width)
+        hits = self.caster(vertices, views, slots, box, normals, crop)
         C = hits.face_id.shape[0] // B
         res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, cams, self.edge_threshold,
-                     normals, box)
+                     normals, box, crop)
         if single:
             return res
-        return RenderResult(*(None if x is None else x.view(B, C, *x.shape[1:]) for x in res))
+        return res.maps(lambda x: x.view(B, C, *x.shape[1:]))
 
 
 def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
-           views: int, cameras, edge_threshold: float, normals: bool, box: tuple) -> RenderResult:
+           views: int, cameras, edge_threshold: float, normals: bool, box: tuple,
+           cropped: bool = False) -> RenderResult:
     """Depth, ids, normals and silhouettes of (N, H, W) hits, N = B x ``views``, computed
-    inside ``box`` (r0, r1, c0, c1) and empty outside it."""
+    inside ``box`` (r0, r1, c0, c1) and empty outside it; ``cropped``: the hits are the
+    box's pixels only, and so are the maps."""
     r0, r1, c0, c1 = box
-    crop = (slice(None), slice(r0, r1), slice(c0, c1))
+    crop = (slice(None),) * 3 if cropped else (slice(None), slice(r0, r1), slice(c0, c1))
     face_id = hits.face_id
     hit = face_id[crop] >= 0
     depth = hits.t  # every backend leaves 0 where nothing is hit (Hits)
@@ -217,7 +264,7 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
     elif normals:
         pixel_normals = torch.zeros(*face_id.shape, 3, dtype=torch.float32, device=face_id.device)
         pixel_normals[crop] = _pixel_normals(vertices, faces, face_id[crop], hit, views, cameras)
-    return RenderResult(depth, face_id, model_id, bone_id, pixel_normals, edges, bary)
+    return RenderResult(depth, face_id, model_id, bone_id, pixel_normals, edges, bary, (r0, c0) if cropped else None)
 
 
 def _pixel_normals(vertices, faces, face_id, hit, views, cameras) -> torch.Tensor:
@@ -279,7 +326,8 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
         render_result: output of :func:`render`; only ``face_id`` (B, H, W) is used.
         faces: (F, 3) int64 faces that were rendered.
         num_vertices: V, the number of rendered vertices.
-        box: (r0, r1, c0, c1) the pixels the render covered (None: all).
+        box: (r0, r1, c0, c1) the pixels the render covered (None: all; a cropped
+            render covers its maps, and the box is not needed).
 
     Returns:
         (B, V) bool visibility mask on the device of ``render_result.face_id``.
@@ -293,7 +341,7 @@ def visible_vertices(render_result: RenderResult, faces: torch.Tensor, num_verti
     check_index(faces, "faces", num_vertices, "vertices")  # host syncs, skipped under skip_checks()
     check_index(face_id[face_id >= 0] if checks_enabled() else face_id[:0], "render_result.face_id", num_faces, "faces")
     faces = faces.long().to(face_id.device)
-    if box is not None:  # clamped: a negative start would slice from the end
+    if box is not None and render_result.origin is None:  # clamped: a negative start would slice from the end
         face_id = face_id[:, max(box[0], 0) : max(box[1], 0), max(box[2], 0) : max(box[3], 0)]
     flat = face_id.reshape(B, -1).long()
     # one extra column collects the empty pixels (-1)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+from typing import Optional
 
 import torch
 
@@ -164,23 +165,25 @@ def _kernels():
 
     @wp.kernel(enable_backward=False)
     def nearest_pixel_kernel(marks: wp.array3d(dtype=wp.int32), boxes: wp.array2d(dtype=wp.int32),
-                             queries: wp.array3d(dtype=wp.int32), groups: wp.array2d(dtype=wp.int32),
-                             radius: wp.array2d(dtype=wp.int32), out: wp.array3d(dtype=wp.int32)):
+                             images: wp.array(dtype=wp.int32), queries: wp.array3d(dtype=wp.int32),
+                             groups: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.int32),
+                             out: wp.array3d(dtype=wp.int32)):
         b, k = wp.tid()
         out[b, k, 0] = -1
         out[b, k, 1] = -1
         g = groups[b, k]
         if g < 0:
             return
+        m = images[b]  # the marks image of query row b
         H = marks.shape[1]
         W = marks.shape[2]
         r0 = queries[b, k, 0]
         c0 = queries[b, k, 1]
         R = radius[b, k]
-        # the group's pixels lie in boxes[b * G + g] = (r_min, r_max, c_min, c_max); skip
+        # the group's pixels lie in boxes[m * G + g] = (r_min, r_max, c_min, c_max); skip
         # the search when that box is farther than R
         G = boxes.shape[0] // marks.shape[0]
-        bi = b * G + g
+        bi = m * G + g
         if boxes[bi, 0] > boxes[bi, 1]:
             return
         dr_box = wp.max(wp.max(boxes[bi, 0] - r0, r0 - boxes[bi, 1]), 0)
@@ -204,7 +207,7 @@ def _kernels():
                     dc = -ring
                     while dc <= ring:
                         cc = c0 + dc
-                        if cc >= 0 and cc < W and marks[b, rr, cc] == g:
+                        if cc >= 0 and cc < W and marks[m, rr, cc] == g:
                             d2 = dr * dr + dc * dc
                             h = pixel_hash(rr, cc)
                             if d2 <= R * R and (d2 < best_d2 or (d2 == best_d2 and h < best_h)):
@@ -277,10 +280,12 @@ def _kernels():
     def resolve_kernel(zbuf: wp.array3d(dtype=wp.int64), verts: wp.array2d(dtype=wp.vec3),
                        faces: wp.array2d(dtype=wp.int32), intr: wp.array2d(dtype=wp.float32),
                        rot: wp.array(dtype=wp.mat33), trans: wp.array(dtype=wp.vec3), views: int, cam_batch: int,
-                       r_lo: int, c_lo: int, with_normals: int, face_out: wp.array3d(dtype=wp.int64),
+                       r_lo: int, c_lo: int, out_r: int, out_c: int, with_normals: int,
+                       face_out: wp.array3d(dtype=wp.int64),
                        t_out: wp.array3d(dtype=wp.float32), bary_out: wp.array4d(dtype=wp.float32),
                        normal_out: wp.array4d(dtype=wp.float32)):
-        # over the box; the outputs come filled with "empty" (-1 and 0)
+        # over the box; the outputs come filled with "empty" (-1 and 0); box pixel (rb, cb)
+        # is written at (rb + out_r, cb + out_c): the image's pixel, or the box's own
         i, rb, cb = wp.tid()
         key = zbuf[i, rb, cb]
         if key == EMPTY:
@@ -307,17 +312,19 @@ def _kernels():
             return
         tvec = -p0
         qvec = wp.cross(tvec, e1)
-        face_out[i, r, c] = wp.int64(f)
-        t_out[i, r, c] = wp.float32(wp.dot(e2, qvec) / det)
-        bary_out[i, r, c, 0] = wp.float32(wp.dot(tvec, pvec) / det)
-        bary_out[i, r, c, 1] = wp.float32(wp.dot(dd, qvec) / det)
+        ro = rb + out_r
+        co = cb + out_c
+        face_out[i, ro, co] = wp.int64(f)
+        t_out[i, ro, co] = wp.float32(wp.dot(e2, qvec) / det)
+        bary_out[i, ro, co, 0] = wp.float32(wp.dot(tvec, pvec) / det)
+        bary_out[i, ro, co, 1] = wp.float32(wp.dot(dd, qvec) / det)
         if with_normals != 0:
             n = wp.normalize(wp.cross(e1, e2))
             if wp.dot(n, p0) > wp.float64(0.0):  # turn it towards the camera (the origin)
                 n = -n
-            normal_out[i, r, c, 0] = wp.float32(n[0])
-            normal_out[i, r, c, 1] = wp.float32(n[1])
-            normal_out[i, r, c, 2] = wp.float32(n[2])
+            normal_out[i, ro, co, 0] = wp.float32(n[0])
+            normal_out[i, ro, co, 1] = wp.float32(n[1])
+            normal_out[i, ro, co, 2] = wp.float32(n[2])
 
     return cast_kernel, nearest_grid_kernel, nearest_pixel_kernel, raster_kernel, resolve_kernel
 
@@ -425,7 +432,7 @@ def cast_rays(gm: GroupedMesh, slots: torch.Tensor, origins: torch.Tensor, dirs:
 
 def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Tensor, rotations: torch.Tensor,
               translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool,
-              box: tuple, normals: bool = False) -> tuple:
+              box: tuple, normals: bool = False, crop: bool = False) -> tuple:
     """Hits of the pixel centres of B x ``views`` pinhole views, inside a pixel box.
 
     Args:
@@ -439,10 +446,12 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
         box: (r0, r1, c0, c1) the pixels drawn; the others stay empty.
         normals: also return the camera-frame unit normals of the hit faces, turned
             towards the camera.
+        crop: return the box's pixels only (maps of h x w = r1 - r0 x c1 - c0, after
+            clamping the box to the image) instead of whole images.
     Returns:
         face (B x views, H, W) int64 (-1: none), t (depth, mm; 0: none), barycentric
         (B x views, H, W, 2) float32 (0: none), as :func:`cast_rays`; normals
-        (B x views, H, W, 3) float32 (0: none) or None.
+        (B x views, H, W, 3) float32 (0: none) or None. H x W is h x w with ``crop``.
     """
     wp = _warp()
     _, _, _, raster_kernel, resolve_kernel = _kernels()
@@ -452,10 +461,11 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     r0, r1, c0, c1 = max(r0, 0), min(r1, height), max(c0, 0), min(c1, width)
     h, w = max(r1 - r0, 0), max(c1 - c0, 0)
     cam_batch = intrinsics.shape[0] // views
-    face = torch.full((N, height, width), -1, dtype=torch.int64, device=dev)
-    t = torch.zeros(N, height, width, dtype=torch.float32, device=dev)
-    bary = torch.zeros(N, height, width, 2, dtype=torch.float32, device=dev)
-    nrm = torch.zeros(N, height, width, 3, dtype=torch.float32, device=dev) if normals else None
+    H, W = (h, w) if crop else (height, width)
+    face = torch.full((N, H, W), -1, dtype=torch.int64, device=dev)
+    t = torch.zeros(N, H, W, dtype=torch.float32, device=dev)
+    bary = torch.zeros(N, H, W, 2, dtype=torch.float32, device=dev)
+    nrm = torch.zeros(N, H, W, 3, dtype=torch.float32, device=dev) if normals else None
     if h == 0 or w == 0 or faces.shape[0] == 0:
         return face, t, bary, nrm
     zbuf = torch.full((N, h, w), EMPTY_KEY, dtype=torch.int64, device=dev)
@@ -463,10 +473,12 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
             wp.from_torch(intrinsics.contiguous()), wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
             wp.from_torch(translations.contiguous(), dtype=wp.vec3), views, cam_batch]
     device = wp_device(dev)
+    out_r, out_c = (0, 0) if crop else (r0, c0)
     with on_torch_stream(dev):
         wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=device)
-        wp.launch(resolve_kernel, dim=(N, h, w), inputs=[wp.from_torch(zbuf)] + args + [r0, c0, int(normals)],
+        wp.launch(resolve_kernel, dim=(N, h, w),
+                  inputs=[wp.from_torch(zbuf)] + args + [r0, c0, out_r, out_c, int(normals)],
                   outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary),
                            wp.from_torch(nrm if normals else bary.new_zeros(1, 1, 1, 3))], device=device)
     return face, t, bary, nrm
@@ -517,13 +529,15 @@ def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, rad
 
 
 def nearest_marked_pixel(marks: torch.Tensor, boxes: torch.Tensor, queries: torch.Tensor, groups: torch.Tensor,
-                         radius: torch.Tensor) -> torch.Tensor:
+                         radius: torch.Tensor, images: Optional[torch.Tensor] = None) -> torch.Tensor:
     """(B, n, 2) int64 (row, col) of the nearest pixel with ``marks == group`` within the
     query's radius (Euclidean, ties to the smaller pixel hash), -1 where none.
 
-    marks: (B, H, W) int group of each pixel (-1 none); boxes: (B x G, 4) int (r_min,
+    marks: (I, H, W) int group of each pixel (-1 none); boxes: (I x G, 4) int (r_min,
     r_max, c_min, c_max) of each group's pixels (r_min > r_max when empty); queries:
-    (B, n, 2) int (row, col); groups: (B, n) int in [0, G) or -1; radius: (B, n) int px.
+    (B, n, 2) int (row, col); groups: (B, n) int in [0, G) or -1; radius: (B, n) int px;
+    images: (B,) int, the marks image of each query row (None: row b searches image b,
+    I = B).
     """
     wp = _warp()
     kernel = _kernels()[2]
@@ -531,9 +545,11 @@ def nearest_marked_pixel(marks: torch.Tensor, boxes: torch.Tensor, queries: torc
     out = torch.empty(B, n, 2, dtype=torch.int32, device=marks.device)
     if B * n == 0:
         return out.long()
+    images = torch.arange(B, device=marks.device) if images is None else images
     with on_torch_stream(marks.device):
         wp.launch(kernel, dim=(B, n),
                   inputs=[wp.from_torch(marks.to(torch.int32).contiguous()), wp.from_torch(boxes.to(torch.int32).contiguous()),
+                          wp.from_torch(images.to(torch.int32).contiguous()),
                           wp.from_torch(queries.to(torch.int32).contiguous()), wp.from_torch(groups.to(torch.int32).contiguous()),
                           wp.from_torch(radius.to(torch.int32).contiguous())],
                   outputs=[wp.from_torch(out)], device=wp_device(marks.device))

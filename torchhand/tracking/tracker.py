@@ -24,7 +24,7 @@ from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.core.check import skip_checks
 from torchhand.geometry.raycast import BACKENDS, _box_of, default_backend
-from torchhand.geometry.render import Renderer, RenderResult
+from torchhand.geometry.render import Renderer, RenderResult, window
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.optim.pso import particle_swarm
@@ -295,10 +295,12 @@ class Tracker:
                 shared: bool, box: Optional[tuple]) -> RenderResult:
         """One render call for the batch: one camera for all (``shared``), or one per problem."""
         with skip_checks():  # the library's own posed vertices
+            # the terms read the pixels near the models: maps of the box only (RenderResult.origin)
             if shared:
-                return self.renderer(vertices, cameras[0], normals=False, slots=slots, box=box)
-            r = self.renderer(vertices, list(cameras), normals=False, per_problem=True, slots=slots, box=box)
-        return RenderResult(*(None if x is None else x[:, 0] for x in r))
+                return self.renderer(vertices, cameras[0], normals=False, slots=slots, box=box, crop=True)
+            r = self.renderer(vertices, list(cameras), normals=False, per_problem=True, slots=slots, box=box,
+                              crop=True)
+        return r.maps(lambda x: x[:, 0])
 
     def _box(self, vertices: torch.Tensor, cameras: Sequence[Camera], shared: bool) -> tuple:
         """The pixel box the solve renders in: the projections of its start poses, widened
@@ -332,21 +334,22 @@ class Tracker:
             th_v, prev_v, posed_v = theta[rep], previous[rep], posed.select(rep)
         rend = self._render(posed_v.vertices.detach(), cameras, problems, shared, box)
         if labels is None:  # once per frame, at its start pose
-            if all(f is None for f in frames):  # colour views: no data points to label
-                labels = torch.full(rend.model_id.shape, -1, dtype=torch.int64, device=rend.model_id.device)
+            H, W = cameras[0].height, cameras[0].width
+            if all(f is None for f in frames):  # colour views: no data pixels to label (a 1 x 1 map each)
+                labels = torch.full((len(frames), 1, 1), -1, dtype=torch.int64, device=rend.model_id.device)
             elif self.config.labels == "proximity":
                 labels = label_by_proximity(frames, cameras, posed_v.vertices, self.scene.vertex_model_id,
                                             self.config.label_distance, self.config.neighbor_backend)
-            else:  # OpenCV on the CPU
-                labels = torch.stack([label_data(f, rend.model_id[b], self.config.label_radius)
-                                      for b, f in enumerate(frames)])
+            else:  # OpenCV on the CPU, on whole images
+                ids = window(rend, (0, H, 0, W)).model_id
+                labels = torch.stack([label_data(f, ids[b], self.config.label_radius) for b, f in enumerate(frames)])
         view = TrackState(self.scene, th_v, prev_v, posed_v, frames, cameras, rend, labels, problems=problems,
                           frame_data=frame_data, box=box, colours=colours)
         if V == 1:
             return view, view
         first = slice(0, None, V)  # each problem seen by its first view
         pose = TrackState(self.scene, theta, previous, posed, frames[first], cameras[first],
-                          RenderResult(*(None if x is None else x[first] for x in rend)), labels[first],
+                          rend.maps(lambda x: x[first]), labels[first],
                           problems=problems[first] // V, frame_data=frame_data, box=box,
                           colours=None if colours is None else colours[first])
         return view, pose

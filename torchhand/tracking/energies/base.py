@@ -102,9 +102,11 @@ class TrackState:
     of the previous frame (the reference of Eq. 4.18); posed: scene output at theta;
     frames: one preprocessed frame per problem (points and normals in the camera
     frame); cameras: one camera per problem; render: the scene rendered at theta from
-    each problem's camera; data_labels: (B, H, W) int64 model id assigned to each
-    data pixel (-1 none); correspondences: (B,) C_all, the data correspondences of
-    the terms prepared so far (set by the tracker before the priors are prepared);
+    each problem's camera (the tracker's are cropped to ``box``: ``render.origin`` is
+    the image pixel of their (0, 0), :func:`~torchhand.geometry.render.window` gives
+    any other box); data_labels: (B, H, W) int64 model id assigned to each data pixel
+    (-1 none; (B, 1, 1) where the problems have colour images only); correspondences:
+    (B,) C_all, the data correspondences of the terms prepared so far (set by the tracker before the priors are prepared);
     problems: (B,) int64 the index of each problem in the solve it belongs to (problems
     that converged leave the batch: the others keep their index); frame_data: what terms
     derive once per solve from the frames and labels (their data side), keyed by term,
@@ -325,10 +327,13 @@ def pixel_rows(scene: Scene, vertex: torch.Tensor, target: torch.Tensor, scale: 
 
 def seen_vertices(render: RenderResult, faces: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
     """The scene vertex seen at each pixel: the corner of the hit face with the largest
-    barycentric weight. render: (B, H, W) maps; pixels: (B, n, 2) int64 (row, col),
-    any value where the caller masks the result -> (B, n) int64."""
+    barycentric weight. render: (B, H, W) maps (cropped or not); pixels: (B, n, 2)
+    int64 image (row, col), any value where the caller masks the result -> (B, n)
+    int64."""
     b = torch.arange(pixels.shape[0], device=pixels.device)[:, None]
-    r, c = pixels[..., 0].clamp(min=0), pixels[..., 1].clamp(min=0)
+    o_r, o_c = render.origin or (0, 0)  # a cropped render's maps start there
+    H, W = render.face_id.shape[-2:]
+    r, c = (pixels[..., 0] - o_r).clamp(0, H - 1), (pixels[..., 1] - o_c).clamp(0, W - 1)
     fid = render.face_id[b, r, c].clamp(min=0)
     bary = render.barycentric[b, r, c]
     w = torch.cat([1 - bary.sum(-1, keepdim=True), bary], -1)

@@ -23,6 +23,7 @@ import torch
 
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
 from torchhand.geometry.neighbors import nearest_marked_pixel
+from torchhand.geometry.render import window
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexRayTerm, bone_inliers, prepared,
                                               seen_vertices)
@@ -131,7 +132,8 @@ class DataToModel(VertexRayTerm):
         p = state.problem_index()
         rc, X, d, m, valid, radius = (x[p] for x in data)
         K, M = valid.shape[1:]
-        rend = state.render
+        cam = state.cameras[0]
+        rend = window(state.render, (0, cam.height, 0, cam.width))  # data pixels lie anywhere in the image
         if self._bones is None or self._bones[0] is not scene:
             offsets = torch.tensor([0] + [mdl.num_bones for mdl in scene.models], device=dev).cumsum(0)
             bone = torch.cat([mdl.vertex_bone.to(dev) + offsets[k] for k, mdl in enumerate(scene.models)])

@@ -74,22 +74,24 @@ def rim_vertices(state: TrackState, max_points: int, contours: str = "occluding"
     ok (B, n) bool real entries, z (B, n) their depth in mm)."""
     B = state.theta.shape[0]
     rend = state.render
-    H, W = rend.model_id.shape[-2:]
+    h, w = rend.model_id.shape[-2:]  # the render's maps: the image, or the box it was cropped to
+    o_r, o_c = rend.origin or (0, 0)
     V = state.posed.vertices.detach()
     uv, z, _, T = project_views(state, V)  # every vertex, (B, V, 2)
     iu, iv = uv[..., 0].round().long(), uv[..., 1].round().long()
-    inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
+    ju, jv = iu - o_c, iv - o_r  # in the maps' pixels
+    inside = (ju >= 0) & (ju < w) & (jv >= 0) & (jv < h)
     # on an edge pixel or one of its 8 neighbours (looked up at the vertices, not over the image)
     rim = rend.silhouette_edges if contours == "occluding" else boundary_pixels(rend.model_id >= 0)
     edges = rim.reshape(B, -1)
     on = torch.zeros_like(inside)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
-            at = (iv + dr).clamp(0, H - 1) * W + (iu + dc).clamp(0, W - 1)
+            at = (jv + dr).clamp(0, h - 1) * w + (ju + dc).clamp(0, w - 1)
             on |= edges.gather(1, at)
     on &= state.visible_vertices() & inside
     ids, ok = stride_subsample(on, max_points)
-    pixels = torch.stack([iv.gather(1, ids).clamp(0, H - 1), iu.gather(1, ids).clamp(0, W - 1)], -1)
+    pixels = torch.stack([iv.gather(1, ids).clamp(o_r, o_r + h - 1), iu.gather(1, ids).clamp(o_c, o_c + w - 1)], -1)
     n = vertex_normals(V, state.scene.faces, ids, state.scene.vertex_faces) @ T[:, :3, :3].transpose(1, 2)
     phi = torch.remainder(torch.atan2(n[..., 1], n[..., 0]), 2 * math.pi)
     return ids, pixels, phi, ok, z.gather(1, ids)
@@ -130,7 +132,7 @@ class Edges(VertexPixelTerm):
     def _build(self, state: TrackState) -> _Data:
         if state.colours is None or any(c is None for c in state.colours):
             raise ValueError("the edge term needs a colour frame for every view")
-        H, W = state.render.model_id.shape[-2:]
+        H, W = state.cameras[0].height, state.cameras[0].width
         marks, phis = [], []
         for c in state.colours:
             m, phi = contour_marks(c.edges.cpu().numpy(), c.edge_phi.double().cpu().numpy(), (H, W), self.config)
@@ -146,7 +148,7 @@ class Edges(VertexPixelTerm):
         data = state.data_side(self, self._build)
         p = state.problem_index()
         ids, q, phi, ok, z = rim_vertices(state, self.max_points, self.contours)
-        match = match_contour(self.config, data.marks[p], data.phi[p], q, phi, ok, backend=self.backend)
+        match = match_contour(self.config, data.marks, data.phi, q, phi, ok, backend=self.backend, images=p)
         vid = ids.gather(1, match.source)
         src = q.gather(1, match.source[..., None].expand(-1, -1, 2))  # the model pixel of each pair
         valid = match.valid

@@ -45,6 +45,7 @@ from typing import NamedTuple
 import torch
 
 from torchhand.geometry.neighbors import marked_pixel_transform
+from torchhand.geometry.render import window
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, prepared, seen_vertices,
                                               stride_subsample)
@@ -119,9 +120,8 @@ class FreeSpace(VertexPixelTerm):
         depth, nearest, distance = data.depth[p], data.nearest[p], data.distance[p]
         r0, c0 = data.origin
         h, w = depth.shape[1:]
-        rend = state.render
-        ids = rend.model_id[:, r0 : r0 + h, c0 : c0 + w]
-        z_model = rend.depth[:, r0 : r0 + h, c0 : c0 + w]
+        rend = window(state.render, (r0, r0 + h, c0, c0 + w))  # the data side's box
+        ids, z_model = rend.model_id, rend.depth
         free = (ids >= 0) & ((depth == 0) | (depth > z_model + self.margin))  # (B, h, w)
         K, M = len(scene.models), self.max_pixels
         # up to M free-space pixels of each model, evenly spaced
