@@ -77,6 +77,25 @@ def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
     assert np.mean(errors) < limit, errors
 
 
+def test_models_outside_the_view_keep_their_pose(ring):
+    """Models beside the view (in front of the camera, outside its image): the cropped
+    renders are empty, and the frame stays where it was (only the priors act) with a
+    note, in colour and depth."""
+    scene, cams, gt, colour, depth, _ = ring
+    aside = cams[0].T_cw[0, :3].to(F64) * 2000.0  # the camera's x axis in the world: 2 m to its right
+    away = _shifted(scene, gt[:1], aside.tolist())
+    cfg = dict(max_iterations=3, first_frame_iterations=3)
+    runs = [("E+C+O", None, [[colour[0][0]]]), ("LO", [[depth[0][0]]], None)]
+    for energy, depths, colours in runs:
+        res = Tracker(scene, TrackerConfig(energy=energy, **cfg)).track_frame(depths, [[cams[0]]], away, first=True,
+                                                                              colours=colours)
+        assert int(res.correspondences[0]) == 0, energy
+        assert "no correspondences" in res.notes[0], (energy, res.notes)
+        assert torch.isfinite(res.theta).all(), energy
+        for sl in scene.slices.values():  # no data term moves the models
+            assert (res.theta[0, sl.start : sl.start + 3] - away[0, sl.start : sl.start + 3]).abs().max() < 0.5
+
+
 def test_larger_images_of_the_ring_are_tracked_closer(tmp_path):
     """Nothing in the colour terms assumes 640x480, and the pixel is what limits them: from
     the true pose, the edges of 4 views at twice the size (the same field of view) keep

@@ -207,6 +207,9 @@ def test_a_cropped_render_is_the_box_of_the_whole_one(sphere, backend):
     edge = renderer(batch, [cam, cam], box=(-10, 500, 600, 700), crop=True)
     assert edge.origin == (0, 600) and edge.depth.shape == (2, 2, 480, 40)
     assert torch.equal(edge.depth[:, 1], whole.depth[:, :, 600:])
+    # meshes that miss the image: one empty pixel
+    aside = renderer(batch + torch.tensor([5000.0, 0.0, 0.0]), cam, crop=True)
+    assert aside.depth.shape == (2, 1, 1) and bool((aside.face_id == -1).all()) and aside.origin == (0, 0)
     with pytest.raises(ValueError, match="crop needs the pixel box"):
         renderer.caster(batch, renderer._views([cam], False, 2, batch.device), crop=True)
 

@@ -230,6 +230,8 @@ class Renderer:
             b = _box_of(vertices.to(torch.float32), views)
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
         box = clamp_box(box, views.height, views.width)
+        if crop and (box[1] == box[0] or box[3] == box[2]):
+            box = (0, 1, 0, 1)  # the meshes miss the image: one empty pixel keeps the maps non-empty
         hits = self.caster(vertices, views, slots, box, normals, crop)
         C = hits.face_id.shape[0] // B
         res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, cams, self.edge_threshold,
