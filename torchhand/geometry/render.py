@@ -29,8 +29,8 @@ from torchhand.geometry.mesh import face_corners, face_normals
 from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, _box_of, _listify, check_vertices_faces,
                                        clamp_box, views_of)
 
-__all__ = ["RenderResult", "Renderer", "render", "window", "silhouette_edges", "visible_vertices", "model_masks",
-           "DEFAULT_EDGE_THRESHOLD_MM", "BACKENDS"]
+__all__ = ["RenderResult", "Renderer", "render", "window", "window_map", "silhouette_edges", "visible_vertices",
+           "model_masks", "DEFAULT_EDGE_THRESHOLD_MM", "BACKENDS"]
 
 #: Depth jump (mm) between neighbouring pixels that counts as a silhouette edge.
 DEFAULT_EDGE_THRESHOLD_MM = 10.0
@@ -78,6 +78,8 @@ class RenderResult(NamedTuple):
 #: the value of each map where nothing is hit
 _EMPTY = {"depth": 0, "face_id": -1, "model_id": -1, "bone_id": -1, "normals": 0, "silhouette_edges": False,
           "barycentric": 0}
+#: the maps with a channel dim after the pixel dims
+_CHANNELS = ("normals", "barycentric")
 
 
 def window(result: RenderResult, box: tuple) -> RenderResult:
@@ -86,26 +88,31 @@ def window(result: RenderResult, box: tuple) -> RenderResult:
     result is cropped at (r0, c0), or whole images when the box starts at (0, 0) and
     the render covered the image. Shapes (..., H, W) as in :class:`RenderResult`."""
     r0, r1, c0, c1 = (int(x) for x in box)
-    o_r, o_c = result.origin or (0, 0)
     h, w = result.depth.shape[-2:]
-    if (r0, c0) == (o_r, o_c) and (r1 - r0, c1 - c0) == (h, w):
+    if (r0, c0) == (result.origin or (0, 0)) and (r1 - r0, c1 - c0) == (h, w):
         return result
-    out = []
-    for name, x in zip(RenderResult._fields[:7], result[:7]):
-        if x is None:
-            out.append(None)
-            continue
-        trail = 1 if name in ("normals", "barycentric") else 0  # their last dim is not a pixel dim
-        lead = x.shape[: x.dim() - 2 - trail]
-        y = x.new_full((*lead, r1 - r0, c1 - c0, *x.shape[x.dim() - trail:]), _EMPTY[name])
-        # the overlap of the two boxes, in each one's pixels
-        a0, a1, b0, b1 = max(r0, o_r), min(r1, o_r + h), max(c0, o_c), min(c1, o_c + w)
-        if a1 > a0 and b1 > b0:
-            dst = (Ellipsis, slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0)) + (slice(None),) * trail
-            src = (Ellipsis, slice(a0 - o_r, a1 - o_r), slice(b0 - o_c, b1 - o_c)) + (slice(None),) * trail
-            y[dst] = x[src]
-        out.append(y)
+    out = [None if x is None else window_map(x, result.origin, box, _EMPTY[name], 1 if name in _CHANNELS else 0)
+           for name, x in zip(RenderResult._fields[:7], result[:7])]
     return RenderResult(*out, None if (r0, c0) == (0, 0) else (r0, c0))
+
+
+def window_map(x: torch.Tensor, origin: Optional[tuple], box: tuple, fill, channels: int = 0) -> torch.Tensor:
+    """One map of a render, (..., h, w) with image pixel ``origin`` (row, col) at its
+    (0, 0) (None: (0, 0)), over the image pixels ``box`` (r0, r1, c0, c1), ``fill``
+    where it has no pixel; ``channels``: trailing dims after the pixel dims (1 for
+    normals and barycentrics)."""
+    r0, r1, c0, c1 = (int(v) for v in box)
+    o_r, o_c = origin or (0, 0)
+    h, w = x.shape[x.dim() - 2 - channels : x.dim() - channels]
+    lead, trail = x.shape[: x.dim() - 2 - channels], x.shape[x.dim() - channels :]
+    y = x.new_full((*lead, r1 - r0, c1 - c0, *trail), fill)
+    # the overlap of the two boxes, in each one's pixels
+    a0, a1, b0, b1 = max(r0, o_r), min(r1, o_r + h), max(c0, o_c), min(c1, o_c + w)
+    if a1 > a0 and b1 > b0:
+        tail = (slice(None),) * channels
+        y[(Ellipsis, slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0)) + tail] = \
+            x[(Ellipsis, slice(a0 - o_r, a1 - o_r), slice(b0 - o_c, b1 - o_c)) + tail]
+    return y
 
 
 def silhouette_edges(depth: torch.Tensor, threshold: float = DEFAULT_EDGE_THRESHOLD_MM) -> torch.Tensor:

@@ -23,7 +23,7 @@ import torch
 
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
 from torchhand.geometry.neighbors import nearest_marked_pixel
-from torchhand.geometry.render import window
+from torchhand.geometry.render import window_map
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexRayTerm, bone_inliers, prepared,
                                               seen_vertices)
@@ -132,15 +132,16 @@ class DataToModel(VertexRayTerm):
         p = state.problem_index()
         rc, X, d, m, valid, radius = (x[p] for x in data)
         K, M = valid.shape[1:]
-        cam = state.cameras[0]
-        rend = window(state.render, (0, cam.height, 0, cam.width))  # data pixels lie anywhere in the image
+        rend = state.render
         if self._bones is None or self._bones[0] is not scene:
             offsets = torch.tensor([0] + [mdl.num_bones for mdl in scene.models], device=dev).cumsum(0)
             bone = torch.cat([mdl.vertex_bone.to(dev) + offsets[k] for k, mdl in enumerate(scene.models)])
             self._bones = (scene, bone, int(offsets[-1]))
         _, vertex_bone, num_bones = self._bones
-        # the nearest silhouette pixel of the data pixel's model (Eq. 4.8's pairs)
-        marks = torch.where(rend.silhouette_edges, rend.model_id, torch.full_like(rend.model_id, -1))
+        # the nearest silhouette pixel of the data pixel's model (Eq. 4.8's pairs), searched
+        # on whole images: the data pixels lie anywhere in them, the render may be a crop
+        marks = window_map(torch.where(rend.silhouette_edges, rend.model_id, -1), rend.origin,
+                           (0, state.cameras[0].height, 0, state.cameras[0].width), -1)
         groups = torch.where(valid, torch.arange(K, device=dev)[None, :, None], -1).reshape(B, K * M)
         px = nearest_marked_pixel(marks, rc.reshape(B, K * M, 2), groups, radius.reshape(B, K * M), K, self.backend)
         found = px[..., 0] >= 0
