@@ -56,9 +56,10 @@ class RenderResult(NamedTuple):
         barycentric: (..., H, W, 2) float32 ``(u, v)`` of the hit, i.e. the hit point is
             ``(1 - u - v) * v0 + u * v1 + v * v2`` of the face's vertices; 0 where empty.
         origin: None for whole images; for a render cropped to a pixel box
-            (``Renderer(..., crop=True)``), the image pixel (row, col) of the maps' (0, 0):
-            H x W is then the box's size, and image pixel (r, c) is map pixel
-            (r - row, c - col). :func:`window` cuts or pads either kind to any box.
+            (``Renderer(..., crop=True)``, :func:`window`), the image pixel (row, col)
+            of the maps' (0, 0): H x W is then the box's size, and image pixel (r, c)
+            is map pixel (r - row, c - col). :func:`window` cuts or pads either kind to
+            any box.
     """
 
     depth: torch.Tensor
@@ -84,16 +85,17 @@ _CHANNELS = ("normals", "barycentric")
 
 def window(result: RenderResult, box: tuple) -> RenderResult:
     """The maps of a render over the image pixels ``box`` (r0, r1, c0, c1), empty where
-    the render did not cover them (a cropped render's box, or outside the image); the
-    result is cropped at (r0, c0), or whole images when the box starts at (0, 0) and
-    the render covered the image. Shapes (..., H, W) as in :class:`RenderResult`."""
+    the render did not cover them (a cropped render's box, or outside the image): a
+    render cropped at ``origin`` (r0, c0), e.g. whole images again with (0, H, 0, W).
+    Shapes (..., H, W) as in :class:`RenderResult`; the render itself where it already
+    is that box."""
     r0, r1, c0, c1 = (int(x) for x in box)
     h, w = result.depth.shape[-2:]
     if (r0, c0) == (result.origin or (0, 0)) and (r1 - r0, c1 - c0) == (h, w):
         return result
     out = [None if x is None else window_map(x, result.origin, box, _EMPTY[name], 1 if name in _CHANNELS else 0)
            for name, x in zip(RenderResult._fields[:7], result[:7])]
-    return RenderResult(*out, None if (r0, c0) == (0, 0) else (r0, c0))
+    return RenderResult(*out, (r0, c0))
 
 
 def window_map(x: torch.Tensor, origin: Optional[tuple], box: tuple, fill, channels: int = 0) -> torch.Tensor:
