@@ -37,6 +37,7 @@ import torch
 
 from torchhand.core.check import check_index, check_tensor, checks_enabled
 from torchhand.geometry.camera import Camera
+from torchhand.geometry.image_ops import clamp_box
 
 __all__ = ["Hits", "BACKENDS", "default_backend", "RayCaster", "views_of", "Views", "camera_rays"]
 
@@ -145,14 +146,6 @@ def _box_of(vertices: torch.Tensor, views: Views) -> torch.Tensor:
     box = torch.stack([box[:, 0].clamp(0, H), box[:, 1].clamp(0, H), box[:, 2].clamp(0, W), box[:, 3].clamp(0, W)], 1)
     full = torch.tensor([0, H, 0, W], dtype=box.dtype, device=box.device)
     return torch.where(behind[:, None], full, box).to(torch.int32)
-
-
-def clamp_box(box: tuple, height: int, width: int) -> tuple:
-    """(r0, r1, c0, c1) host ints within an image of ``height`` x ``width`` (empty boxes
-    keep r1 >= r0 and c1 >= c0)."""
-    r0, r1, c0, c1 = (int(x) for x in box)
-    r0, c0 = min(max(r0, 0), height), min(max(c0, 0), width)
-    return r0, max(min(r1, height), r0), c0, max(min(c1, width), c0)
 
 
 class RayCaster:

@@ -24,10 +24,10 @@ import torch.nn.functional as F
 
 from torchhand.core.check import check_index, check_tensor, checks_enabled
 from torchhand.geometry.camera import Camera
-from torchhand.geometry.image_ops import max_filter_3x3
+from torchhand.geometry.image_ops import clamp_box, max_filter_3x3
 from torchhand.geometry.mesh import face_corners, face_normals
 from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, _box_of, _listify, check_vertices_faces,
-                                       clamp_box, views_of)
+                                       views_of)
 
 __all__ = ["RenderResult", "Renderer", "render", "window", "window_map", "silhouette_edges", "visible_vertices",
            "model_masks", "DEFAULT_EDGE_THRESHOLD_MM", "BACKENDS"]
@@ -257,24 +257,28 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
     inside ``box`` (r0, r1, c0, c1) and empty outside it; ``cropped``: the hits are the
     box's pixels only, and so are the maps."""
     r0, r1, c0, c1 = box
-    crop = (slice(None),) * 3 if cropped else (slice(None), slice(r0, r1), slice(c0, c1))
-    face_id = hits.face_id
-    hit = face_id[crop] >= 0
-    depth = hits.t  # every backend leaves 0 where nothing is hit (Hits)
-    model_id, bone_id = torch.full_like(face_id, -1), torch.full_like(face_id, -1)
-    if faces.shape[0]:
-        safe = face_id[crop].clamp(min=0)
-        model_id[crop] = torch.where(hit, model_ids.take(safe), -1)  # take: a flat gather
-        bone_id[crop] = torch.where(hit, bone_ids.take(safe), -1)
-    edges = torch.zeros_like(face_id, dtype=torch.bool)
-    edges[crop] = silhouette_edges(depth[crop], edge_threshold)  # the box keeps an empty border
-    bary = hits.barycentric  # 0 where nothing is hit
+    face_id, depth, bary = hits.face_id, hits.t, hits.barycentric  # -1 / 0 where nothing is hit (every backend)
+    H, W = face_id.shape[-2:]
+
+    def whole(x, fill, channels=0):
+        """A map of the box as the hits are: itself when cropped, else pasted into whole images."""
+        return x if cropped else window_map(x, (r0, c0), (0, H, 0, W), fill, channels)
+
+    box_face = face_id if cropped else face_id[:, r0:r1, c0:c1]
+    hit = box_face >= 0
+    safe = box_face.clamp(min=0)
+
+    def ids(per_face):  # take: a flat gather
+        return torch.where(hit, per_face.take(safe), -1) if faces.shape[0] else torch.full_like(box_face, -1)
+
+    model_id, bone_id = whole(ids(model_ids), -1), whole(ids(bone_ids), -1)
+    # the box keeps an empty border, so its edges are the image's
+    edges = whole(silhouette_edges(depth if cropped else depth[:, r0:r1, c0:c1], edge_threshold), False)
     pixel_normals = None
     if normals and hits.normals is not None:  # the backend computed them on the way
         pixel_normals = hits.normals
     elif normals:
-        pixel_normals = torch.zeros(*face_id.shape, 3, dtype=torch.float32, device=face_id.device)
-        pixel_normals[crop] = _pixel_normals(vertices, faces, face_id[crop], hit, views, cameras)
+        pixel_normals = whole(_pixel_normals(vertices, faces, box_face, hit, views, cameras), 0, 1)
     return RenderResult(depth, face_id, model_id, bone_id, pixel_normals, edges, bary, (r0, c0) if cropped else None)
 
 

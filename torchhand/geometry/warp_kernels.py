@@ -27,6 +27,8 @@ from typing import Optional
 
 import torch
 
+from torchhand.geometry.image_ops import clamp_box
+
 __all__ = ["require_warp", "wp_device", "rasterize", "cast_rays", "nearest_in_grid", "nearest_marked_pixel",
            "build_grouped_mesh", "build_grid"]
 
@@ -457,9 +459,8 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     _, _, _, raster_kernel, resolve_kernel = _kernels()
     N = vertices.shape[0] * views
     dev = vertices.device
-    r0, r1, c0, c1 = (int(x) for x in box)
-    r0, r1, c0, c1 = max(r0, 0), min(r1, height), max(c0, 0), min(c1, width)
-    h, w = max(r1 - r0, 0), max(c1 - c0, 0)
+    r0, r1, c0, c1 = clamp_box(box, height, width)
+    h, w = r1 - r0, c1 - c0
     cam_batch = intrinsics.shape[0] // views
     H, W = (h, w) if crop else (height, width)
     face = torch.full((N, H, W), -1, dtype=torch.int64, device=dev)

@@ -24,7 +24,7 @@ from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.core.check import skip_checks
 from torchhand.geometry.raycast import BACKENDS, _box_of, default_backend
-from torchhand.geometry.render import Renderer, RenderResult, window
+from torchhand.geometry.render import Renderer, RenderResult, window_map
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.optim.pso import particle_swarm
@@ -341,7 +341,7 @@ class Tracker:
                 labels = label_by_proximity(frames, cameras, posed_v.vertices, self.scene.vertex_model_id,
                                             self.config.label_distance, self.config.neighbor_backend)
             else:  # OpenCV on the CPU, on whole images
-                ids = window(rend, (0, H, 0, W)).model_id
+                ids = window_map(rend.model_id, rend.origin, (0, H, 0, W), -1)
                 labels = torch.stack([label_data(f, ids[b], self.config.label_radius) for b, f in enumerate(frames)])
         view = TrackState(self.scene, th_v, prev_v, posed_v, frames, cameras, rend, labels, problems=problems,
                           frame_data=frame_data, box=box, colours=colours)

@@ -106,7 +106,8 @@ class TrackState:
     the image pixel of their (0, 0), :func:`~torchhand.geometry.render.window` gives
     any other box); data_labels: (B, H, W) int64 model id assigned to each data pixel
     (-1 none; (B, 1, 1) where the problems have colour images only); correspondences:
-    (B,) C_all, the data correspondences of the terms prepared so far (set by the tracker before the priors are prepared);
+    (B,) C_all, the data correspondences of the terms prepared so far (set by the
+    tracker before the priors are prepared);
     problems: (B,) int64 the index of each problem in the solve it belongs to (problems
     that converged leave the batch: the others keep their index); frame_data: what terms
     derive once per solve from the frames and labels (their data side), keyed by term,
