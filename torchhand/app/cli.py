@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -222,9 +223,10 @@ def _track(args) -> int:
         if s.get("resumed"):
             print(f"{s['sequence']}: complete, kept (--resume) -> {s['out']}")
         elif s["status"] == "ok":
+            fit = (f"silhouette IoU {s['mean_iou']:.2f}, median depth residual {s['median_depth_residual_mm']:.1f} mm"
+                   if math.isfinite(s["mean_iou"]) else "not measured (no depth views)")
             print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
-                  f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: silhouette IoU "
-                  f"{s['mean_iou']:.2f}, median depth residual {s['median_depth_residual_mm']:.1f} mm -> {s['out']}")
+                  f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: {fit} -> {s['out']}")
         else:
             print(f"torchhand track: error: {s['sequence']}: {s['error'].rstrip()}; nothing written", file=sys.stderr)
     if len(summaries) > 1:
