@@ -93,6 +93,27 @@ def test_a_killed_worker_is_retried_and_the_outputs_equal(sequences, sequential,
     _assert_equal(tmp_path / "out", sequential)
 
 
+def test_a_retry_keeps_what_its_killed_attempt_finished_and_force_replaces_older_folders(
+        sequences, sequential, tmp_path):
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(sequential / "s2", out / "s2")  # an older run's folder: --force replaces it
+    np.save(out / "s2" / "theta.npy", np.zeros(3))
+    events = []
+
+    def handle(event):  # as task 1 starts, its folder appears complete: what an attempt killed
+        events.append(event)  # after renaming it, before returning, leaves to the retry
+        if event[:2] == (1, "start"):
+            shutil.copytree(sequential / "s1", out / "s1")
+
+    run = track_many(sequences, out, JOB, force=True, progress=False, on_event=handle)
+    assert run["failed"] == 0
+    assert [e[1] for e in events if e[0] == 1] == ["start", "done"]  # kept, not tracked again
+    assert sum(e[2] for e in events if e[0] == 2 and e[1] == "frames") == FRAMES
+    _assert_equal(out, sequential)
+
+
 def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
     out = tmp_path / "out"
 
@@ -180,12 +201,16 @@ def test_an_unreachable_ray_address_fails_fast():
 
 
 def test_ray_equals_the_sequential_run_and_retries_a_killed_worker(ray_cluster, sequences, sequential, tmp_path):
-    run = track_many(sequences, tmp_path / "ray", JOB, ray="local", progress=False)
+    events = []
+    run = track_many(sequences, tmp_path / "ray", JOB, ray="local", progress=False, on_event=events.append)
     assert run["failed"] == 0
+    for i in range(4):  # each task's events arrive, in the order it sent them
+        kinds = [e[1] for e in events if e[0] == i]
+        assert kinds[0] == "start" and kinds[-1] == "done" and kinds.count("frames") == FRAMES, (i, kinds)
     _assert_equal(tmp_path / "ray", sequential)
     state = {}
     run = track_many(sequences, tmp_path / "killed", JOB, ray="local", progress=False, on_event=_kill_once(state))
-    assert state.get("killed") and run["failed"] == 0
+    assert state.get("killed") and run["failed"] == 0, json.dumps(run, default=str)[-1500:]
     _assert_equal(tmp_path / "killed", sequential)
     pairs = [(tmp_path / "ray" / s.name, s / "gt") for s in sequences] + [(tmp_path / "nothing", sequences[0] / "gt")]
     scored = evaluate_pairs(pairs, ray="local", with_penetration=False, progress=False)

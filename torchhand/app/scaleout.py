@@ -21,7 +21,8 @@ run computes (the same θ to the last bit on CPU with the same ``--threads``).
 Every sequence is written to a hidden partial folder and renamed when complete
 (:mod:`torchhand.io.output_dir`), so a killed worker or an interrupted run (Ctrl-C)
 never leaves a folder that looks finished; the partial folders of a run are removed
-when it ends, however it ends. ``resume`` skips the sequences whose folders are
+when it ends, however it ends. A retried task keeps the folders its killed attempt
+finished. ``resume`` skips the sequences whose folders are
 complete and were tracked with the same settings (``track_log.json``), and refuses a
 folder written by another command or with other settings, naming the difference.
 """
@@ -100,12 +101,16 @@ class _Report:
     def __init__(self, sink, index: int):
         self.sink, self.index = sink, index
 
-    def __call__(self, kind: str, value) -> None:
+    def __call__(self, kind: str, value, last: bool = False) -> None:
         event = (self.index, kind, value)
         if callable(self.sink):
             self.sink(event)
-        elif hasattr(self.sink, "actor"):  # a Ray queue: fire and forget, for a task blocked in
-            self.sink.actor.put_nowait.remote(event)  # ray.get lends its CPU to another task
+        elif hasattr(self.sink, "put") and hasattr(self.sink.put, "remote"):  # a Ray event log
+            sent = self.sink.put.remote(event)  # fire and forget while the task runs (a task blocked in
+            if last:  # ray.get lends its CPU to another task); its last event waits, so that every event
+                import ray  # of a finished task has reached the log
+
+                ray.get(sent)
         else:
             self.sink.put(event)
 
@@ -118,7 +123,7 @@ def _call(fn: Callable, arg, report: _Report, threads: int):
         result = fn(arg, report)
     except Exception as err:  # a task's own error is its result; the others go on
         result = TaskFailure(f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
-    report("done", None)
+    report("done", None, last=True)
     return result
 
 
@@ -240,24 +245,23 @@ def connect_ray(address: str, num_cpus: int, timeout_s: float = 5.0) -> bool:
 def _run_ray(fn, args, workers, address, retries, threads, handle) -> List:
     started = connect_ray(address, workers)
     import ray
-    from ray.util.queue import Queue
 
     refs: Dict[object, int] = {}
     try:
-        q = Queue()
+        log = ray.remote(num_cpus=0)(_EventLog).remote()
         task = ray.remote(num_cpus=threads, max_retries=retries)(_call)
-        refs = {task.remote(fn, a, _Report(q, i), threads): i for i, a in enumerate(args)}
+        refs = {task.remote(fn, a, _Report(log, i), threads): i for i, a in enumerate(args)}
         results: Dict[int, object] = {}
         pending = list(refs)
         while pending:
             done, pending = ray.wait(pending, num_returns=1, timeout=0.1)
-            _drain_ray(q, handle)
+            _drain_ray(log, handle)
             for ref in done:
                 try:
                     results[refs[ref]] = ray.get(ref)
                 except ray.exceptions.RayError as err:  # retries exhausted, or the task could not run
                     results[refs[ref]] = TaskFailure(f"{type(err).__name__}: {err}")
-        _drain_ray(q, handle)
+        _drain_ray(log, handle)
         return [results[i] for i in range(len(args))]
     finally:
         for ref in refs:  # Ctrl-C or an error here: stop what still runs
@@ -269,11 +273,27 @@ def _run_ray(fn, args, workers, address, retries, threads, handle) -> List:
             ray.shutdown()
 
 
-def _drain_ray(q, handle) -> None:
-    n = q.qsize()
-    if n:
-        for event in q.get_nowait_batch(n):
-            handle(event)
+class _EventLog:
+    """The events of Ray tasks, as a synchronous single-threaded actor: it runs the calls
+    of one submitter in their order, so a task's ``start`` comes before its ``frames``
+    (Ray's own queue is an async actor, which does not keep that order)."""
+
+    def __init__(self):
+        self.events: List[tuple] = []
+
+    def put(self, event: tuple) -> None:
+        self.events.append(event)
+
+    def take(self) -> List[tuple]:
+        events, self.events = self.events, []
+        return events
+
+
+def _drain_ray(log, handle) -> None:
+    import ray
+
+    for event in ray.get(log.take.remote()):
+        handle(event)
 
 
 # -------------------------------------------------------------------------- tracking
@@ -300,16 +320,40 @@ def read_list(path, columns: int = 1) -> List[tuple]:
     return [tuple(Path(p) for p in r) for r in rows]
 
 
+def _signature(target: Path) -> Optional[tuple]:
+    """Which write of ``target``'s track log is there (inode, mtime), or None."""
+    try:
+        st = (target / "track_log.json").stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
 def _track_task(spec: dict, report: _Report) -> List[dict]:
     from torchhand.app.runner import track_sequences
 
     job: TrackJob = spec["job"]
     extra = {} if job.reinit_iou is None else {"reinit_iou": job.reinit_iou}
-    return track_sequences(spec["roots"], spec["out"], job.config, device=job.device, viz=job.viz,
-                           force=spec["force"], progress=False, segment=job.segment, write_render=job.write_render,
-                           write_vertices=job.write_vertices, init_config=job.init_config, models=job.models,
-                           names=spec["names"], nails=job.nails,
-                           on_frames=lambda n: report("frames", n), **extra)
+    # A worker that dies after a sequence's folder was renamed complete, before the task
+    # returned, leaves that folder to the task's retry: it is kept, not tracked again. A
+    # folder that was there before the run (--force replaces it) is never kept.
+    finished = {}
+    for j, name in enumerate(spec["names"]):
+        if _signature(spec["out"] / name) not in (None, spec["before"][j]):
+            try:
+                finished[j] = dict(_complete(spec["out"] / name, spec["settings"]), resumed=False)
+            except ValueError:  # not this run's: track_sequences refuses it, naming it
+                pass
+    todo = [j for j in range(len(spec["names"])) if j not in finished]
+    if todo:
+        tracked = track_sequences([spec["roots"][j] for j in todo], spec["out"], job.config, device=job.device,
+                                  viz=job.viz, force=spec["force"], progress=False, segment=job.segment,
+                                  write_render=job.write_render, write_vertices=job.write_vertices,
+                                  init_config=job.init_config, models=job.models,
+                                  names=[spec["names"][j] for j in todo], nails=job.nails,
+                                  on_frames=lambda n: report("frames", n), **extra)
+        finished.update(zip(todo, tracked))
+    return [finished[j] for j in range(len(spec["names"]))]
 
 
 def _differences(old: dict, new: dict, prefix: str = "") -> List[str]:
@@ -407,8 +451,8 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
         if k not in done:
             groups.setdefault(tuple(info.models), []).append(k)
     tasks = [members[j : j + batch] for members in groups.values() for j in range(0, len(members), batch)]
-    specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job}
-             for t in tasks]
+    specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job,
+              "settings": settings, "before": [_signature(out / names[k]) for k in t]} for t in tasks]
     total = sum(infos[k].frames for t in tasks for k in t)
     n_seq = sum(len(t) for t in tasks)
     bar = tqdm(total=total, desc=f"track {n_seq} sequence{'s' if n_seq != 1 else ''}", unit="frame",
