@@ -24,6 +24,13 @@ def test_vertex_normals_match_trimesh_and_subsets_match_all():
     per_batch = torch.stack([ids, ids.flip(0)])
     torch.testing.assert_close(vertex_normals(V, scene.faces, per_batch, scene.vertex_faces),
                                torch.stack([full[0, ids], full[1, ids.flip(0)]]))
+    # few ids take the normals of their own faces, many those of every face: the same
+    assert ids.numel() * scene.vertex_faces.shape[1] < scene.faces.shape[0]
+    every = torch.arange(scene.num_vertices).flip(0)
+    assert every.numel() * scene.vertex_faces.shape[1] > scene.faces.shape[0]
+    many = vertex_normals(V, scene.faces, every, scene.vertex_faces)
+    torch.testing.assert_close(many, full[:, every])
+    assert torch.equal(vertex_normals(V, scene.faces, ids, scene.vertex_faces), many[:, scene.num_vertices - 1 - ids])
 
 
 def test_vertex_faces_lists_every_face_of_a_vertex():

@@ -238,6 +238,32 @@ def test_empty_scene_and_nothing_in_view(sphere, backend):
         assert not visible_vertices(r, faces, vertices.shape[0]).any()
 
 
+@pytest.mark.skipif(not HAVE_WARP, reason="warp-lang not installed")
+@pytest.mark.parametrize("cropped", [False, True])
+def test_warp_derived_maps_equal_torch(cropped):
+    """The Warp backends' ids and contours (one kernel) are torch's, pixel for pixel,
+    with depth jumps at the threshold exactly and the box's own border."""
+    from torchhand.geometry.raycast import Hits
+    from torchhand.geometry.render import derive
+
+    gen = torch.Generator().manual_seed(3)
+    N, H, W, F = 3, 40, 50, 30
+    face = torch.randint(-1, F, (N, H, W), generator=gen)
+    depth = torch.where(face >= 0, 500 + 40 * torch.rand(N, H, W, generator=gen), torch.zeros(N, H, W))
+    face[0, 3:9, 3:27], depth[0, 3:9, 3:27] = 1, 500.0  # a flat patch holding two jumps:
+    depth[0, 5, 7] = 510.0  # one of the threshold, beside (5, 6): no edge
+    depth[0, 5, 24] = 510.5  # one just above it, beside (5, 23): an edge
+    model_ids, bone_ids = torch.randint(0, 3, (F,), generator=gen), torch.randint(0, 20, (F,), generator=gen)
+    box = (0, H, 0, W) if cropped else (3, 35, 4, 44)
+    args = (Hits(face, depth, torch.zeros(N, H, W, 2)), None, torch.zeros(F, 3, dtype=torch.int64), model_ids,
+            bone_ids, 1, [], 10.0, False, box, cropped)
+    ref, got = derive(*args, warp=False), derive(*args, warp=True)
+    assert not ref.silhouette_edges[0, 5, 6] and ref.silhouette_edges[0, 5, 23]
+    for name in ("model_id", "bone_id", "silhouette_edges"):
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name
+    assert int(got.silhouette_edges.sum()) > 100
+
+
 def test_silhouette_edges_threshold():
     depth = torch.zeros(1, 6, 8)
     depth[0, 1:5, 1:4] = 500.0

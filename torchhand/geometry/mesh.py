@@ -55,14 +55,28 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
     Returns:
         (B, V, 3), or (B, N, 3) with ``ids``.
     """
+    if ids is not None and ring is None:
+        raise ValueError("vertex_normals with ids needs ring=vertex_faces(faces, V)")
+    B, F = vertices.shape[0], faces.shape[0]
+    if ids is not None and ids.shape[-1] * ring.shape[1] < F:
+        # few vertices: the normals of their own faces only (the same products, summed in
+        # the same order), not of every face
+        r = ring.index_select(0, ids.reshape(-1))  # (n, R), padded with F
+        corners_of = torch.cat([faces, faces[:1]]).index_select(0, r.reshape(-1))  # (n R, 3)
+        if ids.dim() == 1:  # index_select: see face_corners
+            tri = vertices.index_select(1, corners_of.reshape(-1)).view(B, *r.shape, 3, 3)
+        else:
+            flat = corners_of.view(B, -1)
+            tri = vertices.gather(1, flat[..., None].expand(-1, -1, 3)).view(B, *ids.shape[1:], r.shape[1], 3, 3)
+        fn = face_normals(tri) * (r < F).view(*ids.shape, r.shape[1], 1).to(vertices.dtype)  # the pad face: zero
+        n = fn.sum(-2)
+        return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     fn = face_normals(face_corners(vertices, faces))  # twice the area
     if ids is None:
         n = torch.zeros_like(vertices)
         for i in range(3):
             n.index_add_(1, faces[:, i], fn)
     else:
-        if ring is None:
-            raise ValueError("vertex_normals with ids needs ring=vertex_faces(faces, V)")
         fn = torch.cat([fn, fn.new_zeros(fn.shape[0], 1, 3)], 1)  # the ring's pad face: zero
         if ids.dim() == 1:  # index_select: see face_corners
             r = ring.index_select(0, ids)  # (N, R)

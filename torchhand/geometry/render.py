@@ -3,10 +3,12 @@
 1. A backend (:mod:`torchhand.geometry.raycast`: Warp rasterisation, Warp BVH ray
    casting, or open3d's Embree as the reference) returns raw :class:`Hits`: the face,
    depth and barycentrics of the ray through every pixel centre.
-2. Everything else is derived from the hits here, in plain torch on the vertices'
-   device, once, for every consumer (as pytorch3d derives shading from ``Fragments``):
-   depth, model and bone ids, pixel normals, silhouette edges and, on demand, the
-   visible vertices.
+2. Everything else is derived from the hits here, on the vertices' device, once, for
+   every consumer (as pytorch3d derives shading from ``Fragments``): depth, model and
+   bone ids, pixel normals, silhouette edges and, on demand, the visible vertices. In
+   plain torch, except that the Warp backends take the ids and edges in one Warp pass
+   (the same maps; the torch passes over the pixels cost more than the drawing for the
+   swarm's many views).
 
 :class:`Renderer` keeps what can be kept between calls (the faces on the device, the
 BVH of ``"warp-raycast"``); :func:`render` is the one-off call. Rendering is not
@@ -244,7 +246,7 @@ class Renderer:
         hits = self.caster(vertices, views, slots, box, normals, crop)
         C = hits.face_id.shape[0] // B
         res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, cams, self.edge_threshold,
-                     normals, box, crop)
+                     normals, box, crop, warp=self.backend.startswith("warp"))
         if single:
             return res
         return res.maps(lambda x: x.view(B, C, *x.shape[1:]))
@@ -252,10 +254,12 @@ class Renderer:
 
 def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
            views: int, cameras, edge_threshold: float, normals: bool, box: tuple,
-           cropped: bool = False) -> RenderResult:
+           cropped: bool = False, warp: bool = False) -> RenderResult:
     """Depth, ids, normals and silhouettes of (N, H, W) hits, N = B x ``views``, computed
     inside ``box`` (r0, r1, c0, c1) and empty outside it; ``cropped``: the hits are the
-    box's pixels only, and so are the maps."""
+    box's pixels only, and so are the maps. ``warp``: the ids and contours in one Warp
+    kernel (:func:`~torchhand.geometry.warp_kernels.derive_maps`, the same maps; a
+    Warp backend has Warp loaded) instead of torch's passes over the box."""
     r0, r1, c0, c1 = box
     face_id, depth, bary = hits.face_id, hits.t, hits.barycentric  # -1 / 0 where nothing is hit (every backend)
     H, W = face_id.shape[-2:]
@@ -266,14 +270,20 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
 
     box_face = face_id if cropped else face_id[:, r0:r1, c0:c1]
     hit = box_face >= 0
-    safe = box_face.clamp(min=0)
+    if warp and faces.shape[0] and face_id.device.type in ("cpu", "cuda"):
+        from torchhand.geometry import warp_kernels
 
-    def ids(per_face):  # take: a flat gather
-        return torch.where(hit, per_face.take(safe), -1) if faces.shape[0] else torch.full_like(box_face, -1)
+        model_id, bone_id, edges = warp_kernels.derive_maps(face_id, depth, model_ids, bone_ids,
+                                                            (0, H, 0, W) if cropped else box, edge_threshold)
+    else:
+        safe = box_face.clamp(min=0)
 
-    model_id, bone_id = whole(ids(model_ids), -1), whole(ids(bone_ids), -1)
-    # the box keeps an empty border, so its edges are the image's
-    edges = whole(silhouette_edges(depth if cropped else depth[:, r0:r1, c0:c1], edge_threshold), False)
+        def ids(per_face):  # take: a flat gather
+            return torch.where(hit, per_face.take(safe), -1) if faces.shape[0] else torch.full_like(box_face, -1)
+
+        model_id, bone_id = whole(ids(model_ids), -1), whole(ids(bone_ids), -1)
+        # the box keeps an empty border, so its edges are the image's
+        edges = whole(silhouette_edges(depth if cropped else depth[:, r0:r1, c0:c1], edge_threshold), False)
     pixel_normals = None
     if normals and hits.normals is not None:  # the backend computed them on the way
         pixel_normals = hits.normals

@@ -8,6 +8,10 @@ torch zero-copy (``wp.from_torch``), never through numpy, on the tensors' own de
   triangles (one thread per view and triangle, one 64-bit atomic min of depth and face
   per covered pixel centre), then the exact hit of each pixel's ray in float64: what
   casting a ray through every pixel centre finds, several times faster on a CPU.
+- :func:`derive_maps`: the maps a render derives from its hits, in one pass over the
+  pixel box: the model and bone id of each hit face, and the occluding-contour pixels
+  of the depth map (:func:`torchhand.geometry.render.silhouette_edges`, the same
+  comparisons in float32, so the same pixels).
 - :func:`cast_rays`: closest hits of rays against a *grouped* mesh (one BVH holding the
   B problems of a batch as B groups, refitted when the vertices move): face, distance
   and barycentrics per pixel of B x C views, only inside each view's pixel box; the hit
@@ -29,7 +33,7 @@ import torch
 
 from torchhand.geometry.image_ops import clamp_box
 
-__all__ = ["require_warp", "wp_device", "rasterize", "cast_rays", "nearest_in_grid", "nearest_marked_pixel",
+__all__ = ["require_warp", "wp_device", "rasterize", "derive_maps", "cast_rays", "nearest_in_grid", "nearest_marked_pixel",
            "build_grouped_mesh", "build_grid"]
 
 #: an empty z-buffer entry (above every depth-and-face key)
@@ -286,49 +290,83 @@ def _kernels():
                        face_out: wp.array3d(dtype=wp.int64),
                        t_out: wp.array3d(dtype=wp.float32), bary_out: wp.array4d(dtype=wp.float32),
                        normal_out: wp.array4d(dtype=wp.float32)):
-        # over the box; the outputs come filled with "empty" (-1 and 0); box pixel (rb, cb)
-        # is written at (rb + out_r, cb + out_c): the image's pixel, or the box's own
-        i, rb, cb = wp.tid()
-        key = zbuf[i, rb, cb]
-        if key == EMPTY:
-            return
-        r = rb + r_lo
-        c = cb + c_lo
-        f = int(key & wp.int64(0xFFFFFFFF))
+        # one thread per row of the box (most of a row is empty: a thread per pixel would
+        # cost more than the hits); the outputs come filled with "empty" (-1 and 0); box
+        # pixel (rb, cb) is written at (rb + out_r, cb + out_c): the image's pixel, or the
+        # box's own
+        i, rb = wp.tid()
         b = i // views
         cam = (b % cam_batch) * views + (i - b * views)
         Rm = rot[cam]
         tr = trans[cam]
-        # the exact hit of the pixel's ray in the camera frame, in float64 (Moller-Trumbore):
-        # t is the depth (the direction has unit z), (u, v) the weights of vertices 1 and 2
-        p0 = wp.vec3d(Rm * verts[b, faces[f, 0]] + tr)
-        e1 = wp.vec3d(Rm * verts[b, faces[f, 1]] + tr) - p0
-        e2 = wp.vec3d(Rm * verts[b, faces[f, 2]] + tr) - p0
+        r = rb + r_lo
         fy = wp.float64(intr[cam, 1])
         yn = (wp.float64(r) - wp.float64(intr[cam, 3])) / fy
-        xn = (wp.float64(c) - wp.float64(intr[cam, 2]) - wp.float64(intr[cam, 4]) * yn) / wp.float64(intr[cam, 0])
-        dd = wp.vec3d(xn, yn, wp.float64(1.0))
-        pvec = wp.cross(dd, e2)
-        det = wp.dot(e1, pvec)
-        if det == wp.float64(0.0):
-            return
-        tvec = -p0
-        qvec = wp.cross(tvec, e1)
         ro = rb + out_r
-        co = cb + out_c
-        face_out[i, ro, co] = wp.int64(f)
-        t_out[i, ro, co] = wp.float32(wp.dot(e2, qvec) / det)
-        bary_out[i, ro, co, 0] = wp.float32(wp.dot(tvec, pvec) / det)
-        bary_out[i, ro, co, 1] = wp.float32(wp.dot(dd, qvec) / det)
-        if with_normals != 0:
-            n = wp.normalize(wp.cross(e1, e2))
-            if wp.dot(n, p0) > wp.float64(0.0):  # turn it towards the camera (the origin)
-                n = -n
-            normal_out[i, ro, co, 0] = wp.float32(n[0])
-            normal_out[i, ro, co, 1] = wp.float32(n[1])
-            normal_out[i, ro, co, 2] = wp.float32(n[2])
+        for cb in range(zbuf.shape[2]):
+            key = zbuf[i, rb, cb]
+            if key == EMPTY:
+                continue
+            c = cb + c_lo
+            f = int(key & wp.int64(0xFFFFFFFF))
+            # the exact hit of the pixel's ray in the camera frame, in float64
+            # (Moller-Trumbore): t is the depth (the direction has unit z), (u, v) the
+            # weights of vertices 1 and 2
+            p0 = wp.vec3d(Rm * verts[b, faces[f, 0]] + tr)
+            e1 = wp.vec3d(Rm * verts[b, faces[f, 1]] + tr) - p0
+            e2 = wp.vec3d(Rm * verts[b, faces[f, 2]] + tr) - p0
+            xn = (wp.float64(c) - wp.float64(intr[cam, 2]) - wp.float64(intr[cam, 4]) * yn) / wp.float64(intr[cam, 0])
+            dd = wp.vec3d(xn, yn, wp.float64(1.0))
+            pvec = wp.cross(dd, e2)
+            det = wp.dot(e1, pvec)
+            if det == wp.float64(0.0):
+                continue
+            tvec = -p0
+            qvec = wp.cross(tvec, e1)
+            co = cb + out_c
+            face_out[i, ro, co] = wp.int64(f)
+            t_out[i, ro, co] = wp.float32(wp.dot(e2, qvec) / det)
+            bary_out[i, ro, co, 0] = wp.float32(wp.dot(tvec, pvec) / det)
+            bary_out[i, ro, co, 1] = wp.float32(wp.dot(dd, qvec) / det)
+            if with_normals != 0:
+                n = wp.normalize(wp.cross(e1, e2))
+                if wp.dot(n, p0) > wp.float64(0.0):  # turn it towards the camera (the origin)
+                    n = -n
+                normal_out[i, ro, co, 0] = wp.float32(n[0])
+                normal_out[i, ro, co, 1] = wp.float32(n[1])
+                normal_out[i, ro, co, 2] = wp.float32(n[2])
 
-    return cast_kernel, nearest_grid_kernel, nearest_pixel_kernel, raster_kernel, resolve_kernel
+    @wp.kernel(enable_backward=False)
+    def derive_kernel(face: wp.array3d(dtype=wp.int64), depth: wp.array3d(dtype=wp.float32),
+                      model_ids: wp.array(dtype=wp.int64), bone_ids: wp.array(dtype=wp.int64),
+                      r_lo: int, r_hi: int, c_lo: int, c_hi: int, threshold: float,
+                      model_out: wp.array3d(dtype=wp.int64), bone_out: wp.array3d(dtype=wp.int64),
+                      edge_out: wp.array3d(dtype=wp.bool)):
+        # one thread per row of the box; the outputs come filled with "empty" (-1, False)
+        i, rb = wp.tid()
+        r = rb + r_lo
+        for c in range(c_lo, c_hi):
+            f = face[i, r, c]
+            if f >= wp.int64(0):
+                model_out[i, r, c] = model_ids[int(f)]
+                bone_out[i, r, c] = bone_ids[int(f)]
+            d = depth[i, r, c]
+            if d > 0.0:
+                # a foreground pixel with a background neighbour, or one farther by more
+                # than the threshold (neighbours outside the box do not count)
+                edge = False
+                for dr in range(-1, 2):
+                    rr = r + dr
+                    if rr >= r_lo and rr < r_hi:
+                        for dc in range(-1, 2):
+                            cc = c + dc
+                            if cc >= c_lo and cc < c_hi:
+                                dn = depth[i, rr, cc]
+                                if dn <= 0.0 or dn - d > threshold:
+                                    edge = True
+                edge_out[i, r, c] = edge
+
+    return cast_kernel, nearest_grid_kernel, nearest_pixel_kernel, raster_kernel, resolve_kernel, derive_kernel
 
 
 class GroupedMesh:
@@ -456,7 +494,7 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
         (B x views, H, W, 3) float32 (0: none) or None. H x W is h x w with ``crop``.
     """
     wp = _warp()
-    _, _, _, raster_kernel, resolve_kernel = _kernels()
+    _, _, _, raster_kernel, resolve_kernel, _ = _kernels()
     N = vertices.shape[0] * views
     dev = vertices.device
     r0, r1, c0, c1 = clamp_box(box, height, width)
@@ -478,11 +516,44 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     with on_torch_stream(dev):
         wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=device)
-        wp.launch(resolve_kernel, dim=(N, h, w),
+        wp.launch(resolve_kernel, dim=(N, h),
                   inputs=[wp.from_torch(zbuf)] + args + [r0, c0, out_r, out_c, int(normals)],
                   outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary),
                            wp.from_torch(nrm if normals else bary.new_zeros(1, 1, 1, 3))], device=device)
     return face, t, bary, nrm
+
+
+def derive_maps(face: torch.Tensor, depth: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
+                box: tuple, threshold: float) -> tuple:
+    """Model ids, bone ids and occluding contours of (N, H, W) hits, inside ``box``.
+
+    Args:
+        face: (N, H, W) int64 hit face (-1: none); depth: (N, H, W) float32 (0: none).
+        model_ids, bone_ids: (F,) int64 per face.
+        box: (r0, r1, c0, c1) the maps' pixels to derive (within H x W); the others stay
+            empty, and do not count as neighbours of the box's edge pixels.
+        threshold: the depth jump (mm) of a contour.
+    Returns:
+        model_id, bone_id (N, H, W) int64 (-1: none) and edges (N, H, W) bool, as
+        :func:`torchhand.geometry.render.silhouette_edges` of the box's depth.
+    """
+    wp = _warp()
+    derive_kernel = _kernels()[5]
+    dev = face.device
+    N, H, W = face.shape
+    r0, r1, c0, c1 = clamp_box(box, H, W)
+    model = torch.full((N, H, W), -1, dtype=torch.int64, device=dev)
+    bone = torch.full((N, H, W), -1, dtype=torch.int64, device=dev)
+    edges = torch.zeros((N, H, W), dtype=torch.bool, device=dev)
+    if N == 0 or r1 == r0 or c1 == c0:
+        return model, bone, edges
+    with on_torch_stream(dev):
+        wp.launch(derive_kernel, dim=(N, r1 - r0),
+                  inputs=[wp.from_torch(face.contiguous()), wp.from_torch(depth.to(torch.float32).contiguous()),
+                          wp.from_torch(model_ids.to(dev, torch.int64).contiguous()),
+                          wp.from_torch(bone_ids.to(dev, torch.int64).contiguous()), r0, r1, c0, c1, float(threshold)],
+                  outputs=[wp.from_torch(model), wp.from_torch(bone), wp.from_torch(edges)], device=wp_device(dev))
+    return model, bone, edges
 
 
 class Grid:

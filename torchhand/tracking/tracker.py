@@ -47,6 +47,10 @@ SOLVERS = ("lm", "pso")
 #: the spread of HOPE's particles about the start pose, per DoF: global translation (mm),
 #: global rotation and joint angles (rad)
 SWARM_SPREAD = (5.0, 0.05, 0.1)
+#: the most pixels HOPE renders in one batch (particles x views x the solve's box; at
+#: least one particle): one particle of 8 views of 1280x960 ran 1.4x faster than 8 in a
+#: batch, and at 640x480 batches of 1 to 4 particles ran alike (docs/multicam.md)
+SWARM_BATCH_PIXELS = 1 << 21
 
 
 @dataclass
@@ -583,7 +587,11 @@ class Tracker:
         spread = spread.to(theta.device)
         noise = torch.randn(B, P, D, generator=generator, dtype=theta.dtype).to(theta.device) * spread
         noise[:, 0] = 0
-        chunk = max(1, 64 // V)  # particles per batch of renders (their data sides are gathered per view problem)
+        # particles per batch of renders (their data sides are gathered per view problem):
+        # as many as keep a batch's maps within SWARM_BATCH_PIXELS, at least one; larger
+        # maps are fresh memory on every call (page faults), which costs more than drawing
+        pixels = max(1, (box[1] - box[0]) * (box[3] - box[2]) * V)
+        chunk = max(1, SWARM_BATCH_PIXELS // pixels)
 
         def energies(th: torch.Tensor, owner: List[int]) -> tuple:
             """(energy (N,), C_all (N,)) of poses th (N, D) of the problems ``owner``."""
