@@ -264,6 +264,28 @@ def test_warp_derived_maps_equal_torch(cropped):
     assert int(got.silhouette_edges.sum()) > 100
 
 
+@pytest.mark.skipif(not HAVE_WARP, reason="warp-lang not installed")
+@pytest.mark.parametrize("crop", [False, True])
+def test_warp_pixel_kernels_split_rows_alike(sphere, monkeypatch, crop):
+    """The pixel kernels' threads per box row (one on a CPU, one per pixel on a GPU) do
+    not change a render: both splits, and one between, run here on the CPU."""
+    from torchhand.geometry import warp_kernels
+
+    vertices, faces = sphere
+    cam = kinect_camera()
+    batch = torch.stack([vertices, vertices + torch.tensor([30.0, -20.0, 40.0])])
+    renderer = Renderer(faces, face_bone_id=torch.arange(faces.shape[0]) % 5, backend="warp")
+    box = (150, 330, 230, 420)
+    results = []
+    for split in (None, 7, 10 ** 6):
+        monkeypatch.setattr(warp_kernels, "ROW_SPLIT", split)
+        results.append(renderer(batch, cam, normals=True, box=box, crop=crop))
+    assert int((results[0].face_id >= 0).sum()) > 10000 and int(results[0].silhouette_edges.sum()) > 500
+    for other in results[1:]:
+        for a, b in zip(results[0][:7], other[:7]):
+            assert torch.equal(a, b)
+
+
 def test_silhouette_edges_threshold():
     depth = torch.zeros(1, 6, 8)
     depth[0, 1:5, 1:4] = 500.0

@@ -286,15 +286,16 @@ def _kernels():
     def resolve_kernel(zbuf: wp.array3d(dtype=wp.int64), verts: wp.array2d(dtype=wp.vec3),
                        faces: wp.array2d(dtype=wp.int32), intr: wp.array2d(dtype=wp.float32),
                        rot: wp.array(dtype=wp.mat33), trans: wp.array(dtype=wp.vec3), views: int, cam_batch: int,
-                       r_lo: int, c_lo: int, out_r: int, out_c: int, with_normals: int,
+                       r_lo: int, c_lo: int, out_r: int, out_c: int, with_normals: int, split: int,
                        face_out: wp.array3d(dtype=wp.int64),
                        t_out: wp.array3d(dtype=wp.float32), bary_out: wp.array4d(dtype=wp.float32),
                        normal_out: wp.array4d(dtype=wp.float32)):
-        # one thread per row of the box (most of a row is empty: a thread per pixel would
-        # cost more than the hits); the outputs come filled with "empty" (-1 and 0); box
-        # pixel (rb, cb) is written at (rb + out_r, cb + out_c): the image's pixel, or the
-        # box's own
-        i, rb = wp.tid()
+        # thread (i, rb, s) takes the columns s, s + S, ... of box row rb (S = the launch's
+        # last dim: a whole row per thread on a CPU, where most of a row is empty and a
+        # thread per pixel costs more than the hits; a pixel per thread on a GPU); the
+        # outputs come filled with "empty" (-1 and 0); box pixel (rb, cb) is written at
+        # (rb + out_r, cb + out_c): the image's pixel, or the box's own
+        i, rb, s = wp.tid()
         b = i // views
         cam = (b % cam_batch) * views + (i - b * views)
         Rm = rot[cam]
@@ -303,7 +304,7 @@ def _kernels():
         fy = wp.float64(intr[cam, 1])
         yn = (wp.float64(r) - wp.float64(intr[cam, 3])) / fy
         ro = rb + out_r
-        for cb in range(zbuf.shape[2]):
+        for cb in range(s, zbuf.shape[2], split):
             key = zbuf[i, rb, cb]
             if key == EMPTY:
                 continue
@@ -339,13 +340,14 @@ def _kernels():
     @wp.kernel(enable_backward=False)
     def derive_kernel(face: wp.array3d(dtype=wp.int64), depth: wp.array3d(dtype=wp.float32),
                       model_ids: wp.array(dtype=wp.int64), bone_ids: wp.array(dtype=wp.int64),
-                      r_lo: int, r_hi: int, c_lo: int, c_hi: int, threshold: float,
+                      r_lo: int, r_hi: int, c_lo: int, c_hi: int, threshold: float, split: int,
                       model_out: wp.array3d(dtype=wp.int64), bone_out: wp.array3d(dtype=wp.int64),
                       edge_out: wp.array3d(dtype=wp.bool)):
-        # one thread per row of the box; the outputs come filled with "empty" (-1, False)
-        i, rb = wp.tid()
+        # thread (i, rb, s): the columns s, s + S, ... of box row rb, as the resolve kernel;
+        # the outputs come filled with "empty" (-1, False)
+        i, rb, s = wp.tid()
         r = rb + r_lo
-        for c in range(c_lo, c_hi):
+        for c in range(c_lo + s, c_hi, split):
             f = face[i, r, c]
             if f >= wp.int64(0):
                 model_out[i, r, c] = model_ids[int(f)]
@@ -516,11 +518,24 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     with on_torch_stream(dev):
         wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=device)
-        wp.launch(resolve_kernel, dim=(N, h),
-                  inputs=[wp.from_torch(zbuf)] + args + [r0, c0, out_r, out_c, int(normals)],
+        split = _row_split(dev, w)
+        wp.launch(resolve_kernel, dim=(N, h, split),
+                  inputs=[wp.from_torch(zbuf)] + args + [r0, c0, out_r, out_c, int(normals), split],
                   outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary),
                            wp.from_torch(nrm if normals else bary.new_zeros(1, 1, 1, 3))], device=device)
     return face, t, bary, nrm
+
+
+def _row_split(device: torch.device, width: int) -> int:
+    """Threads per box row of the pixel kernels: one on a CPU (a loop over the row), one
+    per pixel on a GPU. ``ROW_SPLIT`` overrides it (the tests run both on a CPU)."""
+    if ROW_SPLIT is not None:
+        return max(1, min(int(ROW_SPLIT), width))
+    return max(1, width) if torch.device(device).type == "cuda" else 1
+
+
+#: None: :func:`_row_split` by device; an int: that many threads per row
+ROW_SPLIT: Optional[int] = None
 
 
 def derive_maps(face: torch.Tensor, depth: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
@@ -548,10 +563,12 @@ def derive_maps(face: torch.Tensor, depth: torch.Tensor, model_ids: torch.Tensor
     if N == 0 or r1 == r0 or c1 == c0:
         return model, bone, edges
     with on_torch_stream(dev):
-        wp.launch(derive_kernel, dim=(N, r1 - r0),
+        split = _row_split(dev, c1 - c0)
+        wp.launch(derive_kernel, dim=(N, r1 - r0, split),
                   inputs=[wp.from_torch(face.contiguous()), wp.from_torch(depth.to(torch.float32).contiguous()),
                           wp.from_torch(model_ids.to(dev, torch.int64).contiguous()),
-                          wp.from_torch(bone_ids.to(dev, torch.int64).contiguous()), r0, r1, c0, c1, float(threshold)],
+                          wp.from_torch(bone_ids.to(dev, torch.int64).contiguous()), r0, r1, c0, c1, float(threshold),
+                          split],
                   outputs=[wp.from_torch(model), wp.from_torch(bone), wp.from_torch(edges)], device=wp_device(dev))
     return model, bone, edges
 
