@@ -49,7 +49,7 @@ SOLVERS = ("lm", "pso")
 SWARM_SPREAD = (5.0, 0.05, 0.1)
 #: the most pixels HOPE renders in one batch (particles x views x the solve's box; at
 #: least one particle): one particle of 8 views of 1280x960 ran 1.4x faster than 8 in a
-#: batch, and at 640x480 batches of 1 to 4 particles ran alike (docs/multicam.md)
+#: batch, and at 640x480 batches of 1 to 4 particles ran alike (docs/results.md)
 SWARM_BATCH_PIXELS = 1 << 21
 
 
