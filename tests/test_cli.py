@@ -211,6 +211,19 @@ def test_track_negative_prediction(synth_out, tmp_path, capsys):
     assert "prediction" in capsys.readouterr().err
     assert not out.exists()
 
+def test_track_limit_slack_is_an_angle_or_none(capsys):
+    from torchhand.tracking.tracker import TrackerConfig
+
+    parse = build_parser().parse_args
+    assert parse(["track", "d", "--out", "o"]).limit_slack is TrackerConfig().limit_slack is None
+    assert parse(["track", "d", "--out", "o", "--limit-slack", "none"]).limit_slack is None
+    assert parse(["track", "d", "--out", "o", "--limit-slack", "0.2"]).limit_slack == 0.2
+    for bad in ("-0.1", "inf", "wide"):
+        with pytest.raises(SystemExit):
+            parse(["track", "d", "--out", "o", "--limit-slack", bad])
+        assert "--limit-slack" in capsys.readouterr().err
+
+
 def test_parser_defaults():
     args = build_parser().parse_args(["synth", "--random", "--out", "x", "--frames", "3:7"])
     assert args.frames == slice(3, 7) and args.noise == "kinect" and args.seed == 0 and args.models == "hand_right"

@@ -222,8 +222,9 @@ def test_the_swarm_never_returns_worse_than_its_start(ring, monkeypatch):
     res = Tracker(scene, cfg).track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
     assert bool(res.valid[0]) and int(res.iterations[0]) == 2
     monkeypatch.setattr(tracker_module, "SWARM_SPREAD", (0.0, 0.0, 0.0))  # every particle at the start
-    still = Tracker(scene, cfg).track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
-    assert torch.equal(still.theta, scene.clamp(start))
+    tracker = Tracker(scene, cfg)
+    still = tracker.track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
+    assert torch.equal(still.theta, tracker.clamp(start))
     assert 0 < float(res.energy[0]) <= float(still.energy[0]) + 1e-9
     with pytest.raises(ValueError, match="particles"):
         TrackerConfig(solver="pso", particles=1)

@@ -279,6 +279,35 @@ def test_far_off_initial_pose_is_flagged_and_finite(hand_frame):
     assert "no correspondences" in res.notes[0]
 
 
+def test_limits_are_soft_unless_a_slack_is_given(hand_frame):
+    """The thesis' joint limits are soft (E_anatomy, Eq. 4.17), and its own tracked
+    motions leave them: a hand spread past its abduction limits is tracked where it is
+    by default, and clamped into them with ``limit_slack=0``."""
+    scene, theta, cam, _ = hand_frame
+    spread = theta.clone()
+    for name in ("hand_right/RFing.1_0:z", "hand_right/RFing.2_0:z"):
+        k = scene.dof_names.index(name)
+        spread[0, k] = scene.upper[k] + 0.3
+    with torch.no_grad():
+        depth = render(scene(spread).vertices, scene.faces, cam).depth[0].numpy()
+        truth = scene(spread).keypoints
+    errors = {}
+    for slack in (None, 0.0, 0.1):
+        cfg = TrackerConfig(max_iterations=10, first_frame_iterations=10, limit_slack=slack)
+        res = Tracker(scene, cfg).track_frame([depth], [cam], spread, first=True)
+        with torch.no_grad():
+            errors[slack] = float((scene(res.theta).keypoints - truth).norm(dim=-1).max())
+        if slack is not None:
+            assert bool((res.theta <= scene.upper + slack + 1e-12).all())
+    assert errors[None] < 4.0 and errors[0.0] > 15.0 and errors[0.1] > 8.0, errors  # max over keypoints, mm
+
+
+@pytest.mark.parametrize("slack", [-0.1, float("inf"), float("nan"), True, "0.2"])
+def test_limit_slack_must_be_a_finite_angle_or_none(slack):
+    with pytest.raises(ValueError, match="limit_slack"):
+        TrackerConfig(limit_slack=slack)
+
+
 def test_parse_energy_rejects_unknown_and_future_components():
     assert [t.name for t in parse_energy("LO")] == ["m2d", "d2m", "anatomy", "regularization", "chain_smoothness"]
     with pytest.raises(ValueError, match="unknown components"):

@@ -208,7 +208,7 @@ def _track(args) -> int:
                         min_joint_motion=args.min_motion, first_frame_iterations=args.first_iterations,
                         prediction=args.prediction, prediction_limiter=args.prediction_limiter, seed=args.seed,
                         backend=args.backend, labels=args.labels, solver=args.solver, particles=args.particles,
-                        generations=args.generations)
+                        generations=args.generations, limit_slack=args.limit_slack)
     segment = _segment_config(args, "none") if args.segment else None
     dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
     job = TrackJob(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
@@ -322,6 +322,19 @@ def _positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
     if not x > 0 or x == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return x
+
+
+def _limit_slack(text: str):
+    """``none`` or a finite number >= 0 (radians)."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected none or a number >= 0 (radians), got {text!r}") from None
+    if not 0 <= x < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected none or a finite number >= 0 (radians), got {text}")
     return x
 
 
@@ -494,6 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")
+    p.add_argument("--limit-slack", type=_limit_slack, default=None, metavar="RAD|none",
+                   help="hard bounds of the solver: the joint limits widened by RAD radians (0: the limits "
+                        "themselves); default none: the limits are soft only, E_anatomy (thesis Eq. 4.17), as "
+                        "the thesis' own tracked motions leave them by up to 0.8 rad (docs/model.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the recovery perturbations (runs are repeatable)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     _backend_option(p)

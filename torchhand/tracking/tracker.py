@@ -3,9 +3,9 @@
 For every frame, starting from the previous frame's pose, repeat until the joints
 move less than 0.2 mm on average or the iteration budget is spent: render the scene at the
 current pose, find the correspondences of every energy term, and take a
-Levenberg-Marquardt step on the stacked residuals with the joint limits as box
-bounds. B sequences of the same scene are tracked as one batch: their frames are
-independent problems that share every tensor operation.
+Levenberg-Marquardt step on the stacked residuals (the joint limits are soft, E_anatomy;
+``TrackerConfig.limit_slack`` adds box bounds). B sequences of the same scene are tracked
+as one batch: their frames are independent problems that share every tensor operation.
 """
 
 from __future__ import annotations
@@ -94,7 +94,12 @@ class TrackerConfig:
     solver: ``"lm"`` (Algorithm 1, Levenberg-Marquardt) or ``"pso"``, the HOPE baseline
     of Ballan et al. (Oikonomidis et al.'s particle swarm over the same energy,
     :meth:`Tracker.swarm_solve`) with ``particles`` particles and ``generations``
-    generations (HOPE64: 64 and 40)."""
+    generations (HOPE64: 64 and 40); limit_slack: the solvers' hard bounds are the joint
+    limits widened by this many radians (0: the limits themselves); None (the default)
+    sets none, and the limits are the soft ones of E_anatomy alone, as in the thesis
+    (Eq. 4.17): its own tracked motions leave the limits by up to 0.8 rad, and a box at
+    the limits held a synthetic window of sequence 11 at 4.8 mm against 1.0 mm
+    (docs/results.md "Soft joint limits")."""
 
     energy: str = "LO+F"
     metric: str = "point-to-plane"
@@ -119,6 +124,7 @@ class TrackerConfig:
     solver: str = "lm"
     particles: int = 64
     generations: int = 40
+    limit_slack: Optional[float] = None
 
     def __post_init__(self) -> None:
         if self.prediction is not None and (isinstance(self.prediction, bool)
@@ -138,6 +144,11 @@ class TrackerConfig:
             raise ValueError(f"need particles >= 2 and generations >= 0, got {self.particles!r}, {self.generations!r}")
         if self.backend is not None and self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS} or None, got {self.backend!r}")
+        if self.limit_slack is not None and (isinstance(self.limit_slack, bool)
+                                             or not isinstance(self.limit_slack, (int, float))
+                                             or not 0 <= self.limit_slack < math.inf):
+            raise ValueError(f"limit_slack must be a finite number >= 0 (radians) or None (no box), "
+                             f"got {self.limit_slack!r}")
 
     @property
     def motion_prediction(self) -> float:
@@ -287,6 +298,15 @@ class Tracker:
         cull = all(is_closed_outward(m.vertices_rest, m.faces) for m in scene.models)
         self.renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=config.render_backend,
                                  cull_back_faces=cull)
+        # the solvers' box: the joint limits widened by limit_slack (the limits themselves
+        # are the soft ones of E_anatomy, Eq. 4.17)
+        slack = math.inf if config.limit_slack is None else float(config.limit_slack)
+        self.lower, self.upper = scene.lower - slack, scene.upper + slack
+
+    def clamp(self, theta: torch.Tensor) -> torch.Tensor:
+        """Project theta into the solvers' box (the joint limits widened by
+        ``config.limit_slack``)."""
+        return torch.maximum(torch.minimum(theta, self.upper), self.lower)
 
     def reset(self) -> None:
         """Forget the energies and colour images of earlier frames (before tracking other
@@ -402,12 +422,12 @@ class Tracker:
         candidate without a correspondence charged its truncated square
         (:attr:`Prepared.unmatched`).
         """
-        theta = self.scene.clamp(start)  # within the bounds, as the solver keeps it (see Objective)
+        theta = self.clamp(start)  # within the bounds, as the solver keeps it (see Objective)
         B, V = theta.shape[0], int(views)
         if len(frames) != B * V or len(cameras) != B * V or (colours is not None and len(colours) != B * V):
             raise ValueError(f"give B x V = {B} x {V} frames and cameras (and colour frames), got {len(frames)}, "
                              f"{len(cameras)}" + ("" if colours is None else f" and {len(colours)}"))
-        lower, upper = self.scene.lower, self.scene.upper
+        lower, upper = self.lower, self.upper
         min_motion = self.config.min_joint_motion if min_motion is None else min_motion
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
         damping = theta.new_full((B,), 1e-3)
@@ -503,7 +523,7 @@ class Tracker:
             start = self.scene.check_theta(start, "start")
             if start.shape[0] != B:
                 raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
-        init = previous if start is None else self.scene.clamp(start)
+        init = previous if start is None else self.clamp(start)
         frames, cols, ok, notes = [], [], [], [""] * B
         for b in range(B):
             try:
@@ -568,7 +588,7 @@ class Tracker:
         generations follow; velocities are limited to twice the spread. Arguments as
         :meth:`solve`; ``generator`` draws the particles and the swarm's coefficients."""
         cfg, V = self.config, int(views)
-        theta = self.scene.clamp(start)
+        theta = self.clamp(start)
         B, D = theta.shape
         P = cfg.particles
         generator = torch.Generator().manual_seed(cfg.seed) if generator is None else generator
@@ -613,9 +633,9 @@ class Tracker:
 
         owners = [b for b in range(B) for _ in range(P)]
         res = particle_swarm(lambda pos: energies(pos.reshape(B * P, D), owners)[0].view(B, P), theta[:, None] + noise,
-                             self.scene.lower, self.scene.upper, cfg.generations, velocity_scale=2 * spread,
+                             self.lower, self.upper, cfg.generations, velocity_scale=2 * spread,
                              generator=generator)
-        best = self.scene.clamp(res.best)
+        best = self.clamp(res.best)
         final, n = energies(best, list(range(B)))
         iters = torch.full((B,), cfg.generations, dtype=torch.int64)
         return SolveResult(best, iters, final, n)
@@ -710,7 +730,7 @@ class Tracker:
                 cams += cameras[b * V : (b + 1) * V]
                 cols += [] if colours is None else colours[b * V : (b + 1) * V]
                 prev.append(previous[b])
-        sol = self.solve(self.scene.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations,
+        sol = self.solve(self.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations,
                          colours=None if colours is None else cols, views=V)
         th, en = sol.theta, sol.energy
         for i, b in enumerate(bad):
