@@ -9,7 +9,10 @@ original viewer's posing ``sum_b w_b Mk_b M0_b^-1 v`` of the same frames.
 
 Writes {"sequences": [...], "frames": N, "median_mm": x, "max_mm": y, "per_sequence": {...}}.
 Models are read from the sequence's own files (not from models/), so sequences with
-other meshes or limits are checked as they are.
+other meshes or limits are checked as they are. Each sequence's entry also says how far
+its theta leaves the models' joint limits (``limits``: the frames with any joint
+outside, the joints ever outside, the largest excess in radians and its joint), which
+is why the tracker's limits are soft (docs/model.md).
 """
 
 from __future__ import annotations
@@ -29,14 +32,16 @@ from torchhand.model.motion import motion_tensor, motion_to_theta, pose_like_vie
 
 
 def check_sequence(hia_root: Path, seq: str, chunk: int = 64):
-    """Per-vertex errors (mm) of all frames of all models of one sequence, and its frame count."""
+    """Per-vertex errors (mm) of all frames of all models of one sequence, its frame
+    count and its theta's excess over the joint limits (a dict)."""
     names, bounds = sequence_models(hia_root, seq)
-    errors = []
+    errors, outside, excess = [], [], []
+    dof_names: list = []
     frames = None
     for name in names:
         files = read_thesis_model(hia_root / "Models" / seq, name)
         if files.motion is None:
-            return None, 0
+            return None, 0, None
         model = ArticulatedModel(assets_from_thesis(files), dtype=torch.float64)
         M_all = motion_tensor(model, files.motion)
         # Video frame k uses MOTION row k + MotionnOffset (data README).
@@ -52,7 +57,14 @@ def check_sequence(hia_root: Path, seq: str, chunk: int = 64):
                 ours = model(theta).vertices
                 ref = pose_like_viewer(model.vertices_rest, W, M, M_all[0])
             errors.append((ours - ref).norm(dim=-1).flatten().float())
-    return torch.cat(errors), frames
+            excess.append(model.limit_violation(theta).abs())
+        dof_names += [f"{name}/{d}" for d in model.dof_names]
+        outside.append(torch.cat(excess[-((len(rows) + chunk - 1) // chunk):]))
+    over = torch.cat(outside, 1)  # (frames, DoF of every model)
+    worst = over.max(0).values
+    limits = {"frames_outside": int((over > 1e-6).any(1).sum()), "dofs_outside": int((worst > 1e-6).sum()),
+              "max_rad": float(worst.max()), "worst_dof": dof_names[int(worst.argmax())]}
+    return torch.cat(errors), frames, limits
 
 
 def main(argv=None) -> int:
@@ -69,14 +81,14 @@ def main(argv=None) -> int:
     for seq in tqdm(seqs, desc="sequences", unit="seq"):
         if not (cfg / seq).is_dir():
             ap.error(f"sequence {seq} not found under {cfg}")
-        err, n = check_sequence(args.hia_root, seq)
+        err, n, limits = check_sequence(args.hia_root, seq)
         if err is None:
             tqdm.write(f"sequence {seq}: no MOTION files, skipped")
             continue
         used.append(seq)
         frames += n
         all_err.append(err)
-        per_seq[seq] = {"frames": n, "median_mm": float(err.median()), "max_mm": float(err.max())}
+        per_seq[seq] = {"frames": n, "median_mm": float(err.median()), "max_mm": float(err.max()), "limits": limits}
     if not all_err:
         print("no sequence with MOTION files found", file=sys.stderr)
         return 1

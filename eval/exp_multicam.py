@@ -133,6 +133,9 @@ def main(argv=None) -> int:
     p.add_argument("--hope", default="", help="particle counts of the HOPE rows, e.g. 64,128 (slow)")
     p.add_argument("--generations", type=int, default=40, help="of the HOPE rows (the paper: 40)")
     p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
+    p.add_argument("--limit-slack", type=float, default=None,
+                   help="track --limit-slack: the solver's hard bounds, the joint limits widened by this (rad); "
+                        "default none (the soft limits alone)")
     args = p.parse_args(argv)
     roots = render_sequences(args.hia_root, args.work, parse_windows(args.sequences, args.start), args.frames,
                              args.views, args.seed, args.image_scale)
@@ -142,7 +145,7 @@ def main(argv=None) -> int:
     for label, energy, nails, particles in rows:
         out = args.work / "tracks" / label.replace("+", "_")
         t0 = time.perf_counter()
-        config = TrackerConfig(energy=energy, min_joint_motion=args.min_motion)
+        config = TrackerConfig(energy=energy, min_joint_motion=args.min_motion, limit_slack=args.limit_slack)
         if particles is not None:  # the swarm over the same terms
             config = dataclasses.replace(config, solver="pso", particles=particles, generations=args.generations)
         summaries = track_sequences(roots, out, config, force=True, progress=True, nails=nails)
@@ -159,7 +162,7 @@ def main(argv=None) -> int:
               f"{table[label]['seconds_per_frame']:.2f} s/frame", flush=True)
     result = {"sequences": [r.name for r in roots], "frames": args.frames, "views": args.views,
               "image_scale": args.image_scale, "seed": args.seed,
-              "min_motion_mm": args.min_motion,
+              "min_motion_mm": args.min_motion, "limit_slack": args.limit_slack,
               "protocol": "ballan", "table": table}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=1))

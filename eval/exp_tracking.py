@@ -121,7 +121,7 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "", 
     ``tag`` naming the run) and data labelling, and score them (every model)."""
     cfg = TrackerConfig(energy=energy, metric=args.metric, max_iterations=args.iterations,
                         first_frame_iterations=args.iterations, prediction=args.prediction,
-                        prediction_limiter=args.prediction_limiter, labels=labels)
+                        prediction_limiter=args.prediction_limiter, labels=labels, limit_slack=args.limit_slack)
     tag = (tag or energy.replace("+", "_")) + ("" if labels == "proximity" else f"_{labels}")
     # the folder names the rendered set too: runs of other windows never share it
     window = "_contact" if getattr(args, "window", "start") == "contact" else ""
@@ -478,6 +478,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--iterations", type=int, default=10)
+    ap.add_argument("--limit-slack", type=float, default=None,
+                    help="lo: the solver's hard bounds, the joint limits widened by this (rad); default none")
     ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])
     ap.add_argument("--work", type=Path, default=Path("out/exp"))
     ap.add_argument("--json", type=Path, required=True)
