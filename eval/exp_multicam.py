@@ -133,9 +133,9 @@ def main(argv=None) -> int:
     p.add_argument("--hope", default="", help="particle counts of the HOPE rows, e.g. 64,128 (slow)")
     p.add_argument("--generations", type=int, default=40, help="of the HOPE rows (the paper: 40)")
     p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
-    p.add_argument("--limit-slack", type=float, default=None,
-                   help="track --limit-slack: the solver's hard bounds, the joint limits widened by this (rad); "
-                        "default none (the soft limits alone)")
+    p.add_argument("--limit-slack", type=lambda t: None if t == "none" else float(t), default=0.0,
+                   help="track --limit-slack: the solver's box, the joint limits widened by this (rad) and grown "
+                        "to hold each sequence's first pose; none: no box (the soft limits alone)")
     args = p.parse_args(argv)
     roots = render_sequences(args.hia_root, args.work, parse_windows(args.sequences, args.start), args.frames,
                              args.views, args.seed, args.image_scale)

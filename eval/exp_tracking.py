@@ -478,8 +478,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--iterations", type=int, default=10)
-    ap.add_argument("--limit-slack", type=float, default=None,
-                    help="lo: the solver's hard bounds, the joint limits widened by this (rad); default none")
+    ap.add_argument("--limit-slack", type=lambda t: None if t == "none" else float(t), default=0.0,
+                    help="lo: track --limit-slack, the solver's box: the joint limits widened by this (rad) and "
+                         "grown to hold each sequence's first pose; none: no box")
     ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])
     ap.add_argument("--work", type=Path, default=Path("out/exp"))
     ap.add_argument("--json", type=Path, required=True)

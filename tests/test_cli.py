@@ -215,7 +215,7 @@ def test_track_limit_slack_is_an_angle_or_none(capsys):
     from torchhand.tracking.tracker import TrackerConfig
 
     parse = build_parser().parse_args
-    assert parse(["track", "d", "--out", "o"]).limit_slack is TrackerConfig().limit_slack is None
+    assert parse(["track", "d", "--out", "o"]).limit_slack == TrackerConfig().limit_slack == 0.0
     assert parse(["track", "d", "--out", "o", "--limit-slack", "none"]).limit_slack is None
     assert parse(["track", "d", "--out", "o", "--limit-slack", "0.2"]).limit_slack == 0.2
     for bad in ("-0.1", "inf", "wide"):

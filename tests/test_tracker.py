@@ -224,19 +224,29 @@ def test_a_rejected_step_is_retried_before_convergence(hand_frame, monkeypatch):
 
 def test_batched_problems_are_independent(hand_frame):
     """Problems of a batch stop on their own (the others go on, solved as a smaller
-    batch) and give what each gives alone."""
+    batch) and give what each gives alone, also with a box of their own (``reset``
+    with initial poses, one of them outside the limits)."""
     scene, theta, cam, depth = hand_frame
     cfg = TrackerConfig(max_iterations=8, first_frame_iterations=8, min_joint_motion=0.5)
     start = theta.repeat(3, 1)
     start[1, :3] += 3.0
     start[2, :3] += torch.tensor([6.0, -4.0, 5.0], dtype=F64)
-    batch = Tracker(scene, cfg).track_frame([depth] * 3, [cam] * 3, start)
-    assert batch.iterations[0] < batch.iterations[2], batch.iterations
-    for b in range(3):
-        one = Tracker(scene, cfg).track_frame([depth], [cam], start[b : b + 1])
-        torch.testing.assert_close(batch.theta[b : b + 1], one.theta, atol=1e-6, rtol=0)
-        assert int(batch.iterations[b]) == int(one.iterations[0])
-        torch.testing.assert_close(batch.energy[b : b + 1], one.energy)
+    k = scene.dof_names.index("hand_right/RFing.2_0:z")
+    start[2, k] = scene.upper[k] + 0.2
+    for own_box in (False, True):
+        tracker = Tracker(scene, cfg)
+        if own_box:
+            tracker.reset(start)
+        batch = tracker.track_frame([depth] * 3, [cam] * 3, start)
+        assert batch.iterations[0] < batch.iterations[2], batch.iterations
+        for b in range(3):
+            alone = Tracker(scene, cfg)
+            if own_box:
+                alone.reset(start[b : b + 1])
+            one = alone.track_frame([depth], [cam], start[b : b + 1])
+            torch.testing.assert_close(batch.theta[b : b + 1], one.theta, atol=1e-6, rtol=0)
+            assert int(batch.iterations[b]) == int(one.iterations[0])
+            torch.testing.assert_close(batch.energy[b : b + 1], one.energy)
 
 
 def test_recovery_re_solves_a_frame_whose_energy_rose(hand_frame):
@@ -279,10 +289,12 @@ def test_far_off_initial_pose_is_flagged_and_finite(hand_frame):
     assert "no correspondences" in res.notes[0]
 
 
-def test_limits_are_soft_unless_a_slack_is_given(hand_frame):
-    """The thesis' joint limits are soft (E_anatomy, Eq. 4.17), and its own tracked
-    motions leave them: a hand spread past its abduction limits is tracked where it is
-    by default, and clamped into them with ``limit_slack=0``."""
+def test_the_box_holds_the_initial_pose_outside_the_limits(hand_frame):
+    """The thesis' own motions leave its joint limits: a hand spread past its abduction
+    limits, given as a sequence's initial pose, is tracked where it is (the box grows to
+    hold it), while a frame started there on a tracker without that pose is clamped into
+    the limits (slack 0), or less so with a slack; without a box (None) only the soft
+    E_anatomy acts."""
     scene, theta, cam, _ = hand_frame
     spread = theta.clone()
     for name in ("hand_right/RFing.1_0:z", "hand_right/RFing.2_0:z"):
@@ -291,15 +303,29 @@ def test_limits_are_soft_unless_a_slack_is_given(hand_frame):
     with torch.no_grad():
         depth = render(scene(spread).vertices, scene.faces, cam).depth[0].numpy()
         truth = scene(spread).keypoints
+
+    def error(th):  # max over keypoints, mm
+        with torch.no_grad():
+            return float((scene(th).keypoints - truth).norm(dim=-1).max())
+
+    cfg = dict(max_iterations=10, first_frame_iterations=10)
+    tracker = Tracker(scene, TrackerConfig(**cfg))
+    tracked = next(tracker.track([[depth]], [cam], spread))
+    assert error(tracked.theta) < 4.0  # the soft limits still pull (E_anatomy), as without a box
+    torch.testing.assert_close(tracker.bounds[1][0], torch.maximum(scene.upper, spread[0]))
     errors = {}
     for slack in (None, 0.0, 0.1):
-        cfg = TrackerConfig(max_iterations=10, first_frame_iterations=10, limit_slack=slack)
-        res = Tracker(scene, cfg).track_frame([depth], [cam], spread, first=True)
-        with torch.no_grad():
-            errors[slack] = float((scene(res.theta).keypoints - truth).norm(dim=-1).max())
+        res = Tracker(scene, TrackerConfig(limit_slack=slack, **cfg)).track_frame([depth], [cam], spread, first=True)
+        errors[slack] = error(res.theta)
         if slack is not None:
             assert bool((res.theta <= scene.upper + slack + 1e-12).all())
-    assert errors[None] < 4.0 and errors[0.0] > 15.0 and errors[0.1] > 8.0, errors  # max over keypoints, mm
+    assert errors[None] < 4.0 and errors[0.0] > 15.0 and errors[0.1] > 8.0, errors
+    # each sequence of a batch has its own box: the one within the limits keeps them
+    both = torch.cat([theta, spread])
+    tracker.reset(both)
+    assert torch.equal(tracker.bounds[1][0], tracker.upper) and bool((tracker.bounds[1][1] > tracker.upper).any())
+    with pytest.raises(ValueError, match="reset"):
+        tracker.track_frame([depth], [cam], spread)
 
 
 @pytest.mark.parametrize("slack", [-0.1, float("inf"), float("nan"), True, "0.2"])
@@ -357,7 +383,7 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
         solved_from.clear()
         res = original(self, depths, cameras, previous, first, generator, start, colours)
         calls.append((previous.clone(), None if start is None else start.clone(), res.theta.clone(),
-                      solved_from[0].clone(), self.scene))
+                      solved_from[0].clone(), self))
         return res
 
     def solve_spy(self, start, previous, *args, **kwargs):
@@ -372,14 +398,14 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
         track_sequences([seq], tmp_path / f"out{p}", cfg, progress=False)
         assert len(calls) == 4 and calls[0][1] is None and calls[1][1] is None
         for f in (2, 3):
-            previous, start, _, first_solve, scene = calls[f]
+            previous, start, _, first_solve, tracker = calls[f]
             torch.testing.assert_close(previous, calls[f - 1][2])
             if p == 0:
                 assert start is None
                 torch.testing.assert_close(first_solve, previous)
             else:
                 torch.testing.assert_close(start, previous + p * (calls[f - 1][2] - calls[f - 2][2]))
-                torch.testing.assert_close(first_solve, scene.clamp(start))  # the solve starts there
+                torch.testing.assert_close(first_solve, tracker.clamp(start))  # the solve starts there
     scene = Scene.from_names(["hand_right"])
     for bad in (torch.zeros(1, 5), scene.zero_pose(2)):
         with pytest.raises(ValueError, match="start"):

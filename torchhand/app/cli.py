@@ -507,10 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")
-    p.add_argument("--limit-slack", type=_limit_slack, default=None, metavar="RAD|none",
-                   help="hard bounds of the solver: the joint limits widened by RAD radians (0: the limits "
-                        "themselves); default none: the limits are soft only, E_anatomy (thesis Eq. 4.17), as "
-                        "the thesis' own tracked motions leave them by up to 0.8 rad (docs/model.md)")
+    p.add_argument("--limit-slack", type=_limit_slack, default=0.0, metavar="RAD|none",
+                   help="the solver keeps each sequence in a box: the joint limits widened by RAD radians and "
+                        "grown to hold its first-frame pose (the thesis' own motions leave the limits); none: no "
+                        "box, the soft limits of E_anatomy (thesis Eq. 4.17) alone (docs/results.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the recovery perturbations (runs are repeatable)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     _backend_option(p)

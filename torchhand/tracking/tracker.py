@@ -3,9 +3,10 @@
 For every frame, starting from the previous frame's pose, repeat until the joints
 move less than 0.2 mm on average or the iteration budget is spent: render the scene at the
 current pose, find the correspondences of every energy term, and take a
-Levenberg-Marquardt step on the stacked residuals (the joint limits are soft, E_anatomy;
-``TrackerConfig.limit_slack`` adds box bounds). B sequences of the same scene are tracked
-as one batch: their frames are independent problems that share every tensor operation.
+Levenberg-Marquardt step on the stacked residuals, within a box of the joint limits
+grown to hold each sequence's initial pose (``TrackerConfig.limit_slack``). B sequences
+of the same scene are tracked as one batch: their frames are independent problems that
+share every tensor operation.
 """
 
 from __future__ import annotations
@@ -94,12 +95,14 @@ class TrackerConfig:
     solver: ``"lm"`` (Algorithm 1, Levenberg-Marquardt) or ``"pso"``, the HOPE baseline
     of Ballan et al. (Oikonomidis et al.'s particle swarm over the same energy,
     :meth:`Tracker.swarm_solve`) with ``particles`` particles and ``generations``
-    generations (HOPE64: 64 and 40); limit_slack: the solvers' hard bounds are the joint
-    limits widened by this many radians (0: the limits themselves); None (the default)
-    sets none, and the limits are the soft ones of E_anatomy alone, as in the thesis
-    (Eq. 4.17): its own tracked motions leave the limits by up to 0.8 rad, and a box at
-    the limits held a synthetic window of sequence 11 at 4.8 mm against 1.0 mm
-    (docs/results.md "Soft joint limits")."""
+    generations (HOPE64: 64 and 40); limit_slack: the solvers keep each sequence's θ in
+    a box, the joint limits widened by this many radians and grown to hold the
+    sequence's initial pose (:meth:`Tracker.reset`); None: no box, the soft limits of
+    E_anatomy (Eq. 4.17) alone. The thesis' own tracked motions leave the limits (by up
+    to 0.8 rad): a box at the limits alone held a window of sequence 11, whose first pose
+    is outside them, at 4.8 mm; no box at all lets weakly seen joints drift (1.8 against
+    1.2 mm on the demo's first frames in 8 colour views); see docs/results.md "Joint
+    limits"."""
 
     energy: str = "LO+F"
     metric: str = "point-to-plane"
@@ -124,7 +127,7 @@ class TrackerConfig:
     solver: str = "lm"
     particles: int = 64
     generations: int = 40
-    limit_slack: Optional[float] = None
+    limit_slack: Optional[float] = 0.0
 
     def __post_init__(self) -> None:
         if self.prediction is not None and (isinstance(self.prediction, bool)
@@ -299,20 +302,40 @@ class Tracker:
         self.renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=config.render_backend,
                                  cull_back_faces=cull)
         # the solvers' box: the joint limits widened by limit_slack (the limits themselves
-        # are the soft ones of E_anatomy, Eq. 4.17)
+        # are the soft ones of E_anatomy, Eq. 4.17), and per sequence grown to hold its
+        # initial pose (reset)
         slack = math.inf if config.limit_slack is None else float(config.limit_slack)
         self.lower, self.upper = scene.lower - slack, scene.upper + slack
+        self.bounds: tuple = (self.lower, self.upper)
 
-    def clamp(self, theta: torch.Tensor) -> torch.Tensor:
-        """Project theta into the solvers' box (the joint limits widened by
-        ``config.limit_slack``)."""
-        return torch.maximum(torch.minimum(theta, self.upper), self.lower)
+    def clamp(self, theta: torch.Tensor, bounds: Optional[tuple] = None) -> torch.Tensor:
+        """Project theta into ``bounds`` ((lower, upper), each (D,) or (B, D); default
+        :attr:`bounds`, the solvers' box)."""
+        lower, upper = self.bounds if bounds is None else bounds
+        return torch.maximum(torch.minimum(theta, upper), lower)
 
-    def reset(self) -> None:
+    def reset(self, init: Optional[torch.Tensor] = None) -> None:
         """Forget the energies and colour images of earlier frames (before tracking other
-        sequences)."""
+        sequences). ``init``: (B, D) initial poses of the sequences to track next; the
+        solvers' box of each (:attr:`bounds`, (B, D) rows) is the joint limits widened by
+        ``config.limit_slack`` and grown to hold its initial pose, so that a given pose
+        outside the limits (the thesis' own motions leave them) is not pulled into them.
+        Without ``init`` the box is the same for every problem."""
         self._energy_history.clear()
         self._last_gray.clear()
+        self.bounds = (self.lower, self.upper)
+        if init is not None:
+            init = init.detach()
+            self.bounds = (torch.minimum(self.lower.to(init), init), torch.maximum(self.upper.to(init), init))
+
+    def _bounds_of(self, B: int) -> tuple:
+        """The box of the B problems of a frame: :attr:`bounds`, whose rows (when it has
+        them) must be the B sequences of the last :meth:`reset`."""
+        lower, upper = self.bounds
+        if lower.dim() == 2 and lower.shape[0] != B:
+            raise ValueError(f"the tracker was reset with the initial poses of {lower.shape[0]} sequences, this frame "
+                             f"has {B} problems: call reset(init) with this batch's initial poses (or reset())")
+        return lower, upper
 
     # ------------------------------------------------------------------ frames
     def _render(self, vertices: torch.Tensor, cameras: Sequence[Camera], slots: torch.Tensor,
@@ -403,7 +426,8 @@ class Tracker:
 
     def solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[Optional[DepthFrame]],
               cameras: Sequence[Camera], iterations: int, min_motion: Optional[float] = None,
-              colours: Optional[List[ColourFrame]] = None, views: int = 1) -> SolveResult:
+              colours: Optional[List[ColourFrame]] = None, views: int = 1,
+              bounds: Optional[tuple] = None) -> SolveResult:
         """Algorithm 1 for a batch: alternate correspondences and LM steps.
 
         The data pixels are labelled at the start pose (``config.labels``) and keep
@@ -417,17 +441,20 @@ class Tracker:
 
         A problem stops when its joints moved less than ``min_motion`` mm (default
         ``config.min_joint_motion``) in an iteration, or when no LM step was accepted.
+        ``bounds``: the box (lower, upper), each (D,) or (B, D) (default: the joint
+        limits widened by ``config.limit_slack``).
 
         Returns :class:`SolveResult`: the energy is per candidate correspondence, a
         candidate without a correspondence charged its truncated square
         (:attr:`Prepared.unmatched`).
         """
-        theta = self.clamp(start)  # within the bounds, as the solver keeps it (see Objective)
+        bounds = (self.lower, self.upper) if bounds is None else bounds
+        theta = self.clamp(start, bounds)  # within the bounds, as the solver keeps it (see Objective)
         B, V = theta.shape[0], int(views)
         if len(frames) != B * V or len(cameras) != B * V or (colours is not None and len(colours) != B * V):
             raise ValueError(f"give B x V = {B} x {V} frames and cameras (and colour frames), got {len(frames)}, "
                              f"{len(cameras)}" + ("" if colours is None else f" and {len(colours)}"))
-        lower, upper = self.lower, self.upper
+        lower, upper = (x.to(theta.device) for x in bounds)
         min_motion = self.config.min_joint_motion if min_motion is None else min_motion
         iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
         damping = theta.new_full((B,), 1e-3)
@@ -462,7 +489,8 @@ class Tracker:
                     # after every retry moved nothing: its correspondences would not change
                     return (self.scene.joint_motion(state.posed, objective.current) >= min_motion) & (steps > 0)
 
-                res = levenberg_marquardt(objective, state.theta, lower, upper,
+                lo, hi = (x[idx] if x.dim() == 2 else x for x in (lower, upper))  # the box of each problem
+                res = levenberg_marquardt(objective, state.theta, lo, hi,
                                           max_iterations=self.config.inner_iterations, damping=damping[idx],
                                           retries=self.config.step_retries, status=going)
                 posed = objective.current
@@ -523,7 +551,8 @@ class Tracker:
             start = self.scene.check_theta(start, "start")
             if start.shape[0] != B:
                 raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
-        init = previous if start is None else self.clamp(start)
+        lower, upper = self._bounds_of(B)
+        init = previous if start is None else self.clamp(start, (lower, upper))
         frames, cols, ok, notes = [], [], [], [""] * B
         for b in range(B):
             try:
@@ -555,13 +584,14 @@ class Tracker:
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             # the first frame refines a given initial pose: its whole budget is spent
             # unless the solver stops accepting steps (the thesis' 50 iterations)
+            box = tuple(x[idx.to(x.device)] if x.dim() == 2 else x for x in (lower, upper))
             if cfg.solver == "pso":
-                sol = self.swarm_solve(init[idx], previous[idx], frames, cams, cols, V, generator)
+                sol = self.swarm_solve(init[idx], previous[idx], frames, cams, cols, V, generator, box)
             else:
-                sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None, cols, V)
+                sol = self.solve(init[idx], previous[idx], frames, cams, n_it, 0.0 if first else None, cols, V, box)
             th, en = sol.theta, sol.energy
             if cfg.solver == "lm" and not first and cfg.recover_tries > 0 and len(self._energy_history) >= 3:
-                th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator, cols, V)
+                th, en, rec = self._recover(th, en, previous[idx], frames, cams, n_it, idx, generator, cols, V, box)
                 recovered[idx] = rec.cpu()
             # never return NaN: a diverged problem keeps its previous pose and is flagged
             finite = torch.isfinite(th).all(1) & torch.isfinite(en)
@@ -578,7 +608,7 @@ class Tracker:
 
     def swarm_solve(self, start: torch.Tensor, previous: torch.Tensor, frames: List[Optional[DepthFrame]],
                     cameras: Sequence[Camera], colours: Optional[List[ColourFrame]] = None, views: int = 1,
-                    generator: Optional[torch.Generator] = None) -> SolveResult:
+                    generator: Optional[torch.Generator] = None, bounds: Optional[tuple] = None) -> SolveResult:
         """HOPE for a batch (Oikonomidis et al. 2011, the baseline of Ballan et al.'s
         Table 1): a particle swarm (:func:`torchhand.optim.pso.particle_swarm`) over the
         energy Levenberg-Marquardt minimises, each particle's correspondences found at its
@@ -588,7 +618,8 @@ class Tracker:
         generations follow; velocities are limited to twice the spread. Arguments as
         :meth:`solve`; ``generator`` draws the particles and the swarm's coefficients."""
         cfg, V = self.config, int(views)
-        theta = self.clamp(start)
+        bounds = (self.lower, self.upper) if bounds is None else bounds
+        theta = self.clamp(start, bounds)
         B, D = theta.shape
         P = cfg.particles
         generator = torch.Generator().manual_seed(cfg.seed) if generator is None else generator
@@ -633,9 +664,9 @@ class Tracker:
 
         owners = [b for b in range(B) for _ in range(P)]
         res = particle_swarm(lambda pos: energies(pos.reshape(B * P, D), owners)[0].view(B, P), theta[:, None] + noise,
-                             self.lower, self.upper, cfg.generations, velocity_scale=2 * spread,
+                             bounds[0], bounds[1], cfg.generations, velocity_scale=2 * spread,
                              generator=generator)
-        best = self.clamp(res.best)
+        best = self.clamp(res.best, bounds)
         final, n = energies(best, list(range(B)))
         iters = torch.full((B,), cfg.generations, dtype=torch.int64)
         return SolveResult(best, iters, final, n)
@@ -685,7 +716,7 @@ class Tracker:
         """
         cfg = self.config
         theta = self.scene.check_theta(init, "init")
-        self.reset()
+        self.reset(theta)
         generator = torch.Generator().manual_seed(cfg.seed)
         history: collections.deque = collections.deque(maxlen=3)  # (theta, tracked) of the last frames
         if depths is None and colours is None:
@@ -707,8 +738,10 @@ class Tracker:
             history.append((theta, res.valid.to(theta.device)))
             yield res
 
-    def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator, colours=None, views=1):
-        """Re-solve problems whose energy rose sharply, from perturbed previous poses."""
+    def _recover(self, theta, energy, previous, frames, cameras, iterations, idx, generator, colours=None, views=1,
+                 bounds=None):
+        """Re-solve problems whose energy rose sharply, from perturbed previous poses
+        (``bounds``: the box of each problem, as :meth:`solve`'s)."""
         hist = torch.stack(list(self._energy_history))[:, idx]
         ref = torch.nanmedian(hist, 0).values
         bad = torch.nonzero(energy > self.config.recover_factor * ref)[:, 0].tolist()
@@ -730,8 +763,13 @@ class Tracker:
                 cams += cameras[b * V : (b + 1) * V]
                 cols += [] if colours is None else colours[b * V : (b + 1) * V]
                 prev.append(previous[b])
-        sol = self.solve(self.clamp(torch.stack(starts)), torch.stack(prev), fr, cams, iterations,
-                         colours=None if colours is None else cols, views=V)
+        if bounds is None:
+            bounds = (self.lower, self.upper)
+        else:  # the box of each try: its problem's
+            rows = torch.tensor([b for b in bad for _ in range(R)])
+            bounds = tuple(x[rows.to(x.device)] if x.dim() == 2 else x for x in bounds)
+        sol = self.solve(self.clamp(torch.stack(starts), bounds), torch.stack(prev), fr, cams, iterations,
+                         colours=None if colours is None else cols, views=V, bounds=bounds)
         th, en = sol.theta, sol.energy
         for i, b in enumerate(bad):
             best = int(torch.argmin(en[i * R : (i + 1) * R]))
