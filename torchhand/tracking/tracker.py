@@ -304,9 +304,24 @@ class Tracker:
         # the solvers' box: the joint limits widened by limit_slack (the limits themselves
         # are the soft ones of E_anatomy, Eq. 4.17), and per sequence grown to hold its
         # initial pose (reset)
-        slack = math.inf if config.limit_slack is None else float(config.limit_slack)
-        self.lower, self.upper = scene.lower - slack, scene.upper + slack
-        self.bounds: tuple = (self.lower, self.upper)
+        self._slack = math.inf if config.limit_slack is None else float(config.limit_slack)
+        self._grown: Optional[tuple] = None
+
+    @property
+    def lower(self) -> torch.Tensor:
+        """(D,) the joint limits widened by ``config.limit_slack`` (lower side)."""
+        return self.scene.lower - self._slack
+
+    @property
+    def upper(self) -> torch.Tensor:
+        """(D,) the joint limits widened by ``config.limit_slack`` (upper side)."""
+        return self.scene.upper + self._slack
+
+    @property
+    def bounds(self) -> tuple:
+        """The solvers' box (lower, upper): (B, D) rows grown to hold the initial poses
+        of the last :meth:`reset`, or the (D,) widened limits."""
+        return (self.lower, self.upper) if self._grown is None else self._grown
 
     def clamp(self, theta: torch.Tensor, bounds: Optional[tuple] = None) -> torch.Tensor:
         """Project theta into ``bounds`` ((lower, upper), each (D,) or (B, D); default
@@ -323,10 +338,10 @@ class Tracker:
         Without ``init`` the box is the same for every problem."""
         self._energy_history.clear()
         self._last_gray.clear()
-        self.bounds = (self.lower, self.upper)
+        self._grown = None
         if init is not None:
             init = init.detach()
-            self.bounds = (torch.minimum(self.lower.to(init), init), torch.maximum(self.upper.to(init), init))
+            self._grown = (torch.minimum(self.lower.to(init), init), torch.maximum(self.upper.to(init), init))
 
     def _bounds_of(self, B: int) -> tuple:
         """The box of the B problems of a frame: :attr:`bounds`, whose rows (when it has
