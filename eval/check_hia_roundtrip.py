@@ -35,7 +35,7 @@ def check_sequence(hia_root: Path, seq: str, chunk: int = 64):
     """Per-vertex errors (mm) of all frames of all models of one sequence, its frame
     count and its theta's excess over the joint limits (a dict)."""
     names, bounds = sequence_models(hia_root, seq)
-    errors, outside, excess = [], [], []
+    errors, outside = [], []  # outside: per model, (frames, its DoF) excess over its limits
     dof_names: list = []
     frames = None
     for name in names:
@@ -50,6 +50,7 @@ def check_sequence(hia_root: Path, seq: str, chunk: int = 64):
         frames = len(rows)
         order = [files.skin.bone_names.index(b) for b in model.bone_names]
         W = torch.as_tensor(files.skin.weights[:, order])
+        excess = []
         for s in range(0, len(rows), chunk):
             M = M_all[rows[s : s + chunk]]
             theta = motion_to_theta(model, M)
@@ -59,7 +60,7 @@ def check_sequence(hia_root: Path, seq: str, chunk: int = 64):
             errors.append((ours - ref).norm(dim=-1).flatten().float())
             excess.append(model.limit_violation(theta).abs())
         dof_names += [f"{name}/{d}" for d in model.dof_names]
-        outside.append(torch.cat(excess[-((len(rows) + chunk - 1) // chunk):]))
+        outside.append(torch.cat(excess))
     over = torch.cat(outside, 1)  # (frames, DoF of every model)
     worst = over.max(0).values
     limits = {"frames_outside": int((over > 1e-6).any(1).sum()), "dofs_outside": int((worst > 1e-6).sum()),

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from torchhand.app.drawing import HAND_SKELETON
+from torchhand.app.cli import limit_slack_arg
 from torchhand.app.runner import track_sequences
 from torchhand.data.layout import read_poses
 from torchhand.data.synth import thesis_motion, with_camera_ring, write_synthetic_sequence
@@ -133,7 +134,7 @@ def main(argv=None) -> int:
     p.add_argument("--hope", default="", help="particle counts of the HOPE rows, e.g. 64,128 (slow)")
     p.add_argument("--generations", type=int, default=40, help="of the HOPE rows (the paper: 40)")
     p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
-    p.add_argument("--limit-slack", type=lambda t: None if t == "none" else float(t), default=0.0,
+    p.add_argument("--limit-slack", type=limit_slack_arg, default=0.0,
                    help="track --limit-slack: the solver's box, the joint limits widened by this (rad) and grown "
                         "to hold each sequence's first pose; none: no box (the soft limits alone)")
     args = p.parse_args(argv)

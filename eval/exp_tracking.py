@@ -59,6 +59,7 @@ from torchhand.salient.training_data import VISIBLE_MM2, fingertip_targets
 from torchhand.model.scene import Scene
 from torchhand.scoring.sequences import evaluate_sequence, summarize
 from torchhand.io.thesis import FormatError, sequence_models
+from torchhand.app.cli import limit_slack_arg
 from torchhand.app.runner import track_sequences
 from torchhand.tracking.tracker import TrackerConfig
 
@@ -478,7 +479,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=None)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--iterations", type=int, default=10)
-    ap.add_argument("--limit-slack", type=lambda t: None if t == "none" else float(t), default=0.0,
+    ap.add_argument("--limit-slack", type=limit_slack_arg, default=0.0,
                     help="lo: track --limit-slack, the solver's box: the joint limits widened by this (rad) and "
                          "grown to hold each sequence's first pose; none: no box")
     ap.add_argument("--metric", default="point-to-plane", choices=["point-to-point", "point-to-plane"])

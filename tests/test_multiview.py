@@ -225,6 +225,9 @@ def test_the_swarm_never_returns_worse_than_its_start(ring, monkeypatch):
     tracker = Tracker(scene, cfg)
     still = tracker.track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
     assert torch.equal(still.theta, tracker.clamp(start))
+    tracker.reset(start)  # a box of its own (the swarm's (B, D) bounds): the same box, the same result
+    own = tracker.track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
+    assert tracker.bounds[0].shape == start.shape and torch.equal(own.theta, still.theta)
     assert 0 < float(res.energy[0]) <= float(still.energy[0]) + 1e-9
     with pytest.raises(ValueError, match="particles"):
         TrackerConfig(solver="pso", particles=1)

@@ -325,8 +325,9 @@ def _positive_float(text: str) -> float:
     return x
 
 
-def _limit_slack(text: str):
-    """``none`` or a finite number >= 0 (radians)."""
+def limit_slack_arg(text: str):
+    """``--limit-slack``: ``none`` or a finite number >= 0 (radians); also the eval
+    scripts' parser."""
     if text.strip().lower() == "none":
         return None
     try:
@@ -507,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")
-    p.add_argument("--limit-slack", type=_limit_slack, default=0.0, metavar="RAD|none",
+    p.add_argument("--limit-slack", type=limit_slack_arg, default=0.0, metavar="RAD|none",
                    help="the solver keeps each sequence in a box: the joint limits widened by RAD radians and "
                         "grown to hold its first-frame pose (the thesis' own motions leave the limits); none: no "
                         "box, the soft limits of E_anatomy (thesis Eq. 4.17) alone (docs/results.md)")

@@ -504,7 +504,7 @@ class Tracker:
                     # after every retry moved nothing: its correspondences would not change
                     return (self.scene.joint_motion(state.posed, objective.current) >= min_motion) & (steps > 0)
 
-                lo, hi = (x[idx] if x.dim() == 2 else x for x in (lower, upper))  # the box of each problem
+                lo, hi = _box_rows((lower, upper), idx)
                 res = levenberg_marquardt(objective, state.theta, lo, hi,
                                           max_iterations=self.config.inner_iterations, damping=damping[idx],
                                           retries=self.config.step_retries, status=going)
@@ -599,7 +599,7 @@ class Tracker:
             n_it = cfg.first_frame_iterations if first else cfg.max_iterations
             # the first frame refines a given initial pose: its whole budget is spent
             # unless the solver stops accepting steps (the thesis' 50 iterations)
-            box = tuple(x[idx.to(x.device)] if x.dim() == 2 else x for x in (lower, upper))
+            box = _box_rows((lower, upper), idx)
             if cfg.solver == "pso":
                 sol = self.swarm_solve(init[idx], previous[idx], frames, cams, cols, V, generator, box)
             else:
@@ -778,11 +778,7 @@ class Tracker:
                 cams += cameras[b * V : (b + 1) * V]
                 cols += [] if colours is None else colours[b * V : (b + 1) * V]
                 prev.append(previous[b])
-        if bounds is None:
-            bounds = (self.lower, self.upper)
-        else:  # the box of each try: its problem's
-            rows = torch.tensor([b for b in bad for _ in range(R)])
-            bounds = tuple(x[rows.to(x.device)] if x.dim() == 2 else x for x in bounds)
+        bounds = (self.lower, self.upper) if bounds is None else _box_rows(bounds, [b for b in bad for _ in range(R)])
         sol = self.solve(self.clamp(torch.stack(starts), bounds), torch.stack(prev), fr, cams, iterations,
                          colours=None if colours is None else cols, views=V, bounds=bounds)
         th, en = sol.theta, sol.energy
@@ -791,6 +787,16 @@ class Tracker:
             if en[i * R + best] < energy[b]:
                 theta[b], energy[b], rec[b] = th[i * R + best], en[i * R + best], True
         return theta, energy, rec
+
+
+def _box_rows(bounds: tuple, rows) -> tuple:
+    """The (lower, upper) of the problems ``rows`` (indices): rows of a per-problem box
+    ((B, D) each), a shared (D,) box as it is."""
+    lower, upper = bounds
+    if lower.dim() == 1:
+        return lower, upper
+    rows = torch.as_tensor(rows, device=lower.device)
+    return lower[rows], upper[rows]
 
 
 def predicted_start(history: Sequence[tuple], factor: float, limiter: bool = True) -> Optional[torch.Tensor]:
