@@ -12,7 +12,8 @@ Models are read from the sequence's own files (not from models/), so sequences w
 other meshes or limits are checked as they are. Each sequence's entry also says how far
 its theta leaves the models' joint limits (``limits``: the frames with any joint
 outside, the joints ever outside, the largest excess in radians and its joint), which
-is why the tracker's limits are soft (docs/model.md).
+is why the tracker's box grows to hold each sequence's first pose (docs/results.md
+"Joint limits").
 """
 
 from __future__ import annotations
