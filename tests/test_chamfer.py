@@ -10,7 +10,9 @@ import pytest
 import torch
 
 from torchhand.geometry.chamfer import (CHAMFER_KINDS, ChamferConfig, boundary_pixels, circular_distance,
-                                        contour_marks, match_contour, orientation_bin, silhouette_contour)
+                                        contour_boxes, contour_marks, match_contour, mark_groups, orientation_bin,
+                                        silhouette_contour)
+from torchhand.geometry.neighbors import NEIGHBOR_BACKENDS, default_neighbor_backend
 
 
 def _disc(shape=(200, 300), centre=(150, 100), r=60):
@@ -71,6 +73,30 @@ def test_every_distance_pairs_a_shifted_silhouette(kind):
     # the mean pull of the pairs points back left, towards the data
     pull = (res.pixel[0][ok] - torch.as_tensor(q)[res.source[0][ok]]).double().mean(0)
     assert float(pull[1]) < -1.0
+
+
+@pytest.mark.parametrize("kind", CHAMFER_KINDS)
+def test_boxes_computed_once_give_the_same_pairs(kind):
+    """The boxes a tracker computes once per frame (contour_boxes) pair exactly as the
+    boxes match_contour computes itself; backends that do not use them get None."""
+    m = _disc()
+    pix, phi = silhouette_contour(m)
+    q, qphi = silhouette_contour(np.roll(m, 7, axis=0))
+    cfg = ChamferConfig(kind)
+    marks, image = contour_marks(pix, phi, m.shape, cfg)
+    assert int(marks.max()) + 1 <= mark_groups(cfg) and (mark_groups(cfg) > 1) == (kind in ("DCH-Quant", "DCH-Quant2",
+                                                                                             "DCH-DT3"))
+    marks, image = torch.as_tensor(marks)[None], torch.as_tensor(image)[None]
+    args = (torch.as_tensor(q)[None], torch.as_tensor(qphi)[None], torch.ones(1, len(q), dtype=torch.bool))
+    backend = default_neighbor_backend()
+    boxes = contour_boxes(cfg, marks, backend)
+    assert (boxes is None) == (backend != "warp")
+    if boxes is not None:
+        assert boxes.shape == (mark_groups(cfg), 4)
+    want = match_contour(cfg, marks, image, *args, backend=backend)
+    got = match_contour(cfg, marks, image, *args, backend=backend, boxes=boxes)
+    assert all(torch.equal(a, b) for a, b in zip(got, want)) and int(got.valid.sum()) > 100
+    assert {contour_boxes(cfg, marks, b) is None for b in NEIGHBOR_BACKENDS if b != "warp"} == {True}
 
 
 def test_orientation_decides_the_pair():

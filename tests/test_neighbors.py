@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchhand.geometry.neighbors import PointIndex, marked_pixel_transform, nearest_marked_pixel, pixel_hash
+from torchhand.geometry.neighbors import (PointIndex, marked_boxes, marked_pixel_transform, nearest_marked_pixel,
+                                          pixel_hash)
 from torchhand.tracking.energies.base import bone_inliers, stride_subsample
 
 try:
@@ -102,6 +103,27 @@ def test_nearest_marked_pixel_warp_equals_brute_force():
             == groups[found]).all()
     d = (got - queries).double().norm(dim=-1)
     assert (d[found] <= radius[found].double()).all()
+
+
+@needs_warp
+def test_marked_boxes_given_once_search_the_same():
+    """Boxes computed once (marked_boxes) give what the search computes itself; boxes of
+    another group count are refused."""
+    marks, queries, groups, radius = _marks()
+    boxes = marked_boxes(marks, 2)
+    assert boxes.shape == (4, 4)
+    for i in range(2):
+        for k in range(2):
+            pix = torch.nonzero(marks[i] == k)
+            if len(pix) == 0:  # image 1 has no pixel of group 0: an empty box
+                assert (i, k) == (1, 0) and boxes[i * 2 + k, 0] > boxes[i * 2 + k, 1]
+                continue
+            want = [*pix[:, 0].aminmax(), *pix[:, 1].aminmax()]
+            assert boxes[i * 2 + k].tolist() == [int(x) for x in want]
+    got = nearest_marked_pixel(marks, queries, groups, radius, 2, "warp", boxes=boxes)
+    assert torch.equal(got, nearest_marked_pixel(marks, queries, groups, radius, 2, "warp"))
+    with pytest.raises(ValueError, match=r"boxes must be marked_boxes\(marks, 2\)"):
+        nearest_marked_pixel(marks, queries, groups, radius, 2, "warp", boxes=marked_boxes(marks, 3))
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"] + (["warp"] if HAVE_WARP else []))

@@ -36,10 +36,10 @@ from typing import NamedTuple, Optional
 import numpy as np
 import torch
 
-from torchhand.geometry.neighbors import nearest_marked_pixel
+from torchhand.geometry.neighbors import default_neighbor_backend, marked_boxes, nearest_marked_pixel
 
 __all__ = ["CHAMFER_KINDS", "ChamferConfig", "silhouette_contour", "contour_marks", "boundary_pixels",
-           "circular_distance", "orientation_bin", "match_contour", "ContourMatch"]
+           "circular_distance", "orientation_bin", "match_contour", "mark_groups", "contour_boxes", "ContourMatch"]
 
 CHAMFER_KINDS = ("CH", "DCH-Thres", "DCH-Quant", "DCH-Quant2", "DCH-DT3")
 TWO_PI = 2 * math.pi
@@ -145,7 +145,7 @@ def contour_marks(pixels: np.ndarray, phi: np.ndarray, shape: tuple, config: Cha
     marks = np.full((H, W), -1, np.int64)
     image = np.full((H, W), np.nan, np.float32)
     if len(pixels):
-        binned = config.kind in ("DCH-Quant", "DCH-Quant2", "DCH-DT3")
+        binned = mark_groups(config) > 1
         b = orientation_bin(torch.as_tensor(phi), config.bins, config.signed).numpy() if binned else 0
         marks[pixels[:, 0], pixels[:, 1]] = b
         image[pixels[:, 0], pixels[:, 1]] = phi
@@ -160,9 +160,24 @@ def boundary_pixels(hit: torch.Tensor) -> torch.Tensor:
     return hit & ~inside
 
 
+def mark_groups(config: ChamferConfig) -> int:
+    """The number of mark values of :func:`contour_marks` under ``config``: the
+    orientation bins, or 1 (CH and DCH-Thres mark every contour pixel 0)."""
+    return config.bins if config.kind in ("DCH-Quant", "DCH-Quant2", "DCH-DT3") else 1
+
+
+def contour_boxes(config: ChamferConfig, marks: torch.Tensor, backend: Optional[str] = None) -> Optional[torch.Tensor]:
+    """What :func:`match_contour` may be given as ``boxes`` for (I, H, W) ``marks``: the
+    boxes of each mark's pixels that the Warp search starts from, or None for the other
+    backends (which do not use them). Compute them once when the same contour images
+    are matched many times (a tracker's outer iterations, a swarm's particles)."""
+    backend = default_neighbor_backend() if backend is None else backend
+    return marked_boxes(marks, mark_groups(config)) if backend == "warp" else None
+
+
 def match_contour(config: ChamferConfig, marks: torch.Tensor, phi_image: torch.Tensor, queries: torch.Tensor,
                   query_phi: torch.Tensor, query_ok: torch.Tensor, backend: Optional[str] = None,
-                  images: Optional[torch.Tensor] = None) -> ContourMatch:
+                  images: Optional[torch.Tensor] = None, boxes: Optional[torch.Tensor] = None) -> ContourMatch:
     """Pair each rim point with a contour pixel by the distance ``config.kind``.
 
     Args:
@@ -171,16 +186,19 @@ def match_contour(config: ChamferConfig, marks: torch.Tensor, phi_image: torch.T
         queries: (B, n, 2) int64 (row, col) rim pixels; query_phi: (B, n) their
             orientations; query_ok: (B, n) bool real queries.
         images: (B,) int64 the image of each problem (None: problem b has image b).
+        boxes: :func:`contour_boxes` of ``marks`` (None: computed here, once for the
+            call's searches).
     """
     B, n = query_ok.shape
     dev = queries.device
+    boxes = contour_boxes(config, marks, backend) if boxes is None else boxes
     radius = torch.full((B, n), int(config.radius_px), dtype=torch.int64, device=dev)
     idx = torch.arange(n, device=dev).expand(B, n)
     bidx = torch.arange(B, device=dev)[:, None] if images is None else images.to(dev)[:, None]
 
     def search(groups, num_groups):
         g = torch.where(query_ok, groups, torch.full_like(groups, -1))
-        hit = nearest_marked_pixel(marks, queries, g, radius, num_groups, backend=backend, images=images)
+        hit = nearest_marked_pixel(marks, queries, g, radius, num_groups, backend=backend, images=images, boxes=boxes)
         return hit, (hit[..., 0] >= 0) & query_ok
 
     def dist(hit):

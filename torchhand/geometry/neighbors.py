@@ -36,7 +36,7 @@ import torch
 
 from torchhand.core.check import check_tensor
 
-__all__ = ["PointIndex", "nearest_marked_pixel", "marked_pixel_transform", "NEIGHBOR_BACKENDS",
+__all__ = ["PointIndex", "nearest_marked_pixel", "marked_boxes", "marked_pixel_transform", "NEIGHBOR_BACKENDS",
            "default_neighbor_backend"]
 
 NEIGHBOR_BACKENDS = ("warp", "cpu", "torch")
@@ -169,7 +169,7 @@ def _nearest_brute_force(points, point_key, queries, key, radius, chunk: int = 4
 
 def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: torch.Tensor, radius: torch.Tensor,
                          num_groups: int, backend: Optional[str] = None,
-                         images: Optional[torch.Tensor] = None) -> torch.Tensor:
+                         images: Optional[torch.Tensor] = None, boxes: Optional[torch.Tensor] = None) -> torch.Tensor:
     """For each query pixel, the nearest pixel of its image marked with its group.
 
     Args:
@@ -182,6 +182,9 @@ def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: tor
         backend: ``"warp"`` or ``"torch"`` (None: Warp when installed).
         images: (B,) int64 the image of ``marks`` each query row searches (None: row b
             searches image b); many rows on few images need no copies of them.
+        boxes: :func:`marked_boxes` of ``marks`` and ``num_groups``, which the Warp
+            search starts from (None: computed here). Pass them when the same marks are
+            searched many times: they cost a pass over every pixel and group.
     Returns:
         (B, n, 2) int64 (row, col) of the nearest marked pixel, -1 where none within the
         radius; ties go to the smaller :func:`pixel_hash`.
@@ -198,8 +201,13 @@ def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: tor
     if backend == "warp":
         from torchhand.geometry import warp_kernels
 
-        return warp_kernels.nearest_marked_pixel(marks, _group_boxes(marks, num_groups), queries, groups, radius,
-                                                 images)
+        G = max(int(num_groups), 1)
+        if boxes is None:
+            boxes = marked_boxes(marks, num_groups)
+        elif boxes.shape != (I * G, 4):
+            raise ValueError(f"boxes must be marked_boxes(marks, {num_groups}), shape ({I * G}, 4), "
+                             f"got {tuple(boxes.shape)}")
+        return warp_kernels.nearest_marked_pixel(marks, boxes, queries, groups, radius, images)
     if images is not None:
         marks = marks[images]
     if backend == "cpu":
@@ -296,9 +304,10 @@ def _nearest_pixel_edt(marks, queries, groups, radius) -> torch.Tensor:
     return torch.as_tensor(out, device=marks.device)
 
 
-def _group_boxes(marks: torch.Tensor, num_groups: int) -> torch.Tensor:
-    """(B x G, 4) int32 (r_min, r_max, c_min, c_max) of each group's pixels; r_min >
-    r_max for an empty group. Fixed shapes, no host sync."""
+def marked_boxes(marks: torch.Tensor, num_groups: int) -> torch.Tensor:
+    """(B x G, 4) int32 (r_min, r_max, c_min, c_max) of the pixels of each group of (B, H,
+    W) ``marks`` (G = ``num_groups``, at least 1); r_min > r_max for an empty group.
+    Fixed shapes, no host sync."""
     B, H, W = marks.shape
     G = max(int(num_groups), 1)
     member = marks[:, None] == torch.arange(G, device=marks.device)[None, :, None, None]  # (B, G, H, W)

@@ -34,11 +34,11 @@ problem the pairs of all its views.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import torch
 
-from torchhand.geometry.chamfer import ChamferConfig, boundary_pixels, contour_marks, match_contour
+from torchhand.geometry.chamfer import ChamferConfig, boundary_pixels, contour_boxes, contour_marks, match_contour
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
@@ -60,6 +60,7 @@ DEFAULT_CHAMFER = ChamferConfig(kind="DCH-Thres", tau_deg=22.5, signed=False, ra
 class _Data(NamedTuple):
     marks: torch.Tensor  # (P, H, W) int64 orientation bin of each image edge pixel, -1 elsewhere
     phi: torch.Tensor  # (P, H, W) float32 their orientation, NaN elsewhere
+    boxes: Optional[torch.Tensor]  # chamfer.contour_boxes of marks: once per frame, not per iteration or particle
 
 
 def rim_vertices(state: TrackState, max_points: int, contours: str = "occluding") -> tuple:
@@ -139,7 +140,8 @@ class Edges(VertexPixelTerm):
             marks.append(torch.as_tensor(m))
             phis.append(torch.as_tensor(phi))
         dev = state.theta.device
-        return _Data(torch.stack(marks).to(dev), torch.stack(phis).to(dev))
+        marks = torch.stack(marks).to(dev)
+        return _Data(marks, torch.stack(phis).to(dev), contour_boxes(self.config, marks, self.backend))
 
     def prepare(self, state: TrackState) -> Prepared:
         scene, B = state.scene, state.theta.shape[0]
@@ -148,7 +150,8 @@ class Edges(VertexPixelTerm):
         data = state.data_side(self, self._build)
         p = state.problem_index()
         ids, q, phi, ok, z = rim_vertices(state, self.max_points, self.contours)
-        match = match_contour(self.config, data.marks, data.phi, q, phi, ok, backend=self.backend, images=p)
+        match = match_contour(self.config, data.marks, data.phi, q, phi, ok, backend=self.backend, images=p,
+                              boxes=data.boxes)
         vid = ids.gather(1, match.source)
         src = q.gather(1, match.source[..., None].expand(-1, -1, 2))  # the model pixel of each pair
         valid = match.valid
