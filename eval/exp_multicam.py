@@ -29,6 +29,8 @@ Columns, as in the paper: the joint position error (the 21 joints of each hand a
 the truth, mean, std and max over joints and frames, mm) and the bone orientation error
 (the angle between each tracked bone of the hand skeletons and the true one, degrees).
 ``s/frame`` is a row's wall time (tracking and writing its outputs) over its frames.
+The JSON is written after each row (``"complete": false`` until the last), so a long
+run keeps the rows it finished.
 """
 
 from __future__ import annotations
@@ -130,7 +132,8 @@ def main(argv=None) -> int:
                    "same field of view (default 2: 1280x960; the paper's cameras were FullHD, and its noise "
                    "protocol is in their pixels)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--rows", default=",".join(label for label, *_ in ROWS), help="comma-separated row labels")
+    p.add_argument("--rows", default=",".join(label for label, *_ in ROWS), help="comma-separated row labels, or "
+                   "none (the HOPE rows alone)")
     p.add_argument("--hope", default="", help="particle counts of the HOPE rows, e.g. 64,128 (slow)")
     p.add_argument("--generations", type=int, default=40, help="of the HOPE rows (the paper: 40)")
     p.add_argument("--min-motion", type=float, default=0.2, help="track --min-motion: convergence, joint motion in mm")
@@ -138,10 +141,21 @@ def main(argv=None) -> int:
                    help="track --limit-slack: the solver's box, the joint limits widened by this (rad) and grown "
                         "to hold each sequence's first pose; none: no box (the soft limits alone)")
     args = p.parse_args(argv)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    known = [label for label, *_ in ROWS]
+    asked = [r for r in args.rows.split(",") if r and r != "none"]
+    if any(r not in known for r in asked):
+        raise SystemExit(f"--rows: unknown row {next(r for r in asked if r not in known)!r}; rows are "
+                         f"{', '.join(known)} (or none, with --hope)")
+    rows = [(label, energy, nails, None) for label, energy, nails in ROWS if label in asked]
+    counts = [n.strip() for n in args.hope.split(",") if n.strip()]
+    if any(not n.isdigit() or int(n) < 1 for n in counts):
+        raise SystemExit(f"--hope: expected comma-separated particle counts (e.g. 64,128), got {args.hope!r}")
+    rows += [(f"HOPE{n}+ECOS", "E+C+O+S", "auto", int(n)) for n in counts]
+    if not rows:
+        raise SystemExit("no rows to run: --rows none needs --hope")
     roots = render_sequences(args.hia_root, args.work, parse_windows(args.sequences, args.start), args.frames,
                              args.views, args.seed, args.image_scale)
-    rows = [(label, energy, nails, None) for label, energy, nails in ROWS if label in args.rows.split(",")]
-    rows += [(f"HOPE{n}+ECOS", "E+C+O+S", "auto", int(n)) for n in args.hope.split(",") if n]
     table = {}
     for label, energy, nails, particles in rows:
         out = args.work / "tracks" / label.replace("+", "_")
@@ -161,12 +175,12 @@ def main(argv=None) -> int:
                         "seconds_per_frame": seconds / sum(len(q["per_frame_mm"]) for q in parts)}
         print(f"{label}: joints {table[label]['joint_mm'][0]:.2f} mm, bones {table[label]['bone_deg'][0]:.2f} deg, "
               f"{table[label]['seconds_per_frame']:.2f} s/frame", flush=True)
-    result = {"sequences": [r.name for r in roots], "frames": args.frames, "views": args.views,
-              "image_scale": args.image_scale, "seed": args.seed,
-              "min_motion_mm": args.min_motion, "limit_slack": args.limit_slack,
-              "protocol": "ballan", "table": table}
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result, indent=1))
+        # after every row, so that a long run (the HOPE rows: minutes a frame) keeps what it finished
+        result = {"sequences": [r.name for r in roots], "frames": args.frames, "views": args.views,
+                  "image_scale": args.image_scale, "seed": args.seed,
+                  "min_motion_mm": args.min_motion, "limit_slack": args.limit_slack,
+                  "protocol": "ballan", "complete": len(table) == len(rows), "table": table}
+        args.json.write_text(json.dumps(result, indent=1))
     print(markdown(result))
     return 0
 
