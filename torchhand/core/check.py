@@ -11,6 +11,13 @@ An ``int`` must match, a ``str`` (the dimension's name, shown in the message) or
 ``None`` matches any size, and a leading ``"..."`` admits any number of leading
 dimensions.
 
+Settings (plain numbers and names) are checked the same way, once, where an object is
+made::
+
+    check_number(max_distance, "max_distance", low=0, unit="mm")   # a number > 0
+    check_int(max_pixels, "max_pixels", low=1)                      # an int >= 1
+    check_choice(metric, "metric", ("point-to-point", "point-to-plane"))
+
 Checks cost host syncs (``finite=True`` reads every value) and Python time, so they
 run once, where data enters; inner loops that call public functions with data the
 library made itself wrap them in :func:`skip_checks`.
@@ -24,8 +31,8 @@ from typing import Any, Iterator, Optional, Sequence, Union
 
 import torch
 
-__all__ = ["check_tensor", "check_same", "check_broadcast", "check_index", "fmt_shape", "skip_checks",
-           "checks_enabled"]
+__all__ = ["check_tensor", "check_same", "check_broadcast", "check_index", "check_number", "check_int",
+           "check_choice", "fmt_shape", "skip_checks", "checks_enabled"]
 
 Dim = Union[int, str, None]
 
@@ -158,3 +165,41 @@ def check_broadcast(names: Sequence[str], shapes: Sequence[Sequence[int]]) -> No
 def _same_device(a: torch.device, b: Union[torch.device, str]) -> bool:
     b = torch.device(b)
     return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def check_number(value: Any, name: str, *, low: Optional[float] = None, inclusive: bool = False,
+                 high: Optional[float] = None, unit: str = "", none: bool = False) -> None:
+    """A finite real number (not a bool) above ``low`` (``>= low`` with ``inclusive``)
+    and at most ``high``; ``none``: None is admitted too. The message names ``name``,
+    the bound, the ``unit`` and the value given."""
+    if none and value is None:
+        return
+    want = []
+    if low is not None:
+        want.append(f"{'>=' if inclusive else '>'} {low:g}")
+    if high is not None:
+        want.append(f"<= {high:g}")
+    ok = _is_number(value) and value == value and abs(value) != float("inf")
+    if ok and low is not None:
+        ok = value >= low if inclusive else value > low
+    if ok and high is not None:
+        ok = value <= high
+    if not ok:
+        what = "a finite number" + (" " + " and ".join(want) if want else "") + (f" ({unit})" if unit else "")
+        raise ValueError(f"{name} must be {what}{' or None' if none else ''}, got {value!r}")
+
+
+def check_int(value: Any, name: str, *, low: Optional[int] = None) -> None:
+    """An int (not a bool) of at least ``low``; the message names ``name`` and the value."""
+    if not (isinstance(value, int) and not isinstance(value, bool) and (low is None or value >= low)):
+        raise ValueError(f"{name} must be an int" + (f" >= {low}" if low is not None else "") + f", got {value!r}")
+
+
+def check_choice(value: Any, name: str, choices: Sequence[Any]) -> None:
+    """One of ``choices``; the message lists them."""
+    if value not in tuple(choices):
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
