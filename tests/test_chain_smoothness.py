@@ -49,11 +49,11 @@ def test_a_kink_costs_and_an_even_bend_does_not():
     term = ChainSmoothness()
     even = torch.zeros(2, scene.num_dofs, dtype=F64)
     even[:, 6::2] = 0.1  # every joint bent by 0.1 rad about y
-    term.prepare(_state(scene, even))
-    assert float(term.residuals(even, None, jacobian=False).r.abs().max()) == 0.0
+    p = term.prepare(_state(scene, even))
+    assert float(term.residuals(even, None, p, jacobian=False).r.abs().max()) == 0.0
     kink = even.clone()
     kink[1, 6 + 2 * 10] = 0.6  # one joint folded
-    r = term.residuals(kink, None, jacobian=False).r
+    r = term.residuals(kink, None, p, jacobian=False).r
     assert float(r[0].abs().max()) == 0.0 and torch.isclose(r[1].pow(2).sum(), torch.tensor(2 * 0.5 ** 2, dtype=F64))
 
 
@@ -61,14 +61,14 @@ def test_jacobian_matches_finite_differences():
     scene = Scene.from_names(["hand_right", "rope"], dtype=F64)
     term = ChainSmoothness()
     theta = 0.1 * torch.randn(1, scene.num_dofs, dtype=F64, generator=torch.Generator().manual_seed(0))
-    term.prepare(_state(scene, theta))
-    res = term.residuals(theta, None)
+    p = term.prepare(_state(scene, theta))
+    res = term.residuals(theta, None, p)
     eps = 1e-6
-    num = torch.stack([(term.residuals(theta + eps * torch.eye(scene.num_dofs, dtype=F64)[k], None, False).r
-                        - term.residuals(theta - eps * torch.eye(scene.num_dofs, dtype=F64)[k], None, False).r)
+    num = torch.stack([(term.residuals(theta + eps * torch.eye(scene.num_dofs, dtype=F64)[k], None, p, False).r
+                        - term.residuals(theta - eps * torch.eye(scene.num_dofs, dtype=F64)[k], None, p, False).r)
                        / (2 * eps) for k in range(scene.num_dofs)], -1)
     torch.testing.assert_close(res.J, num, atol=1e-8, rtol=0)
     hands = Scene.from_names(["hand_right"], dtype=F64)
-    term.prepare(_state(hands, theta[:, :hands.num_dofs]))
-    out = term.residuals(theta[:, :hands.num_dofs], None)
+    p = term.prepare(_state(hands, theta[:, :hands.num_dofs]))
+    out = term.residuals(theta[:, :hands.num_dofs], None, p)
     assert out.r.shape == (1, 0) and out.J.shape == (1, 0, hands.num_dofs)

@@ -287,10 +287,10 @@ def test_energy_forms_agree_and_jacobian_matches_finite_differences(demo):
     plane = Weighted(Collision(metric="point-to-plane"), collision.DEFAULT_WEIGHT)
     point = Weighted(Collision(metric="point-to-point"), collision.DEFAULT_WEIGHT)
     found = plane.prepare(state)
-    point.prepare(state)
-    assert (found.diagnostics["pairs"] > 0).all() and (found.correspondences == 0).all()  # no data correspondences
-    r, J = plane.residuals(th, posed, True)[:2]
-    r3, J3 = point.residuals(th, posed, True)[:2]
+    found3 = point.prepare(state)
+    assert (found.counts.diagnostics["pairs"] > 0).all() and (found.counts.correspondences == 0).all()  # no data pairs
+    r, J = plane.residuals(th, posed, found, True)[:2]
+    r3, J3 = point.residuals(th, posed, found3, True)[:2]
     assert r3.shape[1] == 3 * r.shape[1]
     assert torch.allclose((r**2).sum(1), (r3**2).sum(1))
     # the term's energy is gamma_c times Eq. 4.13
@@ -301,7 +301,7 @@ def test_energy_forms_agree_and_jacobian_matches_finite_differences(demo):
         tp, tm = th.clone(), th.clone()
         tp[:, d] += eps
         tm[:, d] -= eps
-        fd = (plane.residuals(tp, scene(tp), False).r - plane.residuals(tm, scene(tm), False).r) / (2 * eps)
+        fd = (plane.residuals(tp, scene(tp), found, False).r - plane.residuals(tm, scene(tm), found, False).r) / (2 * eps)
         assert torch.allclose(fd, J[:, :, d], rtol=1e-5, atol=1e-5 * (1 + J[:, :, d].abs().max())), d
 
 

@@ -28,7 +28,7 @@ def hand_and_ball(scene_at):
 def _prepared(scene, theta, cam, depth, term=None):
     tracker = Tracker(scene, TrackerConfig(energy="LO+F"))
     frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
-    state = tracker._state(theta, theta, [frame], [cam])
+    state = tracker.states(theta, [frame], [cam]).view
     term = FreeSpace() if term is None else term
     return term, term.prepare(state), state
 
@@ -36,7 +36,7 @@ def _prepared(scene, theta, cam, depth, term=None):
 def test_no_free_space_at_the_true_pose(hand_and_ball):
     scene, theta, cam, depth = hand_and_ball
     _, found, _ = _prepared(scene, theta, cam, depth)
-    assert int(found.diagnostics["pixels"][0]) == 0
+    assert int(found.counts.diagnostics["pixels"][0]) == 0
 
 
 def test_a_model_moved_off_its_data_is_pulled_back(hand_and_ball):
@@ -48,8 +48,8 @@ def test_a_model_moved_off_its_data_is_pulled_back(hand_and_ball):
         moved = theta.clone()
         moved[0, b.start] += dx
         term, found, state = _prepared(scene, moved, cam, depth)
-        assert int(found.diagnostics["pixels"][0]) > 20
-        res = term.residuals(moved, state.posed, True)
+        assert int(found.counts.diagnostics["pixels"][0]) > 20
+        res = term.residuals(moved, state.posed, found, True)
         grad = (res.J.transpose(1, 2) @ res.r[..., None])[0, :, 0]  # d(E/2)/d theta
         assert float(grad[b.start]) * dx > 0  # descent moves the ball back
         rows = res.r.view(1, -1, 2).norm(dim=-1)[0]
@@ -71,9 +71,9 @@ def test_a_model_behind_data_is_occluded_not_in_free_space(hand_and_ball):
     board = depth.clone()
     board[rows.min() - 30 : rows.max() + 30, cols.min() - 30 : cols.max() + 30] = 300.0
     _, found, _ = _prepared(scene, moved, cam, depth)
-    assert int(found.diagnostics["pixels"][0]) > 20
+    assert int(found.counts.diagnostics["pixels"][0]) > 20
     _, found, _ = _prepared(scene, moved, cam, board)
-    assert int(found.diagnostics["free"][0]) == 0
+    assert int(found.counts.diagnostics["free"][0]) == 0
 
 
 def test_data_far_behind_the_model_is_free_space(hand_and_ball):
@@ -84,7 +84,7 @@ def test_data_far_behind_the_model_is_free_space(hand_and_ball):
     moved = theta.clone()
     moved[0, b.start + 1] += 10.0
     _, found, _ = _prepared(scene, moved, cam, wall)
-    assert int(found.diagnostics["pixels"][0]) > 20
+    assert int(found.counts.diagnostics["pixels"][0]) > 20
 
 
 def test_lo_f_tracks_a_displaced_ball_back(hand_and_ball):

@@ -3,6 +3,8 @@ optical flow) and their bad input."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -120,11 +122,11 @@ def test_edge_pairs_at_the_true_pose_are_close(ring):
     scene, cams, gt, colour, _, _ = ring
     tracker = Tracker(scene, TrackerConfig(energy="E"))
     cols = [preprocess_colour(colour[0][k], cams[k], dtype=F64) for k in range(8)]
-    view, _ = tracker._states(gt[:1], gt[:1], [None] * 8, list(cams), colours=cols, views=8)
+    view, _ = tracker.states(gt[:1], [None] * 8, list(cams), colours=cols, views=8)
     term = Edges()
     found = term.prepare(view)
-    assert bool((found.correspondences > 50).all())  # every view sees edges of the hands
-    res = term.residuals(view.theta, view.posed, jacobian=False)
+    assert bool((found.counts.correspondences > 50).all())  # every view sees edges of the hands
+    res = term.residuals(view.theta, view.posed, found, jacobian=False)
     d = res.r.view(8, -1, 2).norm(dim=-1)[res.mask > 0]
     assert float(d.median()) < 1.5  # mm: about a pixel
 
@@ -136,15 +138,16 @@ def test_colour_term_jacobians_match_finite_differences(ring, make):
     prev = [preprocess_colour(colour[0][k], cams[k], dtype=F64) for k in range(2)]
     cols = [preprocess_colour(colour[1][k], cams[k], previous=prev[k].gray, dtype=F64) for k in range(2)]
     theta = _shifted(scene, gt[1:2], [1.0, -1.0, 2.0])
-    view, _ = tracker._states(theta, gt[:1], [None] * 2, list(cams[:2]), colours=cols, views=2)
+    view, _ = tracker.states(theta, [None] * 2, list(cams[:2]), previous=gt[:1], colours=cols, views=2)
     term = make()
-    assert int(term.prepare(view).correspondences.sum()) > 50
-    res = term.residuals(view.theta, view.posed, jacobian=True)
+    prepared = term.prepare(view)
+    assert int(prepared.counts.correspondences.sum()) > 50
+    res = term.residuals(view.theta, view.posed, prepared, jacobian=True)
     eps = 1e-6
     for j in (0, 2, 4, 10, 30):
         tp = view.theta.clone()
         tp[:, j] += eps
-        fd = (term.residuals(tp, scene(tp), jacobian=False).r - res.r) / eps
+        fd = (term.residuals(tp, scene(tp), prepared, jacobian=False).r - res.r) / eps
         assert torch.allclose(fd, res.J[:, :, j], atol=1e-4 * max(1.0, float(res.J[:, :, j].abs().max())))
 
 
@@ -213,16 +216,13 @@ def test_nails_pull_the_salient_vertices_onto_their_detections(ring):
         Nails(gate_px=0)
 
 
-def test_the_swarm_never_returns_worse_than_its_start(ring, monkeypatch):
-    import torchhand.tracking.tracker as tracker_module
-
+def test_the_swarm_never_returns_worse_than_its_start(ring):
     scene, cams, gt, colour, _, _ = ring
     start = _shifted(scene, gt[:1], [3.0, 0.0, 0.0])
     cfg = TrackerConfig(energy="E+C", solver="pso", particles=4, generations=2)
     res = Tracker(scene, cfg).track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
     assert bool(res.valid[0]) and int(res.iterations[0]) == 2
-    monkeypatch.setattr(tracker_module, "SWARM_SPREAD", (0.0, 0.0, 0.0))  # every particle at the start
-    tracker = Tracker(scene, cfg)
+    tracker = Tracker(scene, replace(cfg, swarm_spread=(0.0, 0.0, 0.0)))  # every particle at the start
     still = tracker.track_frame(None, [cams[:2]], start, colours=[colour[0][:2]])
     assert torch.equal(still.theta, tracker.clamp(start))
     tracker.reset(start)  # a box of its own (the swarm's (B, D) bounds): the same box, the same result

@@ -10,7 +10,8 @@ import torch
 pytest.importorskip("pybullet")
 
 from torchhand.model.scene import Scene  # noqa: E402
-from torchhand.tracking.energies import Physics, parse_energy  # noqa: E402
+from torchhand.tracking.energies import Physics, counts, parse_energy  # noqa: E402
+from torchhand.tracking.energies.physics import PhysicsPairs  # noqa: E402
 from torchhand.tracking.simulation import GraspSimulation, contact_bones, part_vertices  # noqa: E402
 
 F64 = torch.float64
@@ -50,20 +51,19 @@ def test_an_unsupported_object_falls_and_a_far_hand_cannot_hold_it(hand_ball):
 def test_physics_jacobian_matches_finite_differences(hand_ball):
     scene, theta = hand_ball
     term = Physics()
-    term._scene = scene
     vh = torch.tensor([[100, 2000, 5000]])
     vo = torch.tensor([[3, 50, 400]])
-    term.blocks = [(0, 1, vh, vo, torch.ones(1, 3, dtype=F64))]
+    prepared = PhysicsPairs(counts(1), scene, ((0, 1, vh, vo, torch.ones(1, 3, dtype=F64)),))
     start = theta.clone()
     start[0, 6:] += 0.05
-    r, J = term.residuals(start, scene(start), True)[:2]
+    r, J = term.residuals(start, scene(start), prepared, True)[:2]
     eps = 1e-6
     cols = []
     for d in range(scene.num_dofs):
         e = torch.zeros_like(start)
         e[0, d] = eps
-        cols.append((term.residuals(start + e, scene(start + e), False).r
-                     - term.residuals(start - e, scene(start - e), False).r) / (2 * eps))
+        cols.append((term.residuals(start + e, scene(start + e), prepared, False).r
+                     - term.residuals(start - e, scene(start - e), prepared, False).r) / (2 * eps))
     J_fd = torch.stack(cols, -1)
     assert (J - J_fd).abs().max() / J_fd.abs().max() < 1e-6
     # Eq. 4.16: the residual is V_i - X_i, hand vertex minus object vertex
@@ -126,10 +126,10 @@ def test_a_held_cube_gets_supporting_fingers_and_the_term_pulls_them_on(hia_root
     with torch.no_grad():
         depth = render(posed.vertices, scene.faces, cam).depth[0]
     tracker = Tracker(scene, TrackerConfig(energy="LO"))
-    state = tracker._state(theta, theta, [preprocess_depth(depth, cam, dtype=F64)], [cam])
+    state = tracker.states(theta, [preprocess_depth(depth, cam, dtype=F64)], [cam]).pose
     term = Physics()
     found = term.prepare(state)
-    assert int(found.diagnostics["unstable"][0]) == 1
-    assert int(found.diagnostics["contact_parts"][0]) == len(support.parts)
-    r = term.residuals(theta, posed, False).r.view(-1, 3)
+    assert int(found.counts.diagnostics["unstable"][0]) == 1
+    assert int(found.counts.diagnostics["contact_parts"][0]) == len(support.parts)
+    r = term.residuals(theta, posed, found, False).r.view(-1, 3)
     assert r.shape[0] == len(support.parts) and (r.norm(dim=-1) < 12.0).all()  # parts within 10 mm (+ a vertex)

@@ -266,19 +266,19 @@ def test_warp_derived_maps_equal_torch(cropped):
 
 @pytest.mark.skipif(not HAVE_WARP, reason="warp-lang not installed")
 @pytest.mark.parametrize("crop", [False, True])
-def test_warp_pixel_kernels_split_rows_alike(sphere, monkeypatch, crop):
+def test_warp_pixel_kernels_split_rows_alike(sphere, crop):
     """The pixel kernels' threads per box row (one on a CPU, one per pixel on a GPU) do
     not change a render: both splits, and one between, run here on the CPU."""
-    from torchhand.geometry import warp_kernels
+    from torchhand.geometry.raycast import RayCaster
 
     vertices, faces = sphere
     cam = kinect_camera()
     batch = torch.stack([vertices, vertices + torch.tensor([30.0, -20.0, 40.0])])
-    renderer = Renderer(faces, face_bone_id=torch.arange(faces.shape[0]) % 5, backend="warp")
     box = (150, 330, 230, 420)
     results = []
     for split in (None, 7, 10 ** 6):
-        monkeypatch.setattr(warp_kernels, "ROW_SPLIT", split)
+        renderer = Renderer(faces, face_bone_id=torch.arange(faces.shape[0]) % 5,
+                            caster=RayCaster(faces, "warp", row_split=split))
         results.append(renderer(batch, cam, normals=True, box=box, crop=crop))
     assert int((results[0].face_id >= 0).sum()) > 10000 and int(results[0].silhouette_edges.sum()) > 500
     for other in results[1:]:

@@ -70,16 +70,16 @@ def test_bad_loss_arguments_are_refused():
 def test_weighted_and_robust_wrap_any_term():
     """Weighted scales r and J by sqrt(w) and the unmatched energy by w; Robust scales each
     row by sqrt(rho') at the residuals of prepare and keeps those weights."""
-    from torchhand.tracking.energies.base import EnergyTerm, Residuals, prepared
+    from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, counts
     from torchhand.tracking.energies.wrappers import Robust, Weighted
 
     class Linear(EnergyTerm):  # r = theta - target, two rows of dim 2
         name = "linear"
 
         def prepare(self, state):
-            return prepared(1, correspondences=torch.tensor([2]), unmatched=torch.tensor([4.0], dtype=F64))
+            return Prepared(counts(1, correspondences=torch.tensor([2]), unmatched=torch.tensor([4.0], dtype=F64)))
 
-        def residuals(self, theta, posed, jacobian=True):
+        def residuals(self, theta, posed, prepared, jacobian=True):
             target = torch.tensor([[0.0, 0.0, 3.0, 4.0]], dtype=F64)
             J = torch.eye(4, dtype=F64)[None] if jacobian else None
             return Residuals(theta - target, J, 2)
@@ -91,19 +91,21 @@ def test_weighted_and_robust_wrap_any_term():
 
     w = Weighted(Linear(), 0.25)
     f = w.prepare(State())
-    assert float(f.unmatched) == 1.0 and int(f.correspondences) == 2 and not w.prior
-    res = w.residuals(State.theta, None)
+    assert float(f.counts.unmatched) == 1.0 and int(f.counts.correspondences) == 2 and not w.prior
+    res = w.residuals(State.theta, None, f)
     torch.testing.assert_close(res.r, -0.5 * torch.tensor([[0.0, 0.0, 3.0, 4.0]], dtype=F64))
     torch.testing.assert_close(res.J, 0.5 * torch.eye(4, dtype=F64)[None])
     per = Weighted(Linear(), 0.4, per_correspondence=True)  # w = 0.4 x C_all = 4
     assert per.prior
-    assert float(per.prepare(State()).unmatched) == 16.0
-    torch.testing.assert_close(per.residuals(State.theta, None).r, 2.0 * Linear().residuals(State.theta, None).r)
+    pf = per.prepare(State())
+    assert float(pf.counts.unmatched) == 16.0
+    torch.testing.assert_close(per.residuals(State.theta, None, pf).r, 2.0 * Linear().residuals(State.theta, None,
+                                                                                                 pf.inner).r)
     rob = Robust(Linear(), Cauchy(5.0))
-    rob.prepare(State())  # row norms 0 and 5: weights 1 and 1 / (1 + 1)
+    rf = rob.prepare(State())  # row norms 0 and 5: weights 1 and 1 / (1 + 1)
     moved = torch.ones(1, 4, dtype=F64)
-    r = rob.residuals(moved, None).r
-    plain = Linear().residuals(moved, None).r
+    r = rob.residuals(moved, None, rf).r
+    plain = Linear().residuals(moved, None, rf.inner).r
     torch.testing.assert_close(r, plain * torch.tensor([[1.0, 1.0, 0.5 ** 0.5, 0.5 ** 0.5]], dtype=F64))
     with pytest.raises(TypeError, match="RobustLoss"):
         Robust(Linear(), "cauchy")

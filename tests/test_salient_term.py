@@ -99,15 +99,16 @@ def test_salient_term_pulls_displaced_fingertips_and_jacobian_is_exact(hand_fram
     term = Salient(detector=simulated_detector(lambda d: rows), near_mm=15.0)
     # at the true pose every fingertip is near its detection: associated, but no pairs
     state, posed = _state(scene, cam, theta, depth)
-    found = term.prepare(state)
+    found = term.prepare(state).counts
     assert found.diagnostics["assigned"][0] == len(visible) and found.correspondences[0] == 0
     # move the hand 15 mm: the same detections now pull the fingertips back
     moved = theta.clone()
     moved[0, 0] += 20.0
     state, posed = _state(scene, cam, moved, depth)
-    found = term.prepare(state)
+    prepared = term.prepare(state)
+    found = prepared.counts
     assert found.diagnostics["assigned"][0] == len(visible) and found.correspondences[0] > 0
-    r, J = term.residuals(moved, posed, True)[:2]
+    r, J = term.residuals(moved, posed, prepared, True)[:2]
     assert r.shape == (1, 3 * int(found.correspondences[0])) and J.shape == (1, r.shape[1], scene.num_dofs)
     # residual x components are about the 20 mm shift
     rx = r.view(1, -1, 3)[0, :, 0]
@@ -117,7 +118,7 @@ def test_salient_term_pulls_displaced_fingertips_and_jacobian_is_exact(hand_fram
         tp, tm = moved.clone(), moved.clone()
         tp[0, d] += eps
         tm[0, d] -= eps
-        fd = (term.residuals(tp, scene(tp), False).r - term.residuals(tm, scene(tm), False).r) / (2 * eps)
+        fd = (term.residuals(tp, scene(tp), prepared, False).r - term.residuals(tm, scene(tm), prepared, False).r) / (2 * eps)
         assert torch.allclose(fd, J[:, :, d], atol=1e-6 * (1 + J[:, :, d].abs().max()))
     # a Gauss-Newton step on the translation alone moves the hand back
     Jt = J[0, :, :3]
@@ -138,12 +139,13 @@ def test_salient_term_drops_detections_off_the_surface_or_below_min_score(hand_f
     moved = theta.clone()
     moved[0, 0] += 20.0
     state, posed = _state(scene, cam, moved, depth)
-    found = term.prepare(state)
+    found = term.prepare(state).counts
     assert found.diagnostics["assigned"][0] == 1 and found.correspondences[0] > 0
     none = Salient(detector=simulated_detector(lambda d: None))
-    found = none.prepare(state)
+    prepared = none.prepare(state)
+    found = prepared.counts
     assert found.diagnostics["assigned"][0] == 0 and found.correspondences[0] == 0
-    assert none.residuals(moved, posed, True).r.shape == (1, 0)
+    assert none.residuals(moved, posed, prepared, True).r.shape == (1, 0)
 
 
 def test_parse_energy_with_salient_points():

@@ -44,7 +44,7 @@ def _state(tracker, scene, theta, cam, depth):
     from torchhand.tracking.preprocess import preprocess_depth
 
     frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
-    return tracker._state(theta, theta, [frame], [cam])
+    return tracker.states(theta, [frame], [cam]).view
 
 
 def _unwrap(term):
@@ -68,16 +68,16 @@ def test_term_jacobian_matches_finite_differences(hand_frame, term):
     state.correspondences = torch.tensor([100])
     found = term.prepare(state)
     if not term.prior:
-        pairs = found.diagnostics.get("pixels", found.correspondences)  # free space: pairs, not data correspondences
+        pairs = found.counts.diagnostics.get("pixels", found.counts.correspondences)  # free space: pairs, not data correspondences
         assert int(pairs[0]) > 20, "the frame must give correspondences"
-    r, J = term.residuals(start, scene(start, validate=False), True)[:2]
+    r, J = term.residuals(start, scene(start, validate=False), found, True)[:2]
     eps = 1e-6
     cols = []
     for d in range(scene.num_dofs):
         e = torch.zeros_like(start)
         e[0, d] = eps
-        rp = term.residuals(start + e, scene(start + e, validate=False), False).r
-        rm = term.residuals(start - e, scene(start - e, validate=False), False).r
+        rp = term.residuals(start + e, scene(start + e, validate=False), found, False).r
+        rm = term.residuals(start - e, scene(start - e, validate=False), found, False).r
         cols.append((rp - rm) / (2 * eps))
     J_fd = torch.stack(cols, -1)
     scale = J_fd.abs().max().clamp_min(1e-12)
@@ -93,11 +93,11 @@ def test_anatomy_residuals_square_to_eq_4_17(hand_frame):
     with pytest.raises(ValueError, match="C_all"):
         term.prepare(state)  # the data terms come first
     state.correspondences = torch.tensor([200])
-    term.prepare(state)
+    prepared = term.prepare(state)
     t = theta.clone()
     t[0, 10] = scene.upper[10] + 0.2  # outside the limit
-    r = term.residuals(t, None, False).r
-    joints = term.term.joints
+    r = term.residuals(t, None, prepared, False).r
+    joints = prepared.inner.joints
     lo, hi = scene.lower[joints], scene.upper[joints]
     e = torch.exp(10 * (lo - t[0, joints])) + torch.exp(10 * (t[0, joints] - hi))
     torch.testing.assert_close((r[0] ** 2).sum(), 0.0015 * 200 * e.sum())
@@ -118,13 +118,13 @@ def test_candidates_without_correspondence_are_charged_a_truncated_square(hand_f
         for t in tracker.terms:
             if t.prior:
                 continue
-            f = found[t.name] = t.prepare(state)
+            f = found[t.name] = t.prepare(state).counts
             assert (f.correspondences <= f.candidates).all() and (f.candidates > 0).all()
             weight = t.weight if isinstance(t, Weighted) else 1.0
             cap = weight * _unwrap(t).max_distance ** 2 * (f.candidates - f.correspondences).double()
             assert (f.unmatched >= 0).all() and (f.unmatched <= cap + 1e-9).all()
         # without the per-bone rejection every dropped pair lies beyond the cut-off
-        f = DataToModel(outlier_sigma=None).prepare(state)
+        f = DataToModel(outlier_sigma=None).prepare(state).counts
         torch.testing.assert_close(f.unmatched, 30.0 ** 2 * (f.candidates - f.correspondences).double())
         m2d = found["m2d"]
         charged.append(float(m2d.unmatched[0] / m2d.candidates[0]))
@@ -147,11 +147,11 @@ def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_fr
     r, J, found = [], [], []
     for t in terms:
         found.append(t.prepare(state))
-        res = t.residuals(start, posed, True)
+        res = t.residuals(start, posed, found[-1], True)
         real = res.mask.reshape(-1) > 0  # rows without a pair are padding
         r.append(res.r.reshape(-1, 3)[real])
         J.append(res.J.reshape(-1, 3, scene.num_dofs)[real])
-    assert len(r[0]) == len(r[1]) > 20 and torch.equal(found[0].correspondences, found[1].correspondences)
+    assert len(r[0]) == len(r[1]) > 20 and torch.equal(found[0].counts.correspondences, found[1].counts.correspondences)
     dist = r[0].norm(dim=-1)
     c = 3.0 if relative is None else max(3.0, relative * float(dist.median()))
     # the rigid shift moves the whole hand: its median misfit sets c (5.9 mm here)
@@ -162,9 +162,9 @@ def test_d2m_pairs_are_weighted_by_a_cauchy_kernel_of_their_ray_distance(hand_fr
     moved = start.clone()
     moved[0, 0] += 1.0
     pm = scene(moved, validate=False)
-    real = terms[0].residuals(moved, pm, False).mask.reshape(-1) > 0
-    torch.testing.assert_close(terms[1].residuals(moved, pm, False).r.reshape(-1, 3)[real],
-                               terms[0].residuals(moved, pm, False).r.reshape(-1, 3)[real] * w[:, None])
+    real = terms[0].residuals(moved, pm, found[0], False).mask.reshape(-1) > 0
+    torch.testing.assert_close(terms[1].residuals(moved, pm, found[1], False).r.reshape(-1, 3)[real],
+                               terms[0].residuals(moved, pm, found[0], False).r.reshape(-1, 3)[real] * w[:, None])
 
 
 def test_bone_inliers_cut_per_bone_at_mean_plus_sigma_std():
@@ -200,9 +200,9 @@ def test_a_rejected_step_is_retried_before_convergence(hand_frame, monkeypatch):
     damping (``step_retries``; the retry loop itself is tested in test_solver.py). Started
     4 mm off with a tiny damping, every outer iteration but the last ends with an
     accepted step and the frame converges."""
-    import torchhand.tracking.tracker as tracker_module
+    import torchhand.tracking.solve as solve_module
     scene, theta, cam, depth = hand_frame
-    real, accepted, kwargs_seen = tracker_module.levenberg_marquardt, [], []
+    real, accepted, kwargs_seen = solve_module.levenberg_marquardt, [], []
 
     def spy(*args, **kwargs):
         kwargs_seen.append(kwargs)
@@ -210,7 +210,7 @@ def test_a_rejected_step_is_retried_before_convergence(hand_frame, monkeypatch):
         accepted.append(int(res.iterations[0]))
         return res
 
-    monkeypatch.setattr(tracker_module, "levenberg_marquardt", spy)
+    monkeypatch.setattr(solve_module, "levenberg_marquardt", spy)
     start = theta.clone()
     start[0, :3] += torch.tensor([3.0, -2.0, 3.0], dtype=F64)
     res = Tracker(scene, TrackerConfig(max_iterations=8, first_frame_iterations=8)).track_frame(
@@ -377,7 +377,9 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
     seq = tmp_path / "seq"
     shutil.copytree(SAMPLE, seq)
     calls, solved_from = [], []
-    original, original_solve = Tracker.track_frame, Tracker.solve
+    from torchhand.tracking.solve import Algorithm1
+
+    original, original_solve = Tracker.track_frame, Algorithm1.solve
 
     def spy(self, depths, cameras, previous, first=False, generator=None, start=None, colours=None):
         solved_from.clear()
@@ -386,12 +388,12 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
                       solved_from[0].clone(), self))
         return res
 
-    def solve_spy(self, start, previous, *args, **kwargs):
+    def solve_spy(self, tracker, start, previous, *args, **kwargs):
         solved_from.append(start)
-        return original_solve(self, start, previous, *args, **kwargs)
+        return original_solve(self, tracker, start, previous, *args, **kwargs)
 
     monkeypatch.setattr(Tracker, "track_frame", spy)
-    monkeypatch.setattr(Tracker, "solve", solve_spy)
+    monkeypatch.setattr(Algorithm1, "solve", solve_spy)
     for p in (0.0, 0.5):
         calls.clear()
         cfg = TrackerConfig(max_iterations=2, first_frame_iterations=2, prediction=p, prediction_limiter=False)
@@ -581,7 +583,7 @@ def test_a_hand_near_the_image_border_is_tracked(hand_frame):
     up[0, 1] -= 120.0  # near the top edge
     with torch.no_grad():
         depth = render(scene(up).vertices, scene.faces, cam).depth[0].numpy()
-        box = Tracker(scene)._box(scene(up).vertices, [cam], True)
+        box = Tracker(scene).frame_states.box(scene(up).vertices, [cam], True)
     assert box[0] == 0 and box[1] <= 480 and box[2] >= 0 and box[3] <= 640
     start = up.clone()
     start[0, :3] += torch.tensor([3.0, -2.0, 3.0], dtype=F64)

@@ -39,7 +39,7 @@ from torchhand.core.check import check_index, check_tensor, checks_enabled
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.image_ops import clamp_box
 
-__all__ = ["Hits", "BACKENDS", "default_backend", "RayCaster", "views_of", "Views", "camera_rays"]
+__all__ = ["Hits", "BACKENDS", "default_backend", "RayCaster", "views_of", "Views", "camera_rays", "projected_boxes"]
 
 #: backend names, fastest first
 BACKENDS = ("warp", "warp-raycast", "open3d")
@@ -127,7 +127,7 @@ def camera_rays(views: Views) -> tuple:
     return origin.float().contiguous(), d_world.float().contiguous()
 
 
-def _box_of(vertices: torch.Tensor, views: Views) -> torch.Tensor:
+def projected_boxes(vertices: torch.Tensor, views: Views) -> torch.Tensor:
     """(B x C, 4) int32 pixel boxes (r0, r1, c0, c1) of the projected vertices, 2 px wider;
     the whole image where a vertex lies at or behind the camera plane. No host sync."""
     B, C = vertices.shape[0], views.views
@@ -161,7 +161,8 @@ class RayCaster:
     topology only refits it. ``"warp"`` keeps nothing but the faces.
     """
 
-    def __init__(self, faces: torch.Tensor, backend: Optional[str] = None, cull_back_faces: bool = False):
+    def __init__(self, faces: torch.Tensor, backend: Optional[str] = None, cull_back_faces: bool = False,
+                 row_split: Optional[int] = None):
         backend = default_backend() if backend is None else backend
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -170,10 +171,19 @@ class RayCaster:
 
             warp_kernels.require_warp()
         self.backend, self.cull_back_faces = backend, bool(cull_back_faces)
+        self.row_split = row_split  # "warp": threads per box row of the pixel kernels (None: by device)
         self.faces = faces
         self._faces32 = None
         self._mesh = None  # warp-raycast: the grouped BVH
         self._rays = None  # cached (views key, origins, directions)
+
+    def to(self, device) -> "RayCaster":
+        """Move the faces to ``device`` (in place); the device's BVH is rebuilt on use."""
+        device = torch.device(device)
+        if device != self.faces.device:
+            self.faces = self.faces.to(device)
+            self._faces32, self._mesh, self._rays = None, None, None
+        return self
 
     def __call__(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor] = None,
                  box: Optional[tuple] = None, normals: bool = False, crop: bool = False) -> Hits:
@@ -222,11 +232,12 @@ class RayCaster:
 
         vertices = vertices.to(torch.float32)
         if box is None:
-            b = _box_of(vertices, views)
+            b = projected_boxes(vertices, views)
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
         face, t, bary, nrm = warp_kernels.rasterize(vertices, self._faces_int32(vertices.device), views.intrinsics,
                                                     views.rotation, views.translation, views.views, views.height,
-                                                    views.width, self.cull_back_faces, box, normals, crop)
+                                                    views.width, self.cull_back_faces, box, normals, crop,
+                                                    self.row_split)
         return Hits(face, t, bary, nrm)
 
     def _warp_raycast(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor]) -> Hits:
@@ -243,7 +254,7 @@ class RayCaster:
             self._mesh = warp_kernels.build_grouped_mesh(self.faces, V, seed)
         self._mesh.update(vertices, slots)
         origins, dirs = self._camera_rays(views)
-        boxes = _box_of(vertices.detach().to(torch.float32), views)
+        boxes = projected_boxes(vertices.detach().to(torch.float32), views)
         face, t, u, v = warp_kernels.cast_rays(self._mesh, slots, origins, dirs, boxes, views.views)
         return Hits(face.long(), t, torch.stack([u, v], -1))
 
@@ -267,7 +278,7 @@ class RayCaster:
         faces_np = self.faces.detach().cpu().numpy().astype(np.uint32)
         faces_o3d = o3d.core.Tensor(faces_np)
         o_np, d_np = origins.cpu().numpy(), dirs.cpu().numpy()
-        boxes = _box_of(vertices.detach().to(torch.float32), views).cpu().numpy()
+        boxes = projected_boxes(vertices.detach().to(torch.float32), views).cpu().numpy()
         invalid = int(o3d.t.geometry.RaycastingScene.INVALID_ID)
         face = np.full((B * C, H, W), -1, np.int64)
         for b in range(B):

@@ -28,7 +28,7 @@ from torchhand.core.check import check_index, check_tensor, checks_enabled
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.image_ops import clamp_box, max_filter_3x3
 from torchhand.geometry.mesh import face_corners, face_normals
-from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, _box_of, _listify, check_vertices_faces,
+from torchhand.geometry.raycast import (BACKENDS, Hits, RayCaster, Views, projected_boxes, _listify, check_vertices_faces,
                                        views_of)
 
 __all__ = ["RenderResult", "Renderer", "render", "window", "window_map", "silhouette_edges", "visible_vertices",
@@ -159,16 +159,24 @@ class Renderer:
         face_model_id: (F,) int64 model index per face; zeros if None.
         face_bone_id: (F,) int64 bone index per face; zeros if None.
         backend: ``"warp"`` (rasterisation), ``"warp-raycast"`` (Warp BVH) or ``"open3d"``
-            (:mod:`torchhand.geometry.raycast`); None: Warp when installed.
+            (:mod:`torchhand.geometry.raycast`); None: Warp when installed. Ignored when
+            ``caster`` is given.
         edge_threshold: depth jump (mm) for :func:`silhouette_edges`.
         cull_back_faces: leave faces turned away from the camera out (``"warp"``); exact
             for closed meshes with outward normals seen from outside, as every shipped
             model is: a ray enters a closed mesh through a front face first.
+        caster: the :class:`~torchhand.geometry.raycast.RayCaster` that finds the hits
+            (as pytorch3d's ``MeshRenderer`` takes its rasteriser); None: one is made
+            of ``faces``, ``backend`` and ``cull_back_faces``. Its faces must be ``faces``.
+
+    The buffers stay where they were made: :meth:`to` moves them, and vertices on
+    another device are an error naming both.
     """
 
     def __init__(self, faces: torch.Tensor, face_model_id: Optional[torch.Tensor] = None,
                  face_bone_id: Optional[torch.Tensor] = None, backend: Optional[str] = None,
-                 edge_threshold: float = DEFAULT_EDGE_THRESHOLD_MM, cull_back_faces: bool = False):
+                 edge_threshold: float = DEFAULT_EDGE_THRESHOLD_MM, cull_back_faces: bool = False,
+                 caster: Optional[RayCaster] = None):
         check_tensor(faces, "faces", (None, 3), spec="(F, 3)", integer=True)
         faces = faces.detach().long()
         if faces.shape[0] and bool((faces.min(1).values < 0).any()):
@@ -181,12 +189,48 @@ class Renderer:
         self.model_ids = _check_ids("face_model_id", face_model_id, faces.shape[0], faces)
         self.bone_ids = _check_ids("face_bone_id", face_bone_id, faces.shape[0], faces)
         self.edge_threshold = float(edge_threshold)
-        self.caster = RayCaster(faces, backend, cull_back_faces)
+        if caster is None:
+            caster = RayCaster(faces, backend, cull_back_faces)
+        elif not isinstance(caster, RayCaster):
+            raise TypeError(f"caster must be a torchhand.geometry.raycast.RayCaster, got {type(caster).__name__}")
+        elif caster.faces.shape != faces.shape or not torch.equal(caster.faces.to(faces.device), faces):
+            raise ValueError("caster was made for other faces than the renderer's")
+        self.caster = caster
         self._views_cache = None
 
     @property
     def backend(self) -> str:
         return self.caster.backend
+
+    @property
+    def device(self) -> torch.device:
+        """Where the renderer's buffers (faces, ids) are; vertices must be there too."""
+        return self.faces.device
+
+    def to(self, device) -> "Renderer":
+        """Move the buffers to ``device`` (in place, as ``nn.Module.to``); returns self."""
+        device = torch.device(device)
+        if device != self.faces.device:
+            self.faces, self.model_ids, self.bone_ids = (x.to(device) for x in
+                                                        (self.faces, self.model_ids, self.bone_ids))
+            self.caster.to(device)
+            self._views_cache = None
+        return self
+
+    def _check_device(self, vertices: torch.Tensor) -> None:
+        if vertices.device != self.faces.device:
+            raise ValueError(f"vertices are on {vertices.device} but the renderer's faces are on {self.faces.device}: "
+                             f"move one of them (Renderer.to({str(vertices.device)!r}))")
+
+    def pixel_boxes(self, vertices: torch.Tensor, cameras: Cameras, per_problem: bool = False) -> torch.Tensor:
+        """(B x C, 4) int32 pixel boxes (r0, r1, c0, c1) of the projections of each
+        problem's (B, V, 3) ``vertices`` in each of its views (cameras as in
+        :meth:`__call__`), 2 px wider; the whole image where a vertex lies at or behind
+        the camera plane. No host sync."""
+        self._check_device(vertices)
+        cams = _listify(cameras)
+        return projected_boxes(vertices.to(torch.float32), self._views(cams, per_problem, vertices.shape[0],
+                                                                       vertices.device))
 
     def _views(self, cams, per_problem: bool, B: int, device) -> Views:
         """The cameras as tensors, kept while the same camera objects come back."""
@@ -200,6 +244,7 @@ class Renderer:
              slots: Optional[torch.Tensor] = None, box: Optional[tuple] = None) -> Hits:
         """The backend's raw :class:`Hits` (N = B x C views); see :meth:`__call__`."""
         vertices, _ = check_vertices_faces(vertices, self.faces)
+        self._check_device(vertices)
         return self._hits(vertices, _listify(cameras), per_problem, slots, box)
 
     def _hits(self, vertices, cams, per_problem, slots, box) -> Hits:
@@ -229,16 +274,13 @@ class Renderer:
                 buffers, which dominate the cost of large images.
         """
         vertices, faces = check_vertices_faces(vertices, self.faces)
-        if self.model_ids.device != vertices.device:
-            self.faces, self.model_ids, self.bone_ids = (x.to(vertices.device) for x in
-                                                        (self.faces, self.model_ids, self.bone_ids))
-            self.caster.faces = self.faces
+        self._check_device(vertices)
         single = isinstance(cameras, Camera)
         cams = _listify(cameras)
         B = vertices.shape[0]
         views = self._views(cams, per_problem, B, vertices.device)
         if box is None:
-            b = _box_of(vertices.to(torch.float32), views)
+            b = projected_boxes(vertices.to(torch.float32), views)
             box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
         box = clamp_box(box, views.height, views.width)
         if crop and (box[1] == box[0] or box[3] == box[2]):
@@ -246,7 +288,7 @@ class Renderer:
         hits = self.caster(vertices, views, slots, box, normals, crop)
         C = hits.face_id.shape[0] // B
         res = derive(hits, vertices, self.faces, self.model_ids, self.bone_ids, C, cams, self.edge_threshold,
-                     normals, box, crop, warp=self.backend.startswith("warp"))
+                     normals, box, crop, warp=self.backend.startswith("warp"), row_split=self.caster.row_split)
         if single:
             return res
         return res.maps(lambda x: x.view(B, C, *x.shape[1:]))
@@ -254,7 +296,7 @@ class Renderer:
 
 def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
            views: int, cameras, edge_threshold: float, normals: bool, box: tuple,
-           cropped: bool = False, warp: bool = False) -> RenderResult:
+           cropped: bool = False, warp: bool = False, row_split: Optional[int] = None) -> RenderResult:
     """Depth, ids, normals and silhouettes of (N, H, W) hits, N = B x ``views``, computed
     inside ``box`` (r0, r1, c0, c1) and empty outside it; ``cropped``: the hits are the
     box's pixels only, and so are the maps. ``warp``: the ids and contours in one Warp
@@ -274,7 +316,8 @@ def derive(hits: Hits, vertices: torch.Tensor, faces: torch.Tensor, model_ids: t
         from torchhand.geometry import warp_kernels
 
         model_id, bone_id, edges = warp_kernels.derive_maps(face_id, depth, model_ids, bone_ids,
-                                                            (0, H, 0, W) if cropped else box, edge_threshold)
+                                                            (0, H, 0, W) if cropped else box, edge_threshold,
+                                                            row_split)
     else:
         safe = box_face.clamp(min=0)
 

@@ -474,7 +474,7 @@ def cast_rays(gm: GroupedMesh, slots: torch.Tensor, origins: torch.Tensor, dirs:
 
 def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Tensor, rotations: torch.Tensor,
               translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool,
-              box: tuple, normals: bool = False, crop: bool = False) -> tuple:
+              box: tuple, normals: bool = False, crop: bool = False, row_split: Optional[int] = None) -> tuple:
     """Hits of the pixel centres of B x ``views`` pinhole views, inside a pixel box.
 
     Args:
@@ -490,6 +490,7 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
             towards the camera.
         crop: return the box's pixels only (maps of h x w = r1 - r0 x c1 - c0, after
             clamping the box to the image) instead of whole images.
+        row_split: threads per box row (:func:`row_split`; None: by device).
     Returns:
         face (B x views, H, W) int64 (-1: none), t (depth, mm; 0: none), barycentric
         (B x views, H, W, 2) float32 (0: none), as :func:`cast_rays`; normals
@@ -518,7 +519,7 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     with on_torch_stream(dev):
         wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=device)
-        split = _row_split(dev, w)
+        split = row_split_of(dev, w, row_split)
         wp.launch(resolve_kernel, dim=(N, h, split),
                   inputs=[wp.from_torch(zbuf)] + args + [r0, c0, out_r, out_c, int(normals), split],
                   outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary),
@@ -526,20 +527,17 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     return face, t, bary, nrm
 
 
-def _row_split(device: torch.device, width: int) -> int:
-    """Threads per box row of the pixel kernels: one on a CPU (a loop over the row), one
-    per pixel on a GPU. ``ROW_SPLIT`` overrides it (the tests run both on a CPU)."""
-    if ROW_SPLIT is not None:
-        return max(1, min(int(ROW_SPLIT), width))
+def row_split_of(device: torch.device, width: int, split: Optional[int] = None) -> int:
+    """Threads per box row of the pixel kernels: ``split`` (clamped to [1, width]), or
+    when None, one on a CPU (a loop over the row) and one per pixel on a GPU. Every
+    split gives the same maps."""
+    if split is not None:
+        return max(1, min(int(split), width))
     return max(1, width) if torch.device(device).type == "cuda" else 1
 
 
-#: None: :func:`_row_split` by device; an int: that many threads per row
-ROW_SPLIT: Optional[int] = None
-
-
 def derive_maps(face: torch.Tensor, depth: torch.Tensor, model_ids: torch.Tensor, bone_ids: torch.Tensor,
-                box: tuple, threshold: float) -> tuple:
+                box: tuple, threshold: float, row_split: Optional[int] = None) -> tuple:
     """Model ids, bone ids and occluding contours of (N, H, W) hits, inside ``box``.
 
     Args:
@@ -548,6 +546,7 @@ def derive_maps(face: torch.Tensor, depth: torch.Tensor, model_ids: torch.Tensor
         box: (r0, r1, c0, c1) the maps' pixels to derive (within H x W); the others stay
             empty, and do not count as neighbours of the box's edge pixels.
         threshold: the depth jump (mm) of a contour.
+        row_split: threads per box row (:func:`row_split_of`; None: by device).
     Returns:
         model_id, bone_id (N, H, W) int64 (-1: none) and edges (N, H, W) bool, as
         :func:`torchhand.geometry.render.silhouette_edges` of the box's depth.
@@ -563,7 +562,7 @@ def derive_maps(face: torch.Tensor, depth: torch.Tensor, model_ids: torch.Tensor
     if N == 0 or r1 == r0 or c1 == c0:
         return model, bone, edges
     with on_torch_stream(dev):
-        split = _row_split(dev, c1 - c0)
+        split = row_split_of(dev, c1 - c0, row_split)
         wp.launch(derive_kernel, dim=(N, r1 - r0, split),
                   inputs=[wp.from_torch(face.contiguous()), wp.from_torch(depth.to(torch.float32).contiguous()),
                           wp.from_torch(model_ids.to(dev, torch.int64).contiguous()),

@@ -4,17 +4,63 @@ Every batch element is an independent problem with its own damping; steps are
 accepted or rejected per element with ``torch.where`` (as in theseus' LM), so one
 badly conditioned frame does not slow down or spoil the others. Box bounds (the
 joint limits) are enforced by projecting each step.
+
+The solver sees a problem through three calls (:class:`LeastSquaresProblem`):
+``linearize`` at its current iterate (the start, then the steps it accepted),
+``evaluate`` at a candidate step, and ``accept`` telling which problems took the
+candidate. A plain function ``f(theta, with_jacobian) -> (r, J)`` is adapted by
+:class:`FunctionProblem`. When to stop early is the caller's rule, given as an
+argument (``keep_going``).
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Optional, Tuple
+from typing import Callable, NamedTuple, Optional, Tuple, Union
 
 import torch
 
-__all__ = ["LMResult", "levenberg_marquardt", "solve_damped"]
+__all__ = ["LMResult", "LeastSquaresProblem", "FunctionProblem", "levenberg_marquardt", "solve_damped"]
 
 ResidualFn = Callable[[torch.Tensor, bool], Tuple[torch.Tensor, Optional[torch.Tensor]]]
+
+
+class LeastSquaresProblem:
+    """A batch of least-squares problems as :func:`levenberg_marquardt` calls it.
+
+    The solver calls :meth:`linearize` at its current iterate only (the clamped start,
+    then after steps it accepted), :meth:`evaluate` at candidates only, and
+    :meth:`accept` after every candidate, so an implementation can keep what it
+    computed at the candidate (the posed scene, say) and follow the solver's iterate
+    without recomputing it.
+    """
+
+    def linearize(self, theta: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:  # pragma: no cover - interface
+        """(r (B, m), J (B, m, D)) at the solver's current iterate ``theta`` (B, D)."""
+        raise NotImplementedError
+
+    def evaluate(self, theta: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
+        """r (B, m) at a candidate ``theta`` (B, D)."""
+        raise NotImplementedError
+
+    def accept(self, mask: torch.Tensor) -> None:
+        """The solver took the last candidate for the problems of ``mask`` (B,) bool
+        (nothing to do by default)."""
+
+
+class FunctionProblem(LeastSquaresProblem):
+    """A :class:`LeastSquaresProblem` of a function ``f(theta, with_jacobian) -> (r (B,
+    m), J (B, m, D) or None)``."""
+
+    def __init__(self, fn: ResidualFn):
+        if not callable(fn):
+            raise TypeError(f"expected a residual function f(theta, with_jacobian), got {type(fn).__name__}")
+        self.fn = fn
+
+    def linearize(self, theta):
+        return self.fn(theta, True)
+
+    def evaluate(self, theta):
+        return self.fn(theta, False)[0]
 
 
 class LMResult(NamedTuple):
@@ -28,8 +74,8 @@ class LMResult(NamedTuple):
         damping: (B,) final lambda (to warm-start the next solve).
         rejected: (B,) steps tried and rejected per problem (retries included).
         evaluations: residual evaluations, with or without Jacobian, of the whole batch.
-        status: the host list of ``status(theta, iterations)`` at the returned theta when
-            it was read together with the retry check, else None (see
+        going: the host list of ``keep_going(theta, iterations)`` at the returned theta
+            when it was read together with the retry check, else None (see
             :func:`levenberg_marquardt`).
     """
 
@@ -40,7 +86,7 @@ class LMResult(NamedTuple):
     damping: torch.Tensor
     rejected: torch.Tensor
     evaluations: int
-    status: Optional[list] = None
+    going: Optional[list] = None
 
 
 def solve_damped(J: torch.Tensor, r: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
@@ -62,7 +108,7 @@ def solve_damped(J: torch.Tensor, r: torch.Tensor, damping: torch.Tensor) -> tor
 
 
 def levenberg_marquardt(
-    residuals: ResidualFn,
+    problem: Union[LeastSquaresProblem, ResidualFn],
     theta0: torch.Tensor,
     lower: Optional[torch.Tensor] = None,
     upper: Optional[torch.Tensor] = None,
@@ -71,52 +117,38 @@ def levenberg_marquardt(
     step_tolerance: float = 0.0,
     check_every: int = 5,
     retries: int = 0,
-    status: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None,
+    keep_going: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None,
 ) -> LMResult:
     """Minimise sum(r(theta)^2) for a batch of independent problems.
 
     Args:
-        residuals: ``f(theta, with_jacobian) -> (r (B, m), J (B, m, D) or None)``.
-        theta0: (B, D) start.
-        lower, upper: (D,) or (B, D) box bounds (may hold +-inf).
-        max_iterations: iteration budget per problem.
-        damping: initial lambda, a float or (B,) per problem.
+        problem: a :class:`LeastSquaresProblem`, or ``f(theta, with_jacobian) -> (r (B,
+            m), J (B, m, D) or None)``.
+        theta0: (B, D) start; lower, upper: (D,) or (B, D) box bounds (may hold +-inf).
+        max_iterations: iteration budget per problem; damping: initial lambda, a float or
+            (B,) per problem.
         step_tolerance: a problem converges when the largest |delta| of an accepted
-            step falls below it (in theta units).
-        check_every: the loop exits early once every problem has converged; this is
-            checked every ``check_every`` iterations.
-        retries: a rejected step is tried again with ten times the damping, up to
-            this many times within one iteration, reusing the residuals and the
-            Jacobian (theta has not moved); only the residuals at the new candidate
-            are evaluated. An iteration thus ends with an accepted step unless the
-            retries run out. With retries the loop synchronises with the host once per
-            attempt that could be followed by another, to stop retrying when every
-            problem has accepted.
-        status: optional ``status(theta (B, D), iterations (B,)) -> (B,) bool``, read from
-            the device in the same transfer as that retry check, so that a caller that
-            needs a per-problem flag at the solution (a stopping rule) gets it without a
-            second synchronisation: :attr:`LMResult.status`.
-
-    An objective that keeps what it computed at the thetas it was called with (the
-    posed scene, say) may define ``accept(mask)``: after every attempt the solver calls
-    it with the (B,) bool mask of the problems whose candidate it took, so the objective
-    can follow the solver's theta without recomputing it.
+            step falls below it (in theta units); check_every: the loop exits early once
+            every problem has converged, checked every ``check_every`` iterations.
+        retries: a rejected step is tried again with ten times the damping, up to this
+            many times within one iteration, reusing r and J (only the residuals at the
+            new candidate are evaluated); the loop then syncs with the host once per
+            attempt that could be followed by another, to stop when all accepted.
+        keep_going: optional stopping rule ``keep_going(theta (B, D), iterations (B,)) ->
+            (B,) bool``, read in the same transfer as that retry check, so a caller gets
+            a per-problem flag at the solution without a second sync
+            (:attr:`LMResult.going`).
     Returns:
         :class:`LMResult`.
     """
-    theta = theta0
-    if lower is not None or upper is not None:
-        theta = _clamp(theta, lower, upper)
-    B = theta.shape[0]
-    lam = torch.as_tensor(damping, dtype=theta.dtype, device=theta.device).expand(B).clone()
-    iters = torch.zeros(B, dtype=torch.int64, device=theta.device)
-    rejected = torch.zeros(B, dtype=torch.int64, device=theta.device)
-    done = torch.zeros(B, dtype=torch.bool, device=theta.device)
-    r, J = residuals(theta, True)
-    evaluations = 1
-    cost = (r * r).sum(-1)
-    on_accept = getattr(residuals, "accept", None)
-    host_status = None
+    theta = _clamp(theta0, lower, upper)
+    B, dev = theta.shape[0], theta.device
+    lam = torch.as_tensor(damping, dtype=theta.dtype, device=dev).expand(B).clone()
+    iters, rejected = torch.zeros(B, dtype=torch.int64, device=dev), torch.zeros(B, dtype=torch.int64, device=dev)
+    done = torch.zeros(B, dtype=torch.bool, device=dev)
+    problem = problem if isinstance(problem, LeastSquaresProblem) else FunctionProblem(problem)
+    r, J = problem.linearize(theta)
+    evaluations, cost, host_status = 1, (r * r).sum(-1), None
     for it in range(max_iterations):
         host_status = None
         if lower is not None or upper is not None:
@@ -125,32 +157,31 @@ def levenberg_marquardt(
         for attempt in range(retries + 1):
             delta = solve_damped(J, r, lam)
             cand = _clamp(theta + delta, lower, upper)
-            r_new, _ = residuals(cand, False)
+            r_new = problem.evaluate(cand)
             evaluations += 1
             cost_new = (r_new * r_new).sum(-1)
             accept = (cost_new < cost) & todo
             rejected = rejected + (todo & ~accept).long()
             theta = torch.where(accept[:, None], cand, theta)
-            if on_accept is not None:
-                on_accept(accept)
+            problem.accept(accept)
             lam = torch.where(accept, lam * 0.1, torch.where(todo, lam * 10, lam)).clamp(1e-9, 1e9)
             iters = iters + accept.long()
             done = done | (accept & (delta.abs().amax(-1) <= step_tolerance)) | (lam >= 1e9)
             cost = torch.where(accept, cost_new, cost)
             todo = todo & ~accept & ~done
             if attempt < retries:
-                if status is None:
+                if keep_going is None:
                     if not bool(todo.any()):
                         break
                     continue
-                flags = torch.cat([todo.any()[None], status(theta, iters).bool()]).tolist()  # one transfer
+                flags = torch.cat([todo.any()[None], keep_going(theta, iters).bool()]).tolist()  # one transfer
                 if not flags[0]:
                     host_status = flags[1:]
                     break
         if (it + 1) % check_every == 0 and bool(done.all()):
             break
         if it + 1 < max_iterations:
-            r, J = residuals(theta, True)
+            r, J = problem.linearize(theta)
             evaluations += 1
     return LMResult(theta, cost, iters, done, lam, rejected, evaluations, host_status)
 

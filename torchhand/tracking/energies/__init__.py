@@ -22,7 +22,7 @@ from torchhand.tracking.energies.edges import Edges
 from torchhand.tracking.energies.nails import Nails
 from torchhand.tracking.energies.optical_flow import OpticalFlow
 from torchhand.tracking.energies.anatomy import Anatomy
-from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
+from torchhand.tracking.energies.base import Counts, EnergyTerm, Prepared, Residuals, TrackState, counts
 from torchhand.tracking.energies.chain_smoothness import ChainSmoothness
 from torchhand.tracking.energies.collision import Collision
 from torchhand.tracking.energies.data_to_model import DataToModel
@@ -33,7 +33,7 @@ from torchhand.tracking.energies.regularization import Regularization
 from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
-__all__ = ["EnergyTerm", "Residuals", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
+__all__ = ["EnergyTerm", "Residuals", "Counts", "counts", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
            "FreeSpace", "Physics", "Edges", "OpticalFlow", "Nails", "Anatomy", "Regularization", "ChainSmoothness",
            "Weighted", "Robust", "parse_energy", "default_data_to_model", "default_free_space", "default_priors",
            "ENERGY_COMPONENTS"]

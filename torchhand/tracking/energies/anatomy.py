@@ -9,14 +9,28 @@ per-correspondence :class:`~torchhand.tracking.energies.wrappers.Weighted`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import torch
 
-from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, prepared
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, counts
 
-__all__ = ["Anatomy", "DEFAULT_WEIGHT"]
+__all__ = ["Anatomy", "AnatomyPrepared", "DEFAULT_WEIGHT"]
 
 #: gamma_a per data correspondence (thesis: 0.0015)
 DEFAULT_WEIGHT = 0.0015
+
+
+@dataclass(frozen=True, eq=False)
+class AnatomyPrepared(Prepared):
+    """Prepared data of :class:`Anatomy`: ``joints`` (J,) int64 the limited DoF,
+    ``lower``/``upper`` (J,) their limits, ``scale`` the weight folded into the energy
+    (1.0, or (B, 1) per problem)."""
+
+    joints: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor
+    scale: object = 1.0
 
 
 class Anatomy(EnergyTerm):
@@ -27,27 +41,24 @@ class Anatomy(EnergyTerm):
 
     def __init__(self, p: float = 10.0):
         self.p = float(p)
-        self.scale = 1.0  # the folded weight (B, 1), see fold_weight
 
-    def prepare(self, state: TrackState) -> Prepared:
-        if getattr(self, "_scene", None) is not state.scene:  # the limited joints, once per scene
-            lo, hi = state.scene.lower, state.scene.upper
-            self.joints = torch.nonzero(torch.isfinite(lo) & torch.isfinite(hi))[:, 0]
-            self.lo, self.hi, self._scene = lo[self.joints], hi[self.joints], state.scene
-        self.scale = 1.0
-        return prepared(state.theta.shape[0], device=state.theta.device)
+    def prepare(self, state: TrackState) -> AnatomyPrepared:
+        lo, hi = state.scene.lower, state.scene.upper
+        joints = torch.nonzero(torch.isfinite(lo) & torch.isfinite(hi))[:, 0]
+        return AnatomyPrepared(counts(state.theta.shape[0], device=state.theta.device), joints, lo[joints],
+                               hi[joints])
 
-    def fold_weight(self, weight):
-        self.scale = weight  # r = sqrt(w E_k): one square root of the weighted energy
-        return True
+    def fold_weight(self, prepared: AnatomyPrepared, weight):
+        return replace(prepared, scale=weight)  # r = sqrt(w E_k): one square root of the weighted energy
 
-    def residuals(self, theta, posed, jacobian=True):
-        t = theta[:, self.joints]
-        a, b = torch.exp(self.p * (self.lo - t)), torch.exp(self.p * (t - self.hi))
-        r = (self.scale * (a + b)).sqrt()
+    def residuals(self, theta, posed, prepared: AnatomyPrepared, jacobian=True):
+        p = prepared
+        t = theta[:, p.joints]
+        a, b = torch.exp(self.p * (p.lower - t)), torch.exp(self.p * (t - p.upper))
+        r = (p.scale * (a + b)).sqrt()
         if not jacobian:
             return Residuals(r, None)
-        dr = self.scale * self.p * (b - a) / (2 * r)
-        J = theta.new_zeros(theta.shape[0], len(self.joints), theta.shape[1])
-        J[:, torch.arange(len(self.joints)), self.joints] = dr
+        dr = p.scale * self.p * (b - a) / (2 * r)
+        J = theta.new_zeros(theta.shape[0], len(p.joints), theta.shape[1])
+        J[:, torch.arange(len(p.joints)), p.joints] = dr
         return Residuals(r, J)

@@ -4,25 +4,37 @@ A term is prepared once per outer iteration of Algorithm 1 (it finds its
 correspondences at the current pose) and then evaluated, with the correspondences
 fixed, at any theta the solver tries::
 
-    found = term.prepare(state)                    # Prepared: counts and diagnostics
-    res = term.residuals(theta, posed, jacobian=True)
+    prep = term.prepare(state)                     # the term's Prepared data (immutable)
+    prep.counts.correspondences                    # (B,) what it found
+    res = term.residuals(theta, posed, prep, jacobian=True)
     res.r  # (B, m) residuals        res.J  # (B, m, D) their Jacobian
+
+A term keeps no state between the two calls: ``prepare`` returns a frozen dataclass
+of its own (a subclass of :class:`Prepared`, its fields and shapes documented there),
+and ``residuals`` reads only its arguments. A term may memoise what depends only on
+the scene (index tables built once per scene); that never changes a result.
 
 Terms return their own, unweighted residuals. Weights and robust losses are wrappers
 around any term (:mod:`torchhand.tracking.energies.wrappers`), as theseus separates
-``CostFunction``, ``CostWeight`` and ``RobustCostFunction``. The stacked sum of squares
-of all (wrapped) terms is the energy the solver minimises.
+``CostFunction``, ``CostWeight`` and ``RobustCostFunction``; they return new prepared
+data (:meth:`EnergyTerm.fold_weight`, :meth:`EnergyTerm.fold_row_weights`), never
+change a term's. The stacked sum of squares of all (wrapped) terms is the energy the
+solver minimises.
 
 A *prior* (anatomy, regularisation) is prepared after every other term, when
 ``state.correspondences`` holds C_all, the number of data correspondences of each
 problem, which scales the priors' weights (Eq. 4.17-4.18).
+
+A new term subclasses :class:`EnergyTerm` and its prepared data :class:`Prepared`
+(a frozen dataclass with the term's fields); docs/architecture.md ("A new term, from the
+interface alone") writes one in 30 lines, and tests/test_energy_interface.py runs it.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Dict, List, NamedTuple, Optional, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 
@@ -33,8 +45,10 @@ from torchhand.model.kinematics import skew
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
-__all__ = ["Residuals", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm", "pixel_rows", "project_views", "scatter_columns", "no_residuals", "bone_inliers",
-           "prepared", "stack_rows", "stride_subsample", "seen_vertices"]
+__all__ = ["Residuals", "Counts", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm",
+           "RayRows", "RayPairs", "PixelRows", "PixelPairs", "Setup", "begin", "pixel_rows", "project_views",
+           "scatter_columns", "no_residuals", "bone_inliers", "counts", "stack_rows", "stride_subsample",
+           "seen_vertices"]
 
 
 class Residuals(NamedTuple):
@@ -61,7 +75,7 @@ class Residuals(NamedTuple):
     groups: int = 1
 
 
-class Prepared(NamedTuple):
+class Counts(NamedTuple):
     """What a term's ``prepare`` found, per problem.
 
     Attributes:
@@ -82,16 +96,34 @@ class Prepared(NamedTuple):
     diagnostics: Dict[str, torch.Tensor] = {}
 
 
-def prepared(batch: int, device=None, correspondences: Optional[torch.Tensor] = None,
-             candidates: Optional[torch.Tensor] = None, unmatched: Optional[torch.Tensor] = None,
-             **diagnostics: torch.Tensor) -> Prepared:
-    """A :class:`Prepared` with zeros for what is not given (candidates default to the
+def counts(batch: int, device=None, correspondences: Optional[torch.Tensor] = None,
+           candidates: Optional[torch.Tensor] = None, unmatched: Optional[torch.Tensor] = None,
+           **diagnostics: torch.Tensor) -> Counts:
+    """:class:`Counts` with zeros for what is not given (candidates default to the
     correspondences)."""
     zeros = torch.zeros(batch, dtype=torch.int64, device=device)
     c = zeros if correspondences is None else correspondences
-    return Prepared(c, c if candidates is None else candidates,
-                    torch.zeros(batch, dtype=torch.float64, device=device) if unmatched is None else unmatched,
-                    dict(diagnostics))
+    return Counts(c, c if candidates is None else candidates,
+                  torch.zeros(batch, dtype=torch.float64, device=device) if unmatched is None else unmatched,
+                  dict(diagnostics))
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """The base of every term's prepared data: what ``prepare`` found at the pose of
+    an outer iteration, read by ``residuals`` at any theta the solver tries. Each term
+    subclasses it with the fields it needs (frozen: a wrapper that reweights rows
+    returns a new object, :func:`dataclasses.replace`).
+
+    Attributes:
+        counts: :class:`Counts`, per problem.
+    """
+
+    counts: Counts
+
+    def recounted(self, **changes) -> "Prepared":
+        """A copy whose :attr:`counts` has ``changes`` (e.g. ``unmatched=...``)."""
+        return replace(self, counts=self.counts._replace(**changes))
 
 
 @dataclass
@@ -168,86 +200,155 @@ class TrackState:
 
 class EnergyTerm:
     """Base class of the terms: ``prepare(state) -> Prepared`` and
-    ``residuals(theta, posed, jacobian=True) -> Residuals``.
+    ``residuals(theta, posed, prepared, jacobian=True) -> Residuals``.
 
     ``name`` names the term in logs; ``prior`` marks terms prepared after the others,
     with ``state.correspondences`` known (module docstring); ``needs`` is what the term
     reads of the images: ``"depth"`` (depth frames, ``state.frames``), ``"colour"``
     (colour frames, ``state.colours``), or None for a term of the pose alone
     (collisions, physics, priors). A term that reads images is prepared once per view
-    of a camera rig (``TrackState``).
+    of a camera rig (``TrackState``). ``detections`` names where the term's detections
+    come from when they are not in the images themselves: ``"salient.json"`` for
+    terms that read a colour view's salient point detections (the nails), which the
+    runner loads for them; None otherwise.
     """
 
     name: str = "term"
     prior: bool = False
     needs: Optional[str] = None
+    detections: Optional[str] = None
 
     def prepare(self, state: TrackState) -> Prepared:  # pragma: no cover - interface
+        """The term's data at ``state``'s pose: correspondences, their counts."""
         raise NotImplementedError
 
-    def residuals(self, theta: torch.Tensor, posed: SceneOutput, jacobian: bool = True) -> Residuals:
-        raise NotImplementedError  # pragma: no cover - interface
+    def residuals(self, theta: torch.Tensor, posed: SceneOutput, prepared: Prepared,
+                  jacobian: bool = True) -> Residuals:  # pragma: no cover - interface
+        """The residuals at ``theta`` (B, D), ``posed`` = the scene at theta, with the
+        correspondences of ``prepared`` (what :meth:`prepare` returned)."""
+        raise NotImplementedError
 
-    def fold_weight(self, weight: torch.Tensor) -> bool:
-        """Take a fixed per-problem weight into the prepared term, if the term can.
+    def fold_weight(self, prepared: Prepared, weight: torch.Tensor) -> Optional[Prepared]:
+        """``prepared`` with a fixed per-problem weight taken in, if the term can.
 
-        ``weight``: (B, 1) energy weights (``Weighted`` with ``per_correspondence``, for
-        the outer iteration the last ``prepare`` was for). A term whose residual is the
-        square root of an energy (anatomy) computes ``sqrt(w E)`` in one root, as the
-        thesis writes the weighted term, and returns True. The default returns False:
-        the caller scales r and J by ``sqrt(w)``.
+        ``weight``: (B, 1) energy weights (``Weighted`` with ``per_correspondence``). A
+        term whose residual is the square root of an energy (anatomy) computes
+        ``sqrt(w E)`` in one root, as the thesis writes the weighted term, and returns
+        the new prepared data. The default returns None: the caller scales r and J by
+        ``sqrt(w)``.
         """
-        return False
+        return None
 
-    def fold_row_weights(self, sqrt_w: torch.Tensor) -> bool:
-        """Take fixed row weights into the prepared correspondences, if the term can.
+    def fold_row_weights(self, prepared: Prepared, sqrt_w: torch.Tensor) -> Optional[Prepared]:
+        """``prepared`` with fixed row weights taken into its correspondences, if the
+        term can.
 
-        ``sqrt_w``: (B, n) factors for the rows of :meth:`residuals` (as found by the
-        last ``prepare``, which they stay valid for). A term whose residuals are linear
-        in stored per-row data (data-to-model's Pluecker lines) scales that data once,
-        which is cheaper than scaling r and J at every evaluation; it returns True.
-        The default returns False: the caller (``Robust``) scales r and J.
+        ``sqrt_w``: (B, n) factors for the rows of :meth:`residuals`. A term whose
+        residuals are linear in stored per-row data (data-to-model's Pluecker lines)
+        scales that data once, which is cheaper than scaling r and J at every
+        evaluation; it returns the new prepared data. The default returns None: the
+        caller (``Robust``) scales r and J.
         """
-        return False
+        return None
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
 
 
+class Setup(NamedTuple):
+    """What a term's ``prepare`` starts from (:func:`begin`): the scene, the number of
+    (view) problems B, the state's device and dtype, the term's data side of the solve
+    and ``problems`` (B,) int64, each problem's row in that data side."""
+
+    scene: Scene
+    batch: int
+    device: torch.device
+    dtype: torch.dtype
+    data: object
+    problems: torch.Tensor
+
+
+def begin(state: "TrackState", term: EnergyTerm, build) -> Setup:
+    """The common start of a data term's ``prepare``: its data side of the solve
+    (``build(state)`` at the solve's first outer iteration, :meth:`TrackState.data_side`)
+    and the state's sizes."""
+    return Setup(state.scene, state.theta.shape[0], state.theta.device, state.theta.dtype,
+                 state.data_side(term, build), state.problem_index())
+
+
+class RayRows(NamedTuple):
+    """One model's (vertex, ray) pairs: ids (B, n) int64 vertex ids local to the model,
+    d (B, n, 3) and m (B, n, 3) the ray's Pluecker line (direction, moment), mask (B, n)
+    1 for real rows (rows with mask 0 have d = m = 0 or are zeroed)."""
+
+    ids: torch.Tensor
+    d: torch.Tensor
+    m: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class RayPairs(Prepared):
+    """Prepared data of a :class:`VertexRayTerm`: ``scene`` and one :class:`RayRows`
+    per model (``rows``)."""
+
+    scene: Scene
+    rows: Tuple[RayRows, ...]
+
+
 class VertexRayTerm(EnergyTerm):
     """A term whose pairs are (model vertex, world ray): the residual ``V x d - m`` of
     the vertex V and the ray's Pluecker line (d, m), whose norm is V's distance to the
-    ray (data-to-model, Eq. 4.8; free space). ``prepare`` sets ``self._scene`` and
-    ``self.per_model``: per model, (local vertex ids (B, n), d (B, n, 3), m (B, n, 3),
-    mask (B, n)); rows with mask 0 have d = m = 0 or are zeroed."""
+    ray (data-to-model, Eq. 4.8). ``prepare`` returns :class:`RayPairs`."""
 
-    def fold_row_weights(self, sqrt_w):
+    def fold_row_weights(self, prepared: RayPairs, sqrt_w):
         # V x d - m is linear in the line (d, m): scaling both by sqrt(w) weights the
         # pair's squared residual, and its Jacobian, by w
-        start = 0
-        for k, (ids, d, m, mask) in enumerate(self.per_model):
+        rows, start = [], 0
+        for ids, d, m, mask in prepared.rows:
             sw = sqrt_w[:, start : start + ids.shape[1], None]
-            self.per_model[k] = (ids, d * sw, m * sw, mask)
+            rows.append(RayRows(ids, d * sw, m * sw, mask))
             start += ids.shape[1]
-        return True
+        return replace(prepared, rows=tuple(rows))
 
-    def residuals(self, theta, posed, jacobian=True):
+    def residuals(self, theta, posed, prepared: RayPairs, jacobian=True):
         B, D = theta.shape
+        scene = prepared.scene
         parts = []
         b = torch.arange(B, device=theta.device)[:, None]
-        for k, (ids, d, m, mask) in enumerate(self.per_model):
+        for k, (ids, d, m, mask) in enumerate(prepared.rows):
             out = posed.models[k]
             V = out.vertices[b, ids]
             r = (torch.cross(V, d, dim=-1) - m) * mask[..., None]
             J = None
             if jacobian:
-                model = self._scene.models[k]
-                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))
+                Jv = scene.models[k].jacobian(None, ids, fk=(out.G, out.twists))
                 Jr = -(skew(d) @ Jv) * mask[..., None, None]  # d(V x d) = -[d]x dV
-                cols = self._scene.slices[self._scene.names[k]]
-                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
+                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), scene.slices[scene.names[k]], D)
             parts.append(Residuals(r.reshape(B, -1), J, 3, mask, torch.full_like(ids, k)))
-        return stack_rows(parts, theta, jacobian, 3, len(self.per_model))
+        return stack_rows(parts, theta, jacobian, 3, len(prepared.rows))
+
+
+class PixelRows(NamedTuple):
+    """One model's (vertex, image point) pairs: ids (B, n) int64 vertex ids local to the
+    model, q (B, n, 2) (u, v) px, scale (B, n) mm per px, mask (B, n)."""
+
+    ids: torch.Tensor
+    q: torch.Tensor
+    scale: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class PixelPairs(Prepared):
+    """Prepared data of a :class:`VertexPixelTerm`: ``scene``, each problem's camera
+    (``K`` (B, 3, 3), ``T_cw`` (B, 4, 4)) and one :class:`PixelRows` per model
+    (``rows``, :func:`pixel_rows` builds them from pairs of any models)."""
+
+    scene: Scene
+    K: torch.Tensor
+    T_cw: torch.Tensor
+    rows: Tuple[PixelRows, ...]
 
 
 class VertexPixelTerm(EnergyTerm):
@@ -255,27 +356,26 @@ class VertexPixelTerm(EnergyTerm):
     projection minus the point, ``(pi(V) - q) s`` (2 rows), in mm through a per-pair
     scale s (mm per px, fixed for the outer iteration): Ballan et al.'s reprojection
     error (Eq. 2) in the units of the depth terms (free space, edges, optical flow).
-    ``prepare`` sets ``self._scene``, ``self._cameras`` = (K (B, 3, 3), T_cw (B, 4, 4))
-    and ``self.per_model``: per model, (local vertex ids (B, n), q (B, n, 2) (u, v) px,
-    s (B, n), mask (B, n)) (:func:`pixel_rows` builds them)."""
+    ``prepare`` returns :class:`PixelPairs`."""
 
-    def fold_row_weights(self, sqrt_w):
+    def fold_row_weights(self, prepared: PixelPairs, sqrt_w):
         # the residual is linear in the stored scale: scaling it weights the pair by w
-        start = 0
-        for k, (ids, q, scale, mask) in enumerate(self.per_model):
-            self.per_model[k] = (ids, q, scale * sqrt_w[:, start : start + ids.shape[1]], mask)
+        rows, start = [], 0
+        for ids, q, scale, mask in prepared.rows:
+            rows.append(PixelRows(ids, q, scale * sqrt_w[:, start : start + ids.shape[1]], mask))
             start += ids.shape[1]
-        return True
+        return replace(prepared, rows=tuple(rows))
 
-    def residuals(self, theta, posed, jacobian=True):
+    def residuals(self, theta, posed, prepared: PixelPairs, jacobian=True):
         B, D = theta.shape
-        K_b, T_b = self._cameras
-        R, t = T_b[:, None, :3, :3], T_b[:, None, :3, 3]
+        scene = prepared.scene
+        R, t = prepared.T_cw[:, None, :3, :3], prepared.T_cw[:, None, :3, 3]
+        K_b = prepared.K
         fx, fy = K_b[:, 0, 0, None], K_b[:, 1, 1, None]
         cx, cy = K_b[:, 0, 2, None], K_b[:, 1, 2, None]
         parts = []
         b = torch.arange(B, device=theta.device)[:, None]
-        for k, (ids, q, scale, mask) in enumerate(self.per_model):
+        for k, (ids, q, scale, mask) in enumerate(prepared.rows):
             out = posed.models[k]
             V = out.vertices[b, ids]  # (B, n, 3) world
             Xc = (R @ V[..., None])[..., 0] + t
@@ -284,16 +384,14 @@ class VertexPixelTerm(EnergyTerm):
             r = (u - q) * scale[..., None]  # (B, n, 2) mm at the data depth
             J = None
             if jacobian:
-                model = self._scene.models[k]
-                Jv = model.jacobian(None, ids, fk=(out.G, out.twists))  # (B, n, 3, D_k)
+                Jv = scene.models[k].jacobian(None, ids, fk=(out.G, out.twists))  # (B, n, 3, D_k)
                 zeros = torch.zeros_like(Z)
                 Jp = torch.stack([torch.stack([fx / Z, zeros, -fx * Xc[..., 0] / Z ** 2], -1),
                                   torch.stack([zeros, fy / Z, -fy * Xc[..., 1] / Z ** 2], -1)], -2)  # (B, n, 2, 3)
                 Jr = (Jp @ R) @ Jv * scale[..., None, None]
-                cols = self._scene.slices[self._scene.names[k]]
-                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), cols, D)
+                J = scatter_columns(Jr.reshape(B, -1, Jr.shape[-1]), scene.slices[scene.names[k]], D)
             parts.append(Residuals(r.reshape(B, -1), J, 2, mask, torch.full_like(ids, k)))
-        return stack_rows(parts, theta, jacobian, 2, len(self.per_model))
+        return stack_rows(parts, theta, jacobian, 2, len(prepared.rows))
 
 
 def project_views(state: TrackState, points: torch.Tensor) -> tuple:
@@ -308,8 +406,8 @@ def project_views(state: TrackState, points: torch.Tensor) -> tuple:
 
 
 def pixel_rows(scene: Scene, vertex: torch.Tensor, target: torch.Tensor, scale: torch.Tensor,
-               keep: torch.Tensor) -> list:
-    """``VertexPixelTerm.per_model`` from pairs of any models: vertex (B, n) int64 scene
+               keep: torch.Tensor) -> Tuple[PixelRows, ...]:
+    """:attr:`PixelPairs.rows` from pairs of any models: vertex (B, n) int64 scene
     vertex ids, target (B, n, 2) (u, v) px, scale (B, n) mm per px, keep (B, n) bool.
     Each model's rows are its kept pairs, packed to the most any problem has (one host
     sync)."""
@@ -322,8 +420,8 @@ def pixel_rows(scene: Scene, vertex: torch.Tensor, target: torch.Tensor, scale: 
                                                                        sel.new_zeros(sel.shape[0], 0))
         local = torch.where(ok, vertex.gather(1, pos) - sl.start, torch.zeros_like(pos))
         q = target.gather(1, pos[..., None].expand(-1, -1, 2))
-        out.append((local, q, scale.gather(1, pos) * ok, ok.to(target.dtype)))
-    return out
+        out.append(PixelRows(local, q, scale.gather(1, pos) * ok, ok.to(target.dtype)))
+    return tuple(out)
 
 
 def seen_vertices(render: RenderResult, faces: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:

@@ -19,12 +19,14 @@ stiffness spreads a bend over its length.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from torchhand.model.scene import Scene
-from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, prepared
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, counts
 
-__all__ = ["ChainSmoothness", "DEFAULT_WEIGHT", "MIN_JOINTS", "chain_pairs"]
+__all__ = ["ChainSmoothness", "ChainPrepared", "DEFAULT_WEIGHT", "MIN_JOINTS", "chain_pairs"]
 
 #: weight per data correspondence (the rope in the pipe's place, docs/results.md)
 DEFAULT_WEIGHT = 0.2
@@ -65,19 +67,31 @@ def chain_pairs(scene: Scene) -> torch.Tensor:
     return torch.tensor(sorted(pairs), dtype=torch.int64).reshape(-1, 2)
 
 
+@dataclass(frozen=True, eq=False)
+class ChainPrepared(Prepared):
+    """Prepared data of :class:`ChainSmoothness`: ``pairs`` (P, 2) int64 the scene DoF
+    of each pair (:func:`chain_pairs`)."""
+
+    pairs: torch.Tensor
+
+
 class ChainSmoothness(EnergyTerm):
     """E_chain (module docstring). A scene without such chains has no residuals."""
 
     name = "chain_smoothness"
     prior = True
 
-    def prepare(self, state: TrackState) -> Prepared:
-        if getattr(self, "_scene", None) is not state.scene:  # the pairs, once per scene
-            self.pairs, self._scene = chain_pairs(state.scene).to(state.theta.device), state.scene
-        return prepared(state.theta.shape[0], device=state.theta.device)
+    def __init__(self):
+        self._pairs = None  # (scene, pairs): chain_pairs memoised per scene
 
-    def residuals(self, theta, posed, jacobian=True):
-        a, b = self.pairs[:, 0], self.pairs[:, 1]
+    def prepare(self, state: TrackState) -> ChainPrepared:
+        if self._pairs is None or self._pairs[0] is not state.scene:
+            self._pairs = (state.scene, chain_pairs(state.scene))
+        return ChainPrepared(counts(state.theta.shape[0], device=state.theta.device),
+                             self._pairs[1].to(state.theta.device))
+
+    def residuals(self, theta, posed, prepared: ChainPrepared, jacobian=True):
+        a, b = prepared.pairs[:, 0], prepared.pairs[:, 1]
         r = theta[:, a] - theta[:, b]
         J = None
         if jacobian:

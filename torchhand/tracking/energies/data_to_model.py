@@ -21,12 +21,13 @@ from typing import NamedTuple, Optional
 
 import torch
 
+from torchhand.core.check import check_int, check_number
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
 from torchhand.geometry.neighbors import nearest_marked_pixel
 from torchhand.geometry.render import window_map
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (Prepared, TrackState, VertexRayTerm, bone_inliers, prepared,
-                                              seen_vertices)
+from torchhand.tracking.energies.base import (RayPairs, RayRows, TrackState, VertexRayTerm, begin, bone_inliers,
+                                              counts, seen_vertices)
 
 __all__ = ["DataToModel", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -81,12 +82,9 @@ class DataToModel(VertexRayTerm):
     needs = "depth"
 
     def __init__(self, max_distance=30.0, max_pixels=600, outlier_sigma=2.0, backend: Optional[str] = None):
-        if not max_distance > 0:
-            raise ValueError(f"max_distance must be > 0 (mm), got {max_distance!r}")
-        if outlier_sigma is not None and not outlier_sigma > 0:
-            raise ValueError(f"outlier_sigma must be > 0 or None, got {outlier_sigma!r}")
-        if not (isinstance(max_pixels, int) and max_pixels > 0):
-            raise ValueError(f"max_pixels must be a positive int, got {max_pixels!r}")
+        check_number(max_distance, "max_distance", low=0, unit="mm")
+        check_number(outlier_sigma, "outlier_sigma", low=0, none=True)
+        check_int(max_pixels, "max_pixels", low=1)
         self.max_distance, self.max_pixels, self.outlier_sigma = float(max_distance), max_pixels, outlier_sigma
         self.backend = backend
         self._bones = None  # (scene, (V,) scene-level bone of every vertex, number of bones)
@@ -124,12 +122,8 @@ class DataToModel(VertexRayTerm):
         radius = torch.ceil(1.5 * f * self.max_distance / near).long().clamp(max=400) + 4
         return _Edges(rc, X, rays.direction.view(B, K, M, 3), rays.moment.view(B, K, M, 3), valid, radius)
 
-    def prepare(self, state: TrackState) -> Prepared:
-        scene, B = state.scene, state.theta.shape[0]
-        self._scene = scene
-        dev, dt = state.theta.device, state.theta.dtype
-        data = state.data_side(self, self._build)
-        p = state.problem_index()
+    def prepare(self, state: TrackState) -> RayPairs:
+        scene, B, dev, dt, data, p = begin(state, self, self._build)
         rc, X, d, m, valid, radius = (x[p] for x in data)
         K, M = valid.shape[1:]
         rend = state.render
@@ -160,9 +154,10 @@ class DataToModel(VertexRayTerm):
         # squared distance (as model-to-data does)
         unmatched = (self.max_distance ** 2 * (candidates - count - outlier.sum(1)).double()
                      + torch.where(outlier, ray_dist ** 2, torch.zeros_like(ray_dist)).sum(1).double())
-        self.per_model = []
+        per_model = []
         for k, name in enumerate(scene.names):
             rows = slice(k * M, (k + 1) * M)
             local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
-            self.per_model.append((local, df[:, rows], mf[:, rows], keep[:, rows].to(dt)))
-        return prepared(B, correspondences=count, candidates=candidates, unmatched=unmatched)
+            per_model.append(RayRows(local, df[:, rows], mf[:, rows], keep[:, rows].to(dt)))
+        return RayPairs(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
+                        tuple(per_model))

@@ -38,11 +38,12 @@ from typing import NamedTuple, Optional
 
 import torch
 
+from torchhand.core.check import check_choice, check_int, check_number
 from torchhand.geometry.chamfer import ChamferConfig, boundary_pixels, contour_boxes, contour_marks, match_contour
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
-                                              prepared, project_views, stride_subsample)
+from torchhand.tracking.energies.base import (PixelPairs, TrackState, VertexPixelTerm, begin, bone_inliers, counts,
+                                              pixel_rows, project_views, stride_subsample)
 
 __all__ = ["Edges", "DEFAULT_CHAMFER", "DEFAULT_LOSS", "rim_vertices"]
 
@@ -119,15 +120,12 @@ class Edges(VertexPixelTerm):
 
     def __init__(self, config: ChamferConfig = DEFAULT_CHAMFER, max_points: int = 400, sigma=2.0, backend=None,
                  contours: str = "occluding"):
-        if contours not in ("occluding", "silhouette"):
-            raise ValueError(f"contours must be 'occluding' or 'silhouette', got {contours!r}")
+        check_choice(contours, "contours", ("occluding", "silhouette"))
         self.contours = contours
         if not isinstance(config, ChamferConfig):
             raise TypeError(f"config must be a ChamferConfig, got {type(config).__name__}")
-        if not (isinstance(max_points, int) and max_points > 0):
-            raise ValueError(f"max_points must be a positive int, got {max_points!r}")
-        if sigma is not None and not sigma > 0:
-            raise ValueError(f"sigma must be > 0 or None, got {sigma!r}")
+        check_int(max_points, "max_points", low=1)
+        check_number(sigma, "sigma", low=0, none=True)
         self.config, self.max_points, self.sigma, self.backend = config, max_points, sigma, backend
 
     def _build(self, state: TrackState) -> _Data:
@@ -143,12 +141,8 @@ class Edges(VertexPixelTerm):
         marks = torch.stack(marks).to(dev)
         return _Data(marks, torch.stack(phis).to(dev), contour_boxes(self.config, marks, self.backend))
 
-    def prepare(self, state: TrackState) -> Prepared:
-        scene, B = state.scene, state.theta.shape[0]
-        dev, dt = state.theta.device, state.theta.dtype
-        self._scene = scene
-        data = state.data_side(self, self._build)
-        p = state.problem_index()
+    def prepare(self, state: TrackState) -> PixelPairs:
+        scene, B, dev, dt, data, p = begin(state, self, self._build)
         ids, q, phi, ok, z = rim_vertices(state, self.max_points, self.contours)
         match = match_contour(self.config, data.marks, data.phi, q, phi, ok, backend=self.backend, images=p,
                               boxes=data.boxes)
@@ -160,14 +154,15 @@ class Edges(VertexPixelTerm):
             valid = valid & bone_inliers(dist, scene.vertex_bone_id[vid], valid, scene.num_bones, self.sigma)
         K_b = torch.stack([c.K.to(dev, dt) for c in state.cameras])
         scale = z.gather(1, match.source) / K_b[:, 0, 0, None]  # mm per px at the model's depth
-        self._cameras = (K_b, torch.stack([c.T_cw.to(dev, dt) for c in state.cameras]))
-        self.per_model = pixel_rows(scene, vid, match.pixel.flip(-1).to(dt), scale, valid)
+        T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
+        rows = pixel_rows(scene, vid, match.pixel.flip(-1).to(dt), scale, valid)
         # a model edge pixel without an image edge pixel is charged the cut-off, radius_px at its depth
         matched = torch.zeros_like(ok, dtype=torch.int64).scatter_reduce(1, match.source, valid.long(), "amax") > 0
         cut = (self.config.radius_px * z / K_b[:, 0, 0, None]) ** 2
         unmatched = torch.where(ok & ~matched, cut, torch.zeros_like(cut)).sum(1).double()
-        return prepared(B, device=dev, correspondences=valid.sum(1), candidates=torch.maximum(ok.sum(1), valid.sum(1)),
-                        unmatched=unmatched, edges=ok.sum(1))
+        found = counts(B, device=dev, correspondences=valid.sum(1), candidates=torch.maximum(ok.sum(1), valid.sum(1)),
+                       unmatched=unmatched, edges=ok.sum(1))
+        return PixelPairs(found, scene, K_b, T_b, rows)
 
     def __repr__(self) -> str:
         return f"Edges({self.config.kind}, max_points={self.max_points}, sigma={self.sigma})"

@@ -44,11 +44,12 @@ from typing import NamedTuple
 
 import torch
 
+from torchhand.core.check import check_int, check_number
 from torchhand.geometry.neighbors import marked_pixel_transform
 from torchhand.geometry.render import window
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, prepared, seen_vertices,
-                                              stride_subsample)
+from torchhand.tracking.energies.base import (PixelPairs, PixelRows, TrackState, VertexPixelTerm, begin, counts,
+                                              seen_vertices, stride_subsample)
 
 __all__ = ["FreeSpace", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -88,14 +89,10 @@ class FreeSpace(VertexPixelTerm):
     needs = "depth"
 
     def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400):
-        if not tolerance >= 0:
-            raise ValueError(f"tolerance must be >= 0 (px), got {tolerance!r}")
-        if not margin >= 0:
-            raise ValueError(f"margin must be >= 0 (mm), got {margin!r}")
-        if not radius > 0:
-            raise ValueError(f"radius must be > 0 (px), got {radius!r}")
-        if not (isinstance(max_pixels, int) and max_pixels > 0):
-            raise ValueError(f"max_pixels must be a positive int, got {max_pixels!r}")
+        check_number(tolerance, "tolerance", low=0, inclusive=True, unit="px")
+        check_number(margin, "margin", low=0, inclusive=True, unit="mm")
+        check_number(radius, "radius", low=0, unit="px")
+        check_int(max_pixels, "max_pixels", low=1)
         self.margin, self.radius, self.max_pixels = float(margin), float(radius), max_pixels
         self.tolerance = float(tolerance)
 
@@ -111,12 +108,8 @@ class FreeSpace(VertexPixelTerm):
         nearest, distance = marked_pixel_transform(state.data_labels, len(state.scene.models), box)
         return _Data(depth.float(), nearest, distance, (r0, c0))
 
-    def prepare(self, state: TrackState) -> Prepared:
-        scene, B = state.scene, state.theta.shape[0]
-        self._scene = scene
-        dev, dt = state.theta.device, state.theta.dtype
-        data = state.data_side(self, self._build)
-        p = state.problem_index()
+    def prepare(self, state: TrackState) -> PixelPairs:
+        scene, B, dev, dt, data, p = begin(state, self, self._build)
         depth, nearest, distance = data.depth[p], data.nearest[p], data.distance[p]
         r0, c0 = data.origin
         h, w = depth.shape[1:]
@@ -144,10 +137,10 @@ class FreeSpace(VertexPixelTerm):
         T_b = torch.stack([c.T_cw.to(dev, dt) for c in state.cameras])
         # mm per px at the data's depth: the residual's scale, fixed for the outer iteration
         scale = torch.where(keep, z / K_b[:, 0, 0, None], torch.zeros_like(z))
-        self._cameras = (K_b, T_b)
-        self.per_model = []
+        per_model = []
         for k, name in enumerate(scene.names):
             rows = slice(k * M, (k + 1) * M)
             local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
-            self.per_model.append((local, target[:, rows].flip(-1), scale[:, rows], keep[:, rows].to(dt)))
-        return prepared(B, device=dev, pixels=keep.sum(1), free=free.reshape(B, -1).sum(1))
+            per_model.append(PixelRows(local, target[:, rows].flip(-1), scale[:, rows], keep[:, rows].to(dt)))
+        return PixelPairs(counts(B, device=dev, pixels=keep.sum(1), free=free.reshape(B, -1).sum(1)), scene, K_b, T_b,
+                          tuple(per_model))

@@ -17,17 +17,40 @@ masked. Preparing an outer iteration makes no host synchronisation.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from dataclasses import dataclass
+from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
 
+from torchhand.core.check import check_choice, check_int, check_number
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.geometry.neighbors import PointIndex
-from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, bone_inliers, prepared,
+from torchhand.model.scene import Scene
+from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, begin, bone_inliers, counts,
                                               scatter_columns, stack_rows, stride_subsample)
 
-__all__ = ["ModelToData"]
+__all__ = ["ModelToData", "SurfaceRows", "SurfacePairs"]
+
+
+class SurfaceRows(NamedTuple):
+    """One model's (vertex, data point) pairs: ids (B, n) int64 vertex ids local to the
+    model; X (B, n, 3) the data points (world, mm); normal (B, n, 3) the model normals
+    at the pose where the pairs were found; mask (B, n) 1 for kept pairs."""
+
+    ids: torch.Tensor
+    X: torch.Tensor
+    normal: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class SurfacePairs(Prepared):
+    """Prepared data of :class:`ModelToData`: ``scene`` and one :class:`SurfaceRows`
+    per model (``rows``)."""
+
+    scene: Scene
+    rows: Tuple[SurfaceRows, ...]
 
 
 class _Data(NamedTuple):
@@ -60,12 +83,9 @@ class ModelToData(EnergyTerm):
 
     def __init__(self, metric="point-to-plane", max_distance=10.0, max_angle=45.0, max_vertices=1500,
                  outlier_sigma=2.0, backend: Optional[str] = None):
-        if not max_distance > 0:
-            raise ValueError(f"max_distance must be > 0 (mm), got {max_distance!r}")
-        if metric not in ("point-to-point", "point-to-plane"):
-            raise ValueError(f"metric must be 'point-to-point' or 'point-to-plane', got {metric!r}")
-        if not (isinstance(max_vertices, int) and max_vertices > 0):
-            raise ValueError(f"max_vertices must be a positive int, got {max_vertices!r}")
+        check_number(max_distance, "max_distance", low=0, unit="mm")
+        check_choice(metric, "metric", ("point-to-point", "point-to-plane"))
+        check_int(max_vertices, "max_vertices", low=1)
         self.metric, self.max_distance, self.cos_max = metric, float(max_distance), float(np.cos(np.radians(max_angle)))
         self.max_vertices, self.outlier_sigma, self.backend = max_vertices, outlier_sigma, backend
 
@@ -89,12 +109,8 @@ class ModelToData(EnergyTerm):
                                self.max_distance, self.backend)
         return _Data(points, normals, index)
 
-    def prepare(self, state: TrackState) -> Prepared:
-        scene, B = state.scene, state.theta.shape[0]
-        self._scene = scene
-        dev, dt = state.theta.device, state.theta.dtype
-        data = state.data_side(self, self._build)
-        problems = state.problem_index()
+    def prepare(self, state: TrackState) -> SurfacePairs:
+        scene, B, dev, dt, data, problems = begin(state, self, self._build)
         visible = state.visible_vertices()
         V = state.posed.vertices
         batch = torch.arange(B, device=dev)[:, None]
@@ -102,7 +118,7 @@ class ModelToData(EnergyTerm):
         candidates = torch.zeros(B, dtype=torch.int64, device=dev)
         unmatched = torch.zeros(B, dtype=torch.float64, device=dev)
         cut = self.max_distance
-        self.per_model = []
+        rows = []
         for k, (name, model) in enumerate(zip(scene.names, scene.models)):  # models: a handful, static
             vs = scene.vertex_slices[name]
             local, slot = stride_subsample(visible[:, vs], self.max_vertices)  # (B, M)
@@ -125,25 +141,26 @@ class ModelToData(EnergyTerm):
             count += keep.sum(1)
             # a candidate without a pair is charged min(distance, cut-off)^2
             unmatched += torch.where(slot & ~keep, d.clamp(max=cut) ** 2, torch.zeros_like(d)).sum(1).double()
-            self.per_model.append((local, X.to(dt), nV, keep.to(dt)))
-        return prepared(B, correspondences=count, candidates=candidates, unmatched=unmatched)
+            rows.append(SurfaceRows(local, X.to(dt), nV, keep.to(dt)))
+        return SurfacePairs(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
+                            tuple(rows))
 
-    def residuals(self, theta, posed, jacobian=True):
+    def residuals(self, theta, posed, prepared: SurfacePairs, jacobian=True):
         B, D = theta.shape
         dim = 3 if self.metric == "point-to-point" else 1
         parts = []
         b = torch.arange(B, device=theta.device)[:, None]
-        for k, (ids, X, nV, mask) in enumerate(self.per_model):
+        scene = prepared.scene
+        for k, (ids, X, nV, mask) in enumerate(prepared.rows):
             out = posed.models[k]
             diff = (out.vertices[b, ids] - X) * mask[..., None]  # (B, n, 3)
             r = diff if self.metric == "point-to-point" else (nV * diff).sum(-1, keepdim=True)
             J = None
             if jacobian:
-                model = self._scene.models[k]
-                Jv = model.jacobian(None, ids, fk=(out.G, out.twists)) * mask[..., None, None]
+                Jv = scene.models[k].jacobian(None, ids, fk=(out.G, out.twists)) * mask[..., None, None]
                 if self.metric == "point-to-plane":
                     Jv = (nV[..., None] * Jv).sum(-2, keepdim=True)
-                cols = self._scene.slices[self._scene.names[k]]
+                cols = scene.slices[scene.names[k]]
                 J = scatter_columns(Jv.reshape(B, -1, Jv.shape[-1]), cols, D)
             parts.append(Residuals(r.reshape(B, -1), J, dim, mask, torch.full_like(ids, k)))
-        return stack_rows(parts, theta, jacobian, dim, len(self.per_model))
+        return stack_rows(parts, theta, jacobian, dim, len(prepared.rows))

@@ -22,10 +22,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from torchhand.core.check import check_number
 from torchhand.model.fingertips import nail_vertices
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.salient.association import associate
-from torchhand.tracking.energies.base import Prepared, TrackState, VertexPixelTerm, pixel_rows, prepared, project_views
+from torchhand.tracking.energies.base import PixelPairs, TrackState, VertexPixelTerm, counts, pixel_rows, project_views
 
 __all__ = ["Nails", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -48,17 +49,16 @@ class Nails(VertexPixelTerm):
 
     name = "nails"
     needs = "colour"
+    detections = "salient.json"
 
     def __init__(self, gate_px: float = 60.0):
-        if not gate_px > 0:
-            raise ValueError(f"gate_px must be > 0, got {gate_px!r}")
+        check_number(gate_px, "gate_px", low=0, unit="px")
         self.gate_px = float(gate_px)
         self._ids, self._ids_scene = None, None
 
-    def prepare(self, state: TrackState) -> Prepared:
+    def prepare(self, state: TrackState) -> PixelPairs:
         scene, B = state.scene, state.theta.shape[0]
         dev, dt = state.theta.device, state.theta.dtype
-        self._scene = scene
         if self._ids_scene is not scene:
             self._ids, self._ids_scene = nail_vertices(scene).to(dev), scene
         if state.colours is None or any(c is None for c in state.colours):
@@ -84,9 +84,8 @@ class Nails(VertexPixelTerm):
                 target[b, t] = torch.as_tensor(det[s], dtype=dt)
                 keep[b, t] = True
         keep = keep.to(dev)
-        self._cameras = (K_b, T_b)
-        self.per_model = pixel_rows(scene, vertex, target, z / K_b[:, 0, 0, None], keep)
-        return prepared(B, device=dev, correspondences=keep.sum(1), detections=detections.to(dev))
+        return PixelPairs(counts(B, device=dev, correspondences=keep.sum(1), detections=detections.to(dev)), scene, K_b,
+                          T_b, pixel_rows(scene, vertex, target, z / K_b[:, 0, 0, None], keep))
 
     def __repr__(self) -> str:
         return f"Nails(gate_px={self.gate_px:g})"

@@ -26,9 +26,10 @@ import cv2
 import numpy as np
 import torch
 
+from torchhand.core.check import check_choice, check_int, check_number
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (Prepared, TrackState, VertexPixelTerm, bone_inliers, pixel_rows,
-                                              prepared, project_views, stride_subsample)
+from torchhand.tracking.energies.base import (PixelPairs, TrackState, VertexPixelTerm, begin, bone_inliers, counts,
+                                              pixel_rows, project_views, stride_subsample)
 
 __all__ = ["OpticalFlow", "dense_flow", "DEFAULT_LOSS", "DEFAULT_WEIGHT"]
 
@@ -48,8 +49,7 @@ PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPT
 def dense_flow(previous: np.ndarray, current: np.ndarray, preset: str = "medium") -> np.ndarray:
     """(H, W, 2) float32 (du, dv) px: OpenCV DIS flow from ``previous`` to ``current``
     ((H, W) uint8 grey images)."""
-    if preset not in PRESETS:
-        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    check_choice(preset, "preset", sorted(PRESETS))
     return cv2.DISOpticalFlow_create(PRESETS[preset]).calc(previous, current, None)
 
 
@@ -75,15 +75,12 @@ class OpticalFlow(VertexPixelTerm):
 
     def __init__(self, max_points: int = 300, max_flow_px: float = 60.0, sigma=2.0, preset: str = "medium",
                  margin_px: int = 8):
-        if not (isinstance(margin_px, int) and margin_px >= 0):
-            raise ValueError(f"margin_px must be an int >= 0, got {margin_px!r}")
+        check_int(margin_px, "margin_px", low=0)
         self.margin_px = margin_px
-        if not (isinstance(max_points, int) and max_points > 0):
-            raise ValueError(f"max_points must be a positive int, got {max_points!r}")
-        if not max_flow_px > 0 or (sigma is not None and not sigma > 0):
-            raise ValueError(f"need max_flow_px > 0 and sigma > 0 (or None), got {max_flow_px!r}, {sigma!r}")
-        if preset not in PRESETS:
-            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+        check_int(max_points, "max_points", low=1)
+        check_number(max_flow_px, "max_flow_px", low=0, unit="px")
+        check_number(sigma, "sigma", low=0, none=True)
+        check_choice(preset, "preset", sorted(PRESETS))
         self.max_points, self.max_flow_px, self.sigma, self.preset = max_points, float(max_flow_px), sigma, preset
         self._flows: Dict[int, tuple] = {}
 
@@ -132,12 +129,8 @@ class OpticalFlow(VertexPixelTerm):
             target[j], keep[j] = uv + f, ok
         return _Data(index, target, keep)
 
-    def prepare(self, state: TrackState) -> Prepared:
-        scene, B = state.scene, state.theta.shape[0]
-        dev = state.theta.device
-        self._scene = scene
-        data = state.data_side(self, self._build)
-        p = state.problem_index()
+    def prepare(self, state: TrackState) -> PixelPairs:
+        scene, B, dev, _, data, p = begin(state, self, self._build)
         vertex, target, keep = data.vertex[p], data.target[p], data.keep[p]
         b = torch.arange(B, device=dev)[:, None]
         uv, z, K_b, T_b = project_views(state, state.posed.vertices.detach()[b, vertex])
@@ -145,9 +138,8 @@ class OpticalFlow(VertexPixelTerm):
             keep = keep & bone_inliers((uv - target).norm(dim=-1), scene.vertex_bone_id[vertex], keep, scene.num_bones,
                                        self.sigma)
         scale = z / K_b[:, 0, 0, None]
-        self._cameras = (K_b, T_b)
-        self.per_model = pixel_rows(scene, vertex, target, scale, keep)
-        return prepared(B, device=dev, correspondences=keep.sum(1))
+        return PixelPairs(counts(B, device=dev, correspondences=keep.sum(1)), scene, K_b, T_b,
+                          pixel_rows(scene, vertex, target, scale, keep))
 
     def __repr__(self) -> str:
         return f"OpticalFlow(max_points={self.max_points}, sigma={self.sigma}, preset={self.preset!r})"

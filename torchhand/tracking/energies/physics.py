@@ -23,15 +23,17 @@ The simulation runs on the CPU, once per frame and problem.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
 
-from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, prepared,
-                                              scatter_columns, stack_rows)
+from torchhand.model.scene import Scene
+from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, counts, scatter_columns,
+                                              stack_rows)
 
-__all__ = ["Physics", "DEFAULT_WEIGHT"]
+__all__ = ["Physics", "PhysicsPairs", "DEFAULT_WEIGHT"]
 
 #: gamma_ph of the thesis (Sec. 4.3.2: equal to the collision weight gamma_c)
 DEFAULT_WEIGHT = 10.0
@@ -44,6 +46,16 @@ class _Pairs(NamedTuple):
     blocks: Dict[Tuple[int, int], Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
     unstable: torch.Tensor
     supported: torch.Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class PhysicsPairs(Prepared):
+    """Prepared data of :class:`Physics`: ``scene`` and per (hand, object) block
+    ``(hand model k, object model o, hand vertex ids (B, n), object vertex ids (B, n),
+    mask (B, n))``, the ids local to their models (``blocks``)."""
+
+    scene: Scene
+    blocks: Tuple[tuple, ...]
 
 
 class Physics(EnergyTerm):
@@ -113,27 +125,28 @@ class Physics(EnergyTerm):
             blocks[key] = (vh.to(dev), vo.to(dev), mask.to(dev))
         return _Pairs(blocks, unstable.to(dev), supported.to(dev))
 
-    def prepare(self, state: TrackState) -> Prepared:
-        self._scene = state.scene
+    def prepare(self, state: TrackState) -> PhysicsPairs:
         data = state.data_side(self, self._build)
         p = state.problem_index()
-        self.blocks = [(k, o, vh[p], vo[p], mask[p]) for (k, o), (vh, vo, mask) in data.blocks.items()]
+        blocks = tuple((k, o, vh[p], vo[p], mask[p]) for (k, o), (vh, vo, mask) in data.blocks.items())
         B = state.theta.shape[0]
-        return prepared(B, device=state.theta.device, unstable=data.unstable[p], contact_parts=data.supported[p])
+        found = counts(B, device=state.theta.device, unstable=data.unstable[p], contact_parts=data.supported[p])
+        return PhysicsPairs(found, state.scene, blocks)
 
-    def residuals(self, theta: torch.Tensor, posed, jacobian: bool = True) -> Residuals:
+    def residuals(self, theta: torch.Tensor, posed, prepared: PhysicsPairs, jacobian: bool = True) -> Residuals:
         B, D = theta.shape
         b = torch.arange(B, device=theta.device)[:, None]
         parts = []
-        for k, o, vh, vo, mask in self.blocks:
+        scene = prepared.scene
+        for k, o, vh, vo, mask in prepared.blocks:
             hk, ok = posed.models[k], posed.models[o]
             r = (hk.vertices[b, vh] - ok.vertices[b, vo]) * mask[..., None]  # (B, n, 3)
             J: Optional[torch.Tensor] = None
             if jacobian:
-                names, models = self._scene.names, self._scene.models
+                names, models = scene.names, scene.models
                 Jh = models[k].jacobian(None, vh, fk=(hk.G, hk.twists)) * mask[..., None, None]
                 Jo = models[o].jacobian(None, vo, fk=(ok.G, ok.twists)) * mask[..., None, None]
-                J = (scatter_columns(Jh.reshape(B, -1, Jh.shape[-1]), self._scene.slices[names[k]], D)
-                     - scatter_columns(Jo.reshape(B, -1, Jo.shape[-1]), self._scene.slices[names[o]], D))
+                J = (scatter_columns(Jh.reshape(B, -1, Jh.shape[-1]), scene.slices[names[k]], D)
+                     - scatter_columns(Jo.reshape(B, -1, Jo.shape[-1]), scene.slices[names[o]], D))
             parts.append(Residuals(r.reshape(B, -1), J, 3, mask, torch.full_like(vh, k)))
-        return stack_rows(parts, theta, jacobian, 3, len(self._scene.models))
+        return stack_rows(parts, theta, jacobian, 3, len(scene.models))

@@ -7,14 +7,27 @@ gamma_r = 0.02 C_all (C_all: the problem's number of data correspondences;
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, prepared
+from torchhand.core.check import check_number
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, counts
 
-__all__ = ["Regularization", "DEFAULT_WEIGHT"]
+__all__ = ["Regularization", "RegularizationPrepared", "DEFAULT_WEIGHT"]
 
 #: gamma_r per data correspondence (thesis: 0.02)
 DEFAULT_WEIGHT = 0.02
+
+
+@dataclass(frozen=True, eq=False)
+class RegularizationPrepared(Prepared):
+    """Prepared data of :class:`Regularization`: ``scale`` (D,) the factor of each DoF
+    (1 for revolute joints, sqrt(root_weight) for the global DoF), ``previous`` (B, D)
+    the reference pose."""
+
+    scale: torch.Tensor
+    previous: torch.Tensor
 
 
 class Regularization(EnergyTerm):
@@ -25,19 +38,17 @@ class Regularization(EnergyTerm):
     prior = True
 
     def __init__(self, root_weight: float = 0.0):
-        if not root_weight >= 0:
-            raise ValueError(f"root_weight must be >= 0, got {root_weight!r}")
+        check_number(root_weight, "root_weight", low=0, inclusive=True)
         self.root_weight = float(root_weight)
 
-    def prepare(self, state: TrackState) -> Prepared:
+    def prepare(self, state: TrackState) -> RegularizationPrepared:
         lo, hi = state.scene.lower, state.scene.upper
         joint = torch.isfinite(lo) & torch.isfinite(hi)
         # (D,): revolute joints 1, the global DoF sqrt(root_weight)
-        self.scale = torch.where(joint, torch.ones_like(lo), torch.full_like(lo, self.root_weight ** 0.5)).to(state.theta)
-        self.previous = state.previous
-        return prepared(state.theta.shape[0], device=state.theta.device)
+        scale = torch.where(joint, torch.ones_like(lo), torch.full_like(lo, self.root_weight ** 0.5)).to(state.theta)
+        return RegularizationPrepared(counts(state.theta.shape[0], device=state.theta.device), scale, state.previous)
 
-    def residuals(self, theta, posed, jacobian=True):
-        r = self.scale * (theta - self.previous)
-        J = torch.diag_embed(self.scale.expand_as(theta)) if jacobian else None
+    def residuals(self, theta, posed, prepared: RegularizationPrepared, jacobian=True):
+        r = prepared.scale * (theta - prepared.previous)
+        J = torch.diag_embed(prepared.scale.expand_as(theta)) if jacobian else None
         return Residuals(r, J)

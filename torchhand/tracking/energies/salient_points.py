@@ -22,6 +22,7 @@ detection and a fingertip are paired when they are closer than 2 lambda = 24 mm
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Dict, Optional
 
 import numpy as np
@@ -30,9 +31,22 @@ from scipy.spatial import cKDTree
 
 from torchhand.salient.association import associate
 from torchhand.model.fingertips import fingertip_faces
-from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, no_residuals, prepared
+from torchhand.model.scene import Scene
+from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState, counts, no_residuals
 
-__all__ = ["Salient"]
+__all__ = ["Salient", "SalientPairs"]
+
+
+@dataclass(frozen=True, eq=False)
+class SalientPairs(Prepared):
+    """Prepared data of :class:`Salient`: ``scene``; ``ids`` (B, n) int64 scene vertex
+    ids of the fingertip vertices paired with detections, ``X`` (B, n, 3) their
+    targets (world, mm), ``mask`` (B, n) 1 for real rows."""
+
+    scene: Scene
+    ids: torch.Tensor
+    X: torch.Tensor
+    mask: torch.Tensor
 
 
 class Salient(EnergyTerm):
@@ -122,7 +136,7 @@ class Salient(EnergyTerm):
         return out
 
     # ------------------------------------------------------------------- prepare
-    def prepare(self, state: TrackState) -> Prepared:
+    def prepare(self, state: TrackState) -> SalientPairs:
         scene, B = state.scene, state.theta.shape[0]
         dev, dt = state.theta.device, state.theta.dtype
         if self._tips_scene is not scene:
@@ -168,28 +182,28 @@ class Salient(EnergyTerm):
             else:
                 rows.append(None)
         n = int(count.max())
-        self.ids = torch.zeros(B, n, dtype=torch.int64, device=dev)
-        self.X = torch.zeros(B, n, 3, dtype=dt, device=dev)
-        self.mask = torch.zeros(B, n, dtype=dt, device=dev)
+        ids = torch.zeros(B, n, dtype=torch.int64, device=dev)
+        X = torch.zeros(B, n, 3, dtype=dt, device=dev)
+        mask = torch.zeros(B, n, dtype=dt, device=dev)
         for b, r in enumerate(rows):
             if r is not None:
                 k = len(r[0])
-                self.ids[b, :k], self.X[b, :k], self.mask[b, :k] = r[0], r[1], 1.0
-        self._scene = scene
-        return prepared(B, correspondences=count, assigned=assigned)
+                ids[b, :k], X[b, :k], mask[b, :k] = r[0], r[1], 1.0
+        return SalientPairs(counts(B, correspondences=count, assigned=assigned), scene, ids, X, mask)
 
-    def residuals(self, theta, posed, jacobian=True):
+    def residuals(self, theta, posed, prepared: SalientPairs, jacobian=True):
         B, D = theta.shape
-        n = self.ids.shape[1]
+        p = prepared
+        n = p.ids.shape[1]
         if n == 0:
             return no_residuals(theta, jacobian, 3)
         b = torch.arange(B, device=theta.device)[:, None]
-        r = (posed.vertices[b, self.ids] - self.X) * self.mask[..., None]  # (B, n, 3)
+        r = (posed.vertices[b, p.ids] - p.X) * p.mask[..., None]  # (B, n, 3)
         J = None
         if jacobian:
-            J = self._scene.vertex_jacobian(posed, self.ids) * self.mask[..., None, None]
+            J = p.scene.vertex_jacobian(posed, p.ids) * p.mask[..., None, None]
             J = J.reshape(B, 3 * n, D)
-        return Residuals(r.reshape(B, 3 * n), J, 3, self.mask)
+        return Residuals(r.reshape(B, 3 * n), J, 3, p.mask)
 
 
 def simulated_detector(lookup: Callable[[torch.Tensor], Optional[np.ndarray]]):

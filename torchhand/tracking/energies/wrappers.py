@@ -15,6 +15,7 @@ goes inside ``Weighted``::
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
 import torch
@@ -23,7 +24,27 @@ from torchhand.model.scene import SceneOutput
 from torchhand.optim.robust_loss import RobustLoss
 from torchhand.tracking.energies.base import EnergyTerm, Prepared, Residuals, TrackState
 
-__all__ = ["Weighted", "Robust"]
+__all__ = ["Weighted", "Robust", "WeightedPrepared", "RobustPrepared"]
+
+
+@dataclass(frozen=True, eq=False)
+class WeightedPrepared(Prepared):
+    """Prepared data of :class:`Weighted`: ``inner`` the wrapped term's (with the
+    weight folded in where the term could take it); ``sqrt_w`` the factor of r and J,
+    a float, (B, 1) per problem, or None when ``inner`` holds the weight already."""
+
+    inner: Prepared
+    sqrt_w: object
+
+
+@dataclass(frozen=True, eq=False)
+class RobustPrepared(Prepared):
+    """Prepared data of :class:`Robust`: ``inner`` the wrapped term's (with the row
+    weights folded in where the term could take them); ``sqrt_w`` (B, n) the factor of
+    each row, fixed for the outer iteration, or None when ``inner`` holds it already."""
+
+    inner: Prepared
+    sqrt_w: Optional[torch.Tensor]
 
 
 class Weighted(EnergyTerm):
@@ -45,32 +66,33 @@ class Weighted(EnergyTerm):
             raise ValueError(f"weight must be a number >= 0, got {weight!r}")
         self.term, self.weight = term, float(weight)
         self.per_correspondence, self.min_weight = bool(per_correspondence), float(min_weight)
-        self.name, self.needs = term.name, term.needs
+        self.name, self.needs, self.detections = term.name, term.needs, term.detections
         self.prior = term.prior or self.per_correspondence
-        self._sqrt_w: Optional[torch.Tensor] = None  # (B, 1) with per_correspondence
-        self._folded = False
 
-    def prepare(self, state: TrackState) -> Prepared:
-        found = self.term.prepare(state)
+    def prepare(self, state: TrackState) -> WeightedPrepared:
+        inner = self.term.prepare(state)
         if not self.per_correspondence:
-            return found._replace(unmatched=self.weight * found.unmatched)
+            return WeightedPrepared(inner.counts._replace(unmatched=self.weight * inner.counts.unmatched), inner,
+                                    self.weight ** 0.5)
         c = state.correspondences
         if c is None:
             raise ValueError(f"{self!r} scales with C_all, but state.correspondences is not set; prepare the data "
                              "terms first (Tracker does)")
         w = (self.weight * c.to(state.theta)).clamp_min(self.min_weight)[:, None]  # (B, 1)
-        self._sqrt_w = w.sqrt()
-        self._folded = self.term.fold_weight(w)
-        return found._replace(unmatched=w[:, 0].double() * found.unmatched)
+        found = inner.counts._replace(unmatched=w[:, 0].double() * inner.counts.unmatched)
+        folded = self.term.fold_weight(inner, w)
+        if folded is not None:
+            return WeightedPrepared(found, folded, None)
+        return WeightedPrepared(found, inner, w.sqrt())
 
-    def residuals(self, theta: torch.Tensor, posed: SceneOutput, jacobian: bool = True) -> Residuals:
-        res = self.term.residuals(theta, posed, jacobian)
-        if self._folded:
+    def residuals(self, theta: torch.Tensor, posed: SceneOutput, prepared: WeightedPrepared,
+                  jacobian: bool = True) -> Residuals:
+        res = self.term.residuals(theta, posed, prepared.inner, jacobian)
+        sw = prepared.sqrt_w
+        if sw is None:
             return res
-        if self.per_correspondence:
-            sw = self._sqrt_w
+        if isinstance(sw, torch.Tensor):  # (B, 1) per problem
             return res._replace(r=res.r * sw, J=None if res.J is None else res.J * sw[..., None])
-        sw = self.weight ** 0.5
         return res._replace(r=res.r * sw, J=None if res.J is None else res.J * sw)
 
     def __repr__(self) -> str:
@@ -92,26 +114,27 @@ class Robust(EnergyTerm):
         if not isinstance(loss, RobustLoss):
             raise TypeError(f"loss must be a torchhand.optim.robust_loss.RobustLoss, got {type(loss).__name__}")
         self.term, self.loss = term, loss
-        self.name, self.prior, self.needs = term.name, term.prior, term.needs
-        self._sqrt_w: Optional[torch.Tensor] = None  # (B, n) per row, fixed for the outer iteration
-        self._folded = False
+        self.name, self.prior, self.needs, self.detections = term.name, term.prior, term.needs, term.detections
 
-    def prepare(self, state: TrackState) -> Prepared:
-        found = self.term.prepare(state)
-        res = self.term.residuals(state.theta, state.posed, jacobian=False)
+    def prepare(self, state: TrackState) -> RobustPrepared:
+        inner = self.term.prepare(state)
+        res = self.term.residuals(state.theta, state.posed, inner, jacobian=False)
         B = res.r.shape[0]
         norm = res.r.view(B, -1, res.dim).norm(dim=-1)  # (B, n) row norms
-        self._sqrt_w = self.loss.sqrt_weights(norm, res.mask, res.group, res.groups)
+        sqrt_w = self.loss.sqrt_weights(norm, res.mask, res.group, res.groups)
         # a term whose residuals are linear in its stored correspondences takes the
         # weights into them once, instead of scaling r and J at every evaluation
-        self._folded = self.term.fold_row_weights(self._sqrt_w)
-        return found
+        folded = self.term.fold_row_weights(inner, sqrt_w)
+        if folded is not None:
+            return RobustPrepared(inner.counts, folded, None)
+        return RobustPrepared(inner.counts, inner, sqrt_w)
 
-    def residuals(self, theta: torch.Tensor, posed: SceneOutput, jacobian: bool = True) -> Residuals:
-        res = self.term.residuals(theta, posed, jacobian)
-        if self._folded:
+    def residuals(self, theta: torch.Tensor, posed: SceneOutput, prepared: RobustPrepared,
+                  jacobian: bool = True) -> Residuals:
+        res = self.term.residuals(theta, posed, prepared.inner, jacobian)
+        if prepared.sqrt_w is None:
             return res
-        sw = self._sqrt_w.repeat_interleave(res.dim, dim=1) if res.dim > 1 else self._sqrt_w  # (B, m)
+        sw = prepared.sqrt_w.repeat_interleave(res.dim, dim=1) if res.dim > 1 else prepared.sqrt_w  # (B, m)
         return res._replace(r=res.r * sw, J=None if res.J is None else res.J * sw[..., None])
 
     def __repr__(self) -> str:
