@@ -13,7 +13,6 @@ import torch
 from torchhand.geometry.image_ops import max_filter_3x3
 from torchhand.geometry.camera import (
     Camera,
-    CameraRig,
     PluckerRays,
     depth_to_normals,
     depth_to_points,
@@ -25,6 +24,7 @@ from torchhand.geometry.camera import (
     transform_points,
     unproject_pixels,
 )
+from torchhand.geometry.camera_rig import CameraRig
 
 
 def _rotation(axis: list[float], angle: float, dtype=torch.float64) -> torch.Tensor:

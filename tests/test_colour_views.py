@@ -13,7 +13,7 @@ from torchhand.app.cli import main
 from torchhand.data.ballan_protocol import BallanProtocol, protocol, simulate_detections, structural_noise
 from torchhand.data.layout import camera_dir, frame_name, read_rgb, read_sequence_info
 from torchhand.data.synth import demo_motion, with_camera_ring, write_synthetic_sequence
-from torchhand.geometry.camera import camera_ring, look_at
+from torchhand.geometry.camera_rig import camera_ring, look_at
 from torchhand.model.fingertips import fingertip_faces, nail_faces, nail_vertices
 
 

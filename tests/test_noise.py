@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from torchhand.data.noise import NOISE_MODELS, KinectNoise, _incidence_cos, apply_kinect_noise, noise_model
+from torchhand.data.noise import _incidence_cos, apply_kinect_noise
+from torchhand.data.noise_params import NOISE_MODELS, KinectNoise, noise_model
 
 H, W = 480, 640
 F = 525.0

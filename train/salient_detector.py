@@ -58,8 +58,8 @@ from tqdm import tqdm
 
 from torchhand.salient.training_data import (SalientFrames, concat_frames, load_frames, render_salient_frames,
                                              save_frames, visible_mm2)
-from torchhand.salient.detector import (DEFAULT_MAX_DETECTIONS, DEFAULT_THRESHOLD, STRIDE, SalientConfig, SalientNet,
-                                        detect_peaks, export_onnx)
+from torchhand.salient.detector import SalientConfig, SalientNet, export_onnx
+from torchhand.salient.hough import DEFAULT_MAX_DETECTIONS, DEFAULT_THRESHOLD, STRIDE, detect_peaks
 from torchhand.salient.precision_recall import average_precision
 
 REPO = Path(__file__).resolve().parents[1]

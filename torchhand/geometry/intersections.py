@@ -302,23 +302,10 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
     if F < 2 or B == 0:
         return CollisionPairs(empty, empty, empty)
     mesh = mesh.to(dev)
-    faces, leaf_size, sizes = mesh.faces, mesh.leaf_size, mesh.level_sizes
-    slot_face = mesh.slot_face
-    slots = slot_face.shape[0]
+    leaf_size, sizes = mesh.leaf_size, mesh.level_sizes
     n_leaves = sizes[-1]
     with torch.no_grad():
-        # refit: the boxes of the faces in the static slot order, coordinates first
-        # (3, B, slots); empty slots and degenerate faces get empty boxes
-        corners = faces.index_select(0, slot_face.clamp_min(0)).T.reshape(-1)  # (3 * slots,) corner-major
-        base = (torch.arange(B, device=dev) * vertices.shape[1])[:, None]
-        rows = vertices.detach().reshape(-1, 3).index_select(0, (base + corners).reshape(-1))  # row gathers are fast
-        xyz = rows.view(B, 3, slots, 3).permute(3, 0, 1, 2)  # (xyz, B, corner, slot)
-        slo = torch.minimum(torch.minimum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
-        shi = torch.maximum(torch.maximum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
-        empty_slot = mesh.slot_empty
-        slo = slo.masked_fill(empty_slot, float("inf"))
-        shi = shi.masked_fill(empty_slot, float("-inf"))
-
+        slo, shi = _slot_boxes(vertices, mesh)
         # box levels of the tree, root first, flattened over the batch: node k of
         # element b on a level of n nodes is row b * n + k of the level's box rows
         # (single-index gathers are much faster than (b, k) indexing)
@@ -327,65 +314,99 @@ def detect_collisions(vertices: torch.Tensor, mesh: CollisionMesh) -> CollisionP
         boxes = [_box_rows(lo.reshape(3, -1), hi.reshape(3, -1))
                  for lo, hi in zip(_levels(lo_leaf, torch.minimum, float("inf"), dim=2),
                                    _levels(hi_leaf, torch.maximum, float("-inf"), dim=2))]
+        i, j = _overlapping_leaves(mesh, boxes, B)
+        return _intersecting_faces(vertices, mesh, i, j, slo, shi)
 
-        # simultaneous traversal of the tree against itself, one level at a time,
-        # from the deepest level of at most 64 nodes (all its pairs are tested);
-        # part bit sets prune first (static, cheap), boxes second
-        start = max(k for k, n in enumerate(sizes) if n <= 64)
-        n0 = sizes[start]
-        ti, tj = torch.triu_indices(n0, n0, device=dev)
-        off = (torch.arange(B, device=dev) * n0)[:, None]
-        i, j = (off + ti).reshape(-1), (off + tj).reshape(-1)
-        ci = torch.tensor([0, 0, 1, 1], device=dev)
-        cj = torch.tensor([0, 1, 0, 1], device=dev)
-        for level in range(start, len(sizes)):
-            n = sizes[level]
-            allow, bits = mesh.node_allowed[level], mesh.node_bits[level]
-            keep = _bits_meet(allow.index_select(0, i % n), bits.index_select(0, j % n))
-            keep &= _boxes_overlap(boxes[level], i, j)
-            sel = torch.nonzero(keep)[:, 0]
-            i, j = i.index_select(0, sel), j.index_select(0, sel)
-            if level + 1 < len(sizes):  # node (b, k) has children (b, 2k), (b, 2k + 1) below
-                m = sizes[level + 1]
-                bi = torch.div(i, n, rounding_mode="floor")
-                ki = (2 * (i - bi * n))[:, None] + ci
-                kj = (2 * (j - bi * n))[:, None] + cj
-                # self pairs (i == j) keep each child pair once; the last node of an
-                # odd level has one child
-                ok = (ki <= kj) & (kj < m)
-                sel = torch.nonzero(ok.reshape(-1))[:, 0]
-                base = (bi * m)[:, None].expand(-1, 4).reshape(-1).index_select(0, sel)
-                i = base + ki.reshape(-1).index_select(0, sel)
-                j = base + kj.reshape(-1).index_select(0, sel)
 
-        # leaf pairs -> pairs of slots (flat columns b * slots + s)
-        a = torch.arange(leaf_size, device=dev)
-        si = (i[:, None, None] * leaf_size + a[None, :, None]).expand(-1, leaf_size, leaf_size).reshape(-1)
-        sj = (j[:, None, None] * leaf_size + a[None, None, :]).expand(-1, leaf_size, leaf_size).reshape(-1)
-        slot_boxes = _box_rows(slo.reshape(3, -1), shi.reshape(3, -1))
-        keep = (si < sj) & _boxes_overlap(slot_boxes, si, sj)
+def _slot_boxes(vertices: torch.Tensor, mesh: CollisionMesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """The refit of :func:`detect_collisions`: (3, B, slots) lower and upper corners of
+    the boxes of the faces in the static slot order, coordinates first; empty slots (and
+    degenerate faces) get empty boxes (+inf, -inf)."""
+    B, slot_face = vertices.shape[0], mesh.slot_face
+    slots = slot_face.shape[0]
+    corners = mesh.faces.index_select(0, slot_face.clamp_min(0)).T.reshape(-1)  # (3 * slots,) corner-major
+    base = (torch.arange(B, device=vertices.device) * vertices.shape[1])[:, None]
+    rows = vertices.detach().reshape(-1, 3).index_select(0, (base + corners).reshape(-1))  # row gathers are fast
+    xyz = rows.view(B, 3, slots, 3).permute(3, 0, 1, 2)  # (xyz, B, corner, slot)
+    slo = torch.minimum(torch.minimum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
+    shi = torch.maximum(torch.maximum(xyz[:, :, 0], xyz[:, :, 1]), xyz[:, :, 2])
+    empty_slot = mesh.slot_empty
+    slo = slo.masked_fill(empty_slot, float("inf"))
+    shi = shi.masked_fill(empty_slot, float("-inf"))
+    return slo, shi
+
+
+def _overlapping_leaves(mesh: CollisionMesh, boxes: list, B: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Simultaneous traversal of the tree against itself, one level at a time, from the
+    deepest level of at most 64 nodes (all its pairs are tested); part bit sets prune
+    first (static, cheap), boxes second. ``boxes``: the box rows of each level, root
+    first. Returns the pairs (i, j) of leaves (flat rows b * n_leaves + k, i <= j)
+    whose boxes overlap."""
+    sizes, dev = mesh.level_sizes, mesh.faces.device
+    start = max(k for k, n in enumerate(sizes) if n <= 64)
+    n0 = sizes[start]
+    ti, tj = torch.triu_indices(n0, n0, device=dev)
+    off = (torch.arange(B, device=dev) * n0)[:, None]
+    i, j = (off + ti).reshape(-1), (off + tj).reshape(-1)
+    ci = torch.tensor([0, 0, 1, 1], device=dev)
+    cj = torch.tensor([0, 1, 0, 1], device=dev)
+    for level in range(start, len(sizes)):
+        n = sizes[level]
+        allow, bits = mesh.node_allowed[level], mesh.node_bits[level]
+        keep = _bits_meet(allow.index_select(0, i % n), bits.index_select(0, j % n))
+        keep &= _boxes_overlap(boxes[level], i, j)
         sel = torch.nonzero(keep)[:, 0]
-        si, sj = si.index_select(0, sel), sj.index_select(0, sel)
-        b = torch.div(si, slots, rounding_mode="floor")
-        fs, ft = slot_face.index_select(0, si - b * slots), slot_face.index_select(0, sj - b * slots)
-        part = mesh.face_part
-        pa, pb = part.index_select(0, fs), part.index_select(0, ft)
-        keep = ~mesh.excluded.reshape(-1).index_select(0, pa * mesh.num_parts + pb)
-        fm = mesh.face_model
-        va, vb = faces.index_select(0, fs), faces.index_select(0, ft)
-        share = (va[:, :, None] == vb[:, None, :]).any(-1).any(-1) & (fm.index_select(0, fs) == fm.index_select(0, ft))
-        sel = torch.nonzero(keep & ~share)[:, 0]
-        b, fs, ft = b.index_select(0, sel), fs.index_select(0, sel), ft.index_select(0, sel)
-        V = vertices.detach().reshape(-1, 3)
-        base = (b * vertices.shape[1])[:, None]
-        tri_s = V.index_select(0, (faces.index_select(0, fs) + base).reshape(-1)).view(-1, 3, 3)
-        tri_t = V.index_select(0, (faces.index_select(0, ft) + base).reshape(-1)).view(-1, 3, 3)
-        hit = triangles_intersect(tri_s, tri_t)
-        b, fs, ft = b[hit], fs[hit], ft[hit]
-        s, t = torch.minimum(fs, ft), torch.maximum(fs, ft)
-        key = (b * F + s) * F + t
-        key, perm = torch.sort(key)
-        return CollisionPairs(b[perm], s[perm], t[perm])
+        i, j = i.index_select(0, sel), j.index_select(0, sel)
+        if level + 1 < len(sizes):  # node (b, k) has children (b, 2k), (b, 2k + 1) below
+            m = sizes[level + 1]
+            bi = torch.div(i, n, rounding_mode="floor")
+            ki = (2 * (i - bi * n))[:, None] + ci
+            kj = (2 * (j - bi * n))[:, None] + cj
+            # self pairs (i == j) keep each child pair once; the last node of an
+            # odd level has one child
+            ok = (ki <= kj) & (kj < m)
+            sel = torch.nonzero(ok.reshape(-1))[:, 0]
+            base = (bi * m)[:, None].expand(-1, 4).reshape(-1).index_select(0, sel)
+            i = base + ki.reshape(-1).index_select(0, sel)
+            j = base + kj.reshape(-1).index_select(0, sel)
+    return i, j
+
+
+def _intersecting_faces(vertices: torch.Tensor, mesh: CollisionMesh, i: torch.Tensor, j: torch.Tensor,
+                        slo: torch.Tensor, shi: torch.Tensor) -> CollisionPairs:
+    """The face pairs of the leaf pairs (i, j) whose boxes (``slo``, ``shi`` of
+    :func:`_slot_boxes`) overlap, less the excluded part pairs and the faces sharing a
+    vertex, whose triangles intersect; sorted by (b, s, t)."""
+    faces, leaf_size, slot_face = mesh.faces, mesh.leaf_size, mesh.slot_face
+    slots, F, dev = slot_face.shape[0], faces.shape[0], vertices.device
+    # leaf pairs -> pairs of slots (flat columns b * slots + s)
+    a = torch.arange(leaf_size, device=dev)
+    si = (i[:, None, None] * leaf_size + a[None, :, None]).expand(-1, leaf_size, leaf_size).reshape(-1)
+    sj = (j[:, None, None] * leaf_size + a[None, None, :]).expand(-1, leaf_size, leaf_size).reshape(-1)
+    slot_boxes = _box_rows(slo.reshape(3, -1), shi.reshape(3, -1))
+    keep = (si < sj) & _boxes_overlap(slot_boxes, si, sj)
+    sel = torch.nonzero(keep)[:, 0]
+    si, sj = si.index_select(0, sel), sj.index_select(0, sel)
+    b = torch.div(si, slots, rounding_mode="floor")
+    fs, ft = slot_face.index_select(0, si - b * slots), slot_face.index_select(0, sj - b * slots)
+    part = mesh.face_part
+    pa, pb = part.index_select(0, fs), part.index_select(0, ft)
+    keep = ~mesh.excluded.reshape(-1).index_select(0, pa * mesh.num_parts + pb)
+    fm = mesh.face_model
+    va, vb = faces.index_select(0, fs), faces.index_select(0, ft)
+    share = (va[:, :, None] == vb[:, None, :]).any(-1).any(-1) & (fm.index_select(0, fs) == fm.index_select(0, ft))
+    sel = torch.nonzero(keep & ~share)[:, 0]
+    b, fs, ft = b.index_select(0, sel), fs.index_select(0, sel), ft.index_select(0, sel)
+    V = vertices.detach().reshape(-1, 3)
+    base = (b * vertices.shape[1])[:, None]
+    tri_s = V.index_select(0, (faces.index_select(0, fs) + base).reshape(-1)).view(-1, 3, 3)
+    tri_t = V.index_select(0, (faces.index_select(0, ft) + base).reshape(-1)).view(-1, 3, 3)
+    hit = triangles_intersect(tri_s, tri_t)
+    b, fs, ft = b[hit], fs[hit], ft[hit]
+    s, t = torch.minimum(fs, ft), torch.maximum(fs, ft)
+    key = (b * F + s) * F + t
+    key, perm = torch.sort(key)
+    return CollisionPairs(b[perm], s[perm], t[perm])
 
 
 def triangles_intersect(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:

@@ -85,10 +85,10 @@ class PointIndex:
         self.num_problems, self.num_groups = int(num_problems), int(num_groups)
         self.key = problem.long() * self.num_groups + group.long()  # (N,) the grid group of each point
         if self.backend == "warp":
-            from torchhand.geometry import warp_kernels
+            from torchhand.geometry import warp_neighbors
 
             # cells of a quarter of the radius: the queries grow their radius from there
-            self._grid = warp_kernels.build_grid(self.points, self.key, self.radius / 4)
+            self._grid = warp_neighbors.build_grid(self.points, self.key, self.radius / 4)
             self._grid.radius = self.radius
         elif self.backend == "cpu":
             from scipy.spatial import cKDTree
@@ -120,9 +120,9 @@ class PointIndex:
         key = torch.where(groups >= 0, problems[:, None].long() * self.num_groups + groups.long(),
                           torch.full_like(groups, -1, dtype=torch.int64))
         if self.backend == "warp":
-            from torchhand.geometry import warp_kernels
+            from torchhand.geometry import warp_neighbors
 
-            return warp_kernels.nearest_in_grid(self._grid, queries, key, radius)
+            return warp_neighbors.nearest_in_grid(self._grid, queries, key, radius)
         if self.backend == "cpu":
             return self._nearest_kdtree(queries, key, radius)
         return _nearest_brute_force(self.points, self.key, queries, key, radius)
@@ -199,7 +199,7 @@ def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: tor
     if images is None and I != B:
         raise ValueError(f"marks must hold one image per query row ({B}), got {I}")
     if backend == "warp":
-        from torchhand.geometry import warp_kernels
+        from torchhand.geometry import warp_neighbors
 
         G = max(int(num_groups), 1)
         if boxes is None:
@@ -207,7 +207,7 @@ def nearest_marked_pixel(marks: torch.Tensor, queries: torch.Tensor, groups: tor
         elif boxes.shape != (I * G, 4):
             raise ValueError(f"boxes must be marked_boxes(marks, {num_groups}), shape ({I * G}, 4), "
                              f"got {tuple(boxes.shape)}")
-        return warp_kernels.nearest_marked_pixel(marks, boxes, queries, groups, radius, images)
+        return warp_neighbors.nearest_marked_pixel(marks, boxes, queries, groups, radius, images)
     if images is not None:
         marks = marks[images]
     if backend == "cpu":

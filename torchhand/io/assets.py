@@ -32,11 +32,11 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from torchhand.io.thesis import FormatError, ThesisModelFiles
+from torchhand.io.thesis import BoneLimits, FormatError, ThesisModelFiles
 
 __all__ = [
     "ModelAssets",
@@ -206,7 +206,6 @@ def assets_from_thesis(
     if unknown:
         raise FormatError(f"{path}.SKIN: bones {unknown} are not in the SKEL file")
     order = _topological_order(parent_of, skin_names, path + ".SKEL")
-    J = len(order)
     index = {b: j for j, b in enumerate(order)}
     parents = np.array([index.get(parent_of[b], -1) for b in order], dtype=np.int64)
     lengths = np.array([length_of[b] for b in order])
@@ -220,34 +219,8 @@ def assets_from_thesis(
     else:
         rest = _rest_from_skeleton(order, parents, lengths, path)
 
-    # Skinning weights: reorder columns to the topological order, renormalise, sparsify.
-    W = files.skin.weights[:, [skin_names.index(b) for b in order]]
-    W = W / W.sum(1, keepdims=True)
-    K = int((W > 0).sum(1).max())
-    skin_index = np.argsort(-W, axis=1, kind="stable")[:, :K]
-    skin_weight = np.take_along_axis(W, skin_index, 1)
-    skin_index = np.where(skin_weight > 0, skin_index, 0)
-
-    # Degrees of freedom from LIMITS (names may carry trailing blanks; single-bone
-    # objects name their one bone differently in LIMITS, e.g. "Ball" vs "Bone001").
-    lim = {k.strip(): v for k, v in files.limits.items()}
-    if J == 1 and len(lim) == 1:
-        lim = {order[0]: next(iter(lim.values()))}
-    slot_axes = np.zeros((J, 3, 3))
-    slot_used = np.zeros((J, 3), bool)
-    slot_limits = np.zeros((J, 3, 2))
-    for j, b in enumerate(order):
-        if b not in lim:
-            raise FormatError(f"{path}.LIMITS: no entry for bone {b!r} (have {sorted(lim)})")
-        L = lim[b]
-        if j == 0:
-            continue  # root: 6 free DoF; its LIMITS axes are unused placeholders
-        if L.translation:
-            raise FormatError(f"{path}.LIMITS: bone {b!r} translates; only the root may translate")
-        used = np.array(L.rotation)
-        axes = L.axes / np.linalg.norm(L.axes, axis=1, keepdims=True).clip(1e-12)
-        slot_axes[j], slot_used[j] = np.where(used[:, None], axes, 0.0), used
-        slot_limits[j] = np.where(used[:, None], np.deg2rad(L.limits_deg), 0.0)
+    skin_index, skin_weight = _sparse_skinning(files.skin.weights[:, [skin_names.index(b) for b in order]])
+    slot_axes, slot_used, slot_limits = _slots_from_limits(files.limits, order, path)
 
     kind = "hand" if files.voi is not None and "Hand" in files.name else "object"
     side = None
@@ -273,6 +246,46 @@ def assets_from_thesis(
         keypoint_rest=np.asarray(kp_rest).reshape(-1, 3), groups=groups, zones=zones, source=source,
         symmetry=THESIS_SYMMETRY.get(files.name),
     )
+
+
+def _sparse_skinning(W: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Skinning weights (V, J), columns in the topological order, renormalised to sum
+    to 1 and sparsified: (V, K) bone ids (0 where unused) and (V, K) weights, K the
+    largest number of bones of a vertex, the heaviest first."""
+    W = W / W.sum(1, keepdims=True)
+    K = int((W > 0).sum(1).max())
+    skin_index = np.argsort(-W, axis=1, kind="stable")[:, :K]
+    skin_weight = np.take_along_axis(W, skin_index, 1)
+    skin_index = np.where(skin_weight > 0, skin_index, 0)
+    return skin_index, skin_weight
+
+
+def _slots_from_limits(limits: Dict[str, BoneLimits], order: List[str], path: str
+                       ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Degrees of freedom from LIMITS: (J, 3, 3) unit axes, (J, 3) used slots and
+    (J, 3, 2) limits (rad) of each bone of ``order``; the root's stay empty (its 6
+    global DoF). Names may carry trailing blanks; single-bone objects name their one
+    bone differently in LIMITS, e.g. "Ball" vs "Bone001"."""
+    J = len(order)
+    lim = {k.strip(): v for k, v in limits.items()}
+    if J == 1 and len(lim) == 1:
+        lim = {order[0]: next(iter(lim.values()))}
+    slot_axes = np.zeros((J, 3, 3))
+    slot_used = np.zeros((J, 3), bool)
+    slot_limits = np.zeros((J, 3, 2))
+    for j, b in enumerate(order):
+        if b not in lim:
+            raise FormatError(f"{path}.LIMITS: no entry for bone {b!r} (have {sorted(lim)})")
+        L = lim[b]
+        if j == 0:
+            continue  # root: 6 free DoF; its LIMITS axes are unused placeholders
+        if L.translation:
+            raise FormatError(f"{path}.LIMITS: bone {b!r} translates; only the root may translate")
+        used = np.array(L.rotation)
+        axes = L.axes / np.linalg.norm(L.axes, axis=1, keepdims=True).clip(1e-12)
+        slot_axes[j], slot_used[j] = np.where(used[:, None], axes, 0.0), used
+        slot_limits[j] = np.where(used[:, None], np.deg2rad(L.limits_deg), 0.0)
+    return slot_axes, slot_used, slot_limits
 
 
 def _finger_bones(order: List[str]) -> Dict[str, List[int]]:

@@ -74,7 +74,6 @@ def motion_to_theta(
         (N, D) theta in the model's dtype and device, not clamped to the limits.
     """
     M = motion if isinstance(motion, torch.Tensor) else motion_tensor(model, motion)
-    N, J = M.shape[:2]
     rest = model.rest_transforms
     if motion_rest is not None:
         # Fit the motion relative to its own rest pose, Mk M0^-1 (what the viewer
@@ -83,16 +82,32 @@ def motion_to_theta(
             model, {b: np.asarray(m)[None] for b, m in motion_rest.items()})[0]
         M = M @ torch.linalg.inv(M0) @ rest
     G_target = M @ torch.linalg.inv(rest)  # (N, J, 4, 4)
+    theta = _fit_bone_frames(model, M, _start_pose(model, M, G_target), iterations)
+    if refine_vertices <= 0:
+        return _wrap_angles(theta)
+    return _wrap_angles(_fit_vertices(model, G_target, theta, refine_vertices, iterations))
 
-    # Root initialisation is exact: G_root = [R, c + t - R c].
-    c = rest[0, :3, 3]
+
+def _start_pose(model: ArticulatedModel, M: torch.Tensor, G_target: torch.Tensor) -> torch.Tensor:
+    """(N, D) start of :func:`motion_to_theta`'s fit: the root exact,
+    ``G_root = [R, c + t - R c]``, the joints from :func:`_joint_angles_per_bone`.
+    ``M``: (N, J, 4, 4) the bone frames to fit; ``G_target``: their ``M T_j(0)^-1``."""
+    N = M.shape[0]
+    c = model.rest_transforms[0, :3, 3]
     R = G_target[:, 0, :3, :3]
     t = G_target[:, 0, :3, 3] - c + (R @ c)
     theta0 = model.zero_pose(N)
     theta0[:, :3] = t
     theta0[:, 3:6] = so3_log(R)
     theta0[:, ROOT_DOFS:] = _joint_angles_per_bone(model, M)
+    return theta0
 
+
+def _fit_bone_frames(model: ArticulatedModel, M: torch.Tensor, theta0: torch.Tensor, iterations: int) -> torch.Tensor:
+    """Stage 1 of :func:`motion_to_theta`: (N, D) theta whose bone frames match ``M``
+    (N, J, 4, 4), four points per bone (its origin and axis points), LM from ``theta0``."""
+    N, J = M.shape[:2]
+    rest = model.rest_transforms
     # Four points per bone: origin and axis points, in the rigging pose.
     axes = torch.cat([rest.new_zeros(1, 3), _FRAME_SCALE * torch.eye(3, dtype=rest.dtype, device=rest.device)])
     local = torch.cat([axes, axes.new_ones(4, 1)], 1)  # (4, 4) homogeneous rows
@@ -112,12 +127,18 @@ def motion_to_theta(
         Jac = lbs_jacobian(fk.G, fk.twists, pts_rest, bone_of, ones, tree.dof_bone, tree.descendants)
         return r, Jac.reshape(N, -1, model.num_dofs)
 
-    theta = levenberg_marquardt(residuals, theta0, max_iterations=iterations, step_tolerance=1e-7).theta
-    if refine_vertices <= 0:
-        return _wrap_angles(theta)
+    return levenberg_marquardt(residuals, theta0, max_iterations=iterations, step_tolerance=1e-7).theta
 
+
+def _fit_vertices(model: ArticulatedModel, G_target: torch.Tensor, theta: torch.Tensor, refine_vertices: int,
+                  iterations: int) -> torch.Tensor:
+    """Stage 2 of :func:`motion_to_theta`: (N, D) theta refined, by LM from ``theta``,
+    on ``refine_vertices`` evenly spread mesh vertices posed by the MOTION's own
+    skinning with ``G_target`` (N, J, 4, 4)."""
+    N = G_target.shape[0]
     V = model.num_vertices
-    ids = torch.linspace(0, V - 1, min(refine_vertices, V), device=rest.device).round().long()
+    tree = model.tree
+    ids = torch.linspace(0, V - 1, min(refine_vertices, V), device=model.rest_transforms.device).round().long()
     v0 = model.vertices_rest[ids]
     idx, w = model.skin_index[ids], model.skin_weight[ids]
     Gk = G_target[:, idx, :3, :]  # (N, n, K, 3, 4): the MOTION's own skinning
@@ -133,8 +154,7 @@ def motion_to_theta(
         Jac = lbs_jacobian(fk.G, fk.twists, v0, idx, w, tree.dof_bone, tree.descendants)
         return r, Jac.reshape(N, -1, model.num_dofs)
 
-    return _wrap_angles(levenberg_marquardt(vertex_residuals, theta, max_iterations=iterations,
-                                            step_tolerance=1e-7).theta)
+    return levenberg_marquardt(vertex_residuals, theta, max_iterations=iterations, step_tolerance=1e-7).theta
 
 
 def _wrap_angles(theta: torch.Tensor) -> torch.Tensor:

@@ -184,47 +184,11 @@ def model_to_urdf(
         "theta[:, 0:6] is not part of this URDF, apply torchhand.model.urdf.root_transform as the base "
         "transform. Joint names are torchhand DoF names '<bone>:<axis>'. "
     ))
-    links: List[str] = []
+    links: List[str] = [urdf_link_name(names[0])]
     joints: List[str] = []
-
-    def add_link(name: str) -> None:
-        links.append(name)
-        ET.SubElement(robot, "link", name=name)
-
-    add_link(urdf_link_name(names[0]))
+    ET.SubElement(robot, "link", name=links[0])
     for j in range(1, len(names)):
-        bone, p = names[j], int(assets.parents[j])
-        # Rest offset of the bone in its parent's frame: inv(T_p(0)) T_j(0).
-        offset = np.linalg.inv(rest[p]) @ rest[j]
-        slots = [s for s in SLOT_ORDER if assets.slot_used[j, s]]
-        parent_link = urdf_link_name(names[p])
-        if not slots:
-            joint = ET.SubElement(robot, "joint", name=f"{bone}:fixed", type="fixed")
-            joints.append(joint.get("name"))
-            ET.SubElement(joint, "parent", link=parent_link)
-            ET.SubElement(joint, "child", link=urdf_link_name(bone))
-            _origin(joint, offset)
-            add_link(urdf_link_name(bone))
-            continue
-        for k, s in enumerate(slots):
-            lower, upper = (float(v) for v in assets.slot_limits[j, s])
-            if not lower <= upper:
-                raise ValueError(f"model {assets.name!r}: joint {bone}:{_AXES[s]} has lower limit {lower} > upper {upper}")
-            last = k == len(slots) - 1
-            child_link = urdf_link_name(bone) if last else urdf_link_name(bone, _AXES[s])
-            joint = ET.SubElement(robot, "joint", name=f"{bone}:{_AXES[s]}", type="revolute")
-            joints.append(joint.get("name"))
-            ET.SubElement(joint, "parent", link=parent_link)
-            ET.SubElement(joint, "child", link=child_link)
-            # Only the first joint carries the rest offset; the others rotate about
-            # the same origin (all slots of a bone act at the bone's joint position).
-            _origin(joint, offset if k == 0 else np.eye(4))
-            axis = assets.slot_axes[j, s] / np.linalg.norm(assets.slot_axes[j, s])
-            ET.SubElement(joint, "axis", xyz=_fmt(axis))
-            ET.SubElement(joint, "limit", lower=repr(lower), upper=repr(upper),
-                          effort=repr(float(effort)), velocity=repr(float(velocity)))
-            add_link(child_link)
-            parent_link = child_link
+        _add_bone(robot, assets, rest, j, links, joints, effort, velocity)
 
     for kind, used in (("link", links), ("joint", joints)):
         dup = sorted({n for n in used if used.count(n) > 1})
@@ -237,6 +201,52 @@ def model_to_urdf(
     if path is not None:
         _write(Path(path), xml, overwrite)
     return xml
+
+
+def _add_bone(robot: ET.Element, assets: ModelAssets, rest: np.ndarray, j: int, links: List[str],
+              joints: List[str], effort: float, velocity: float) -> None:
+    """Append bone ``j``'s joints and links to ``robot`` (and their names to ``links``
+    and ``joints``): a fixed joint for a bone without DoF, else one revolute joint per
+    used slot, chained through ``<bone>__<axis>`` links, the last ending at the bone's
+    link. ``rest``: (J, 4, 4) the rigid rest transforms."""
+    names = assets.bone_names
+    bone, p = names[j], int(assets.parents[j])
+
+    def add_link(name: str) -> None:
+        links.append(name)
+        ET.SubElement(robot, "link", name=name)
+
+    # Rest offset of the bone in its parent's frame: inv(T_p(0)) T_j(0).
+    offset = np.linalg.inv(rest[p]) @ rest[j]
+    slots = [s for s in SLOT_ORDER if assets.slot_used[j, s]]
+    parent_link = urdf_link_name(names[p])
+    if not slots:
+        joint = ET.SubElement(robot, "joint", name=f"{bone}:fixed", type="fixed")
+        joints.append(joint.get("name"))
+        ET.SubElement(joint, "parent", link=parent_link)
+        ET.SubElement(joint, "child", link=urdf_link_name(bone))
+        _origin(joint, offset)
+        add_link(urdf_link_name(bone))
+        return
+    for k, s in enumerate(slots):
+        lower, upper = (float(v) for v in assets.slot_limits[j, s])
+        if not lower <= upper:
+            raise ValueError(f"model {assets.name!r}: joint {bone}:{_AXES[s]} has lower limit {lower} > upper {upper}")
+        last = k == len(slots) - 1
+        child_link = urdf_link_name(bone) if last else urdf_link_name(bone, _AXES[s])
+        joint = ET.SubElement(robot, "joint", name=f"{bone}:{_AXES[s]}", type="revolute")
+        joints.append(joint.get("name"))
+        ET.SubElement(joint, "parent", link=parent_link)
+        ET.SubElement(joint, "child", link=child_link)
+        # Only the first joint carries the rest offset; the others rotate about
+        # the same origin (all slots of a bone act at the bone's joint position).
+        _origin(joint, offset if k == 0 else np.eye(4))
+        axis = assets.slot_axes[j, s] / np.linalg.norm(assets.slot_axes[j, s])
+        ET.SubElement(joint, "axis", xyz=_fmt(axis))
+        ET.SubElement(joint, "limit", lower=repr(lower), upper=repr(upper),
+                      effort=repr(float(effort)), velocity=repr(float(velocity)))
+        add_link(child_link)
+        parent_link = child_link
 
 
 def _write(path: Path, text: str, overwrite: bool) -> None:

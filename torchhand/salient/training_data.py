@@ -37,7 +37,8 @@ from tqdm import tqdm
 
 from torchhand.data.appearance import background_texture, face_albedo, shade
 from torchhand.data.ballan_protocol import structural_noise
-from torchhand.data.noise import apply_kinect_noise, noise_model
+from torchhand.data.noise import apply_kinect_noise
+from torchhand.data.noise_params import noise_model
 from torchhand.data.synth import SyntheticFrames, with_camera_ring
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.render import Renderer
@@ -220,7 +221,7 @@ def render_salient_frames(
         background: composite a :func:`random_background` behind the models (depth),
             a :func:`~torchhand.data.appearance.background_texture` (colour; a grey
             background without).
-        noise: sensor noise model name (:func:`torchhand.data.noise.noise_model`), or
+        noise: sensor noise model name (:func:`torchhand.data.noise_params.noise_model`), or
             None (depth only).
         max_tips: P of the output arrays (10 = two hands).
         spheres: at most this many distractor spheres in each background
