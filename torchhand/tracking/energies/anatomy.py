@@ -41,12 +41,14 @@ class Anatomy(EnergyTerm):
 
     def __init__(self, p: float = 10.0):
         self.p = float(p)
+        self._limits = None  # (scene, joints, lower, upper): the limited DoF, found once per scene (a host sync)
 
     def prepare(self, state: TrackState) -> AnatomyPrepared:
-        lo, hi = state.scene.lower, state.scene.upper
-        joints = torch.nonzero(torch.isfinite(lo) & torch.isfinite(hi))[:, 0]
-        return AnatomyPrepared(counts(state.theta.shape[0], device=state.theta.device), joints, lo[joints],
-                               hi[joints])
+        if self._limits is None or self._limits[0] is not state.scene:
+            lo, hi = state.scene.lower, state.scene.upper
+            joints = torch.nonzero(torch.isfinite(lo) & torch.isfinite(hi))[:, 0]
+            self._limits = (state.scene, joints, lo[joints], hi[joints])
+        return AnatomyPrepared(counts(state.theta.shape[0], device=state.theta.device), *self._limits[1:])
 
     def fold_weight(self, prepared: AnatomyPrepared, weight):
         return replace(prepared, scale=weight)  # r = sqrt(w E_k): one square root of the weighted energy
