@@ -123,6 +123,17 @@ def camera_dir(root: Path, camera: int) -> Path:
 TRACK_SUMMARY = "track_summary.json"
 
 
+class _Entry:
+    """A file or folder of a layout, named once: ``theta = _Entry("theta.npy")`` makes
+    ``layout.theta`` the path ``layout.root / "theta.npy"``."""
+
+    def __init__(self, name: str, doc: str = ""):
+        self.name, self.__doc__ = name, doc or f"``{name}``"
+
+    def __get__(self, layout, owner=None):
+        return self if layout is None else layout.root / self.name
+
+
 class _Folder:
     """A folder whose files a layout names; ``root`` is kept as a :class:`Path`."""
 
@@ -140,22 +151,10 @@ class PosesLayout(_Folder):
     """The ``gt/`` layout of poses and keypoints (ground truth, or a tracker's output)."""
 
     root: Path
-
-    @property
-    def meta(self) -> Path:
-        return self.root / "meta.json"
-
-    @property
-    def theta(self) -> Path:
-        return self.root / "theta.npy"
-
-    @property
-    def keypoints_3d(self) -> Path:
-        return self.root / "keypoints_3d.npy"
-
-    @property
-    def keypoints_2d(self) -> Path:
-        return self.root / "keypoints_2d.npy"
+    meta = _Entry("meta.json", "models, dof_names, keypoint_names, frames, per-frame valid flags")
+    theta = _Entry("theta.npy", "(N, D) float64 poses")
+    keypoints_3d = _Entry("keypoints_3d.npy", "(N, C, P, 3) float64 mm, in each camera's frame")
+    keypoints_2d = _Entry("keypoints_2d.npy", "(N, C, P, 2) float64 px")
 
     @property
     def arrays(self) -> List[Path]:
@@ -167,39 +166,17 @@ class PosesLayout(_Folder):
 class GroundTruthLayout(PosesLayout):
     """A sequence's ``gt/`` folder: the poses, and what synthesis and recordings add."""
 
-    @property
-    def ids_dir(self) -> Path:
-        return self.root / "ids"
+    ids_dir = _Entry("ids")
+    salient_2d = _Entry("salient_2d.npy", "(N, C, P, 2) float64 px: the nail centres in each camera")
+    salient_visible = _Entry("salient_visible.npy", "(N, C, P) bool: the nail centre is seen")
+    annotations_2d = _Entry("annotations_2d.json", "sparse manual 2D labels of a converted thesis recording")
+    object_pose = _Entry("object_pose.npy", "(N, 4, 4) poses of the scanned object, mesh -> camera, mm")
+    object_mesh = _Entry("object.ply", "the scanned object's mesh")
+    object_meta = _Entry("object.json", "the scanned object's mesh file and the grasp")
 
     def ids(self, frame: int) -> Path:
         """8-bit per-pixel model id of camera 0 (0 background, k+1 model k)."""
         return self.ids_dir / frame_name(frame)
-
-    @property
-    def salient_2d(self) -> Path:
-        return self.root / "salient_2d.npy"
-
-    @property
-    def salient_visible(self) -> Path:
-        return self.root / "salient_visible.npy"
-
-    @property
-    def annotations_2d(self) -> Path:
-        """Sparse manual 2D labels of a converted thesis recording."""
-        return self.root / "annotations_2d.json"
-
-    @property
-    def object_pose(self) -> Path:
-        """(N, 4, 4) poses of the scanned object (in-hand scanning sequences)."""
-        return self.root / "object_pose.npy"
-
-    @property
-    def object_mesh(self) -> Path:
-        return self.root / "object.ply"
-
-    @property
-    def object_meta(self) -> Path:
-        return self.root / "object.json"
 
 
 @dataclass(frozen=True)
@@ -209,19 +186,9 @@ class SequenceLayout(_Folder):
     ``SequenceLayout(root).depth(12, camera=1)`` is ``root/cam1/depth/000012.png``."""
 
     root: Path
-
-    @property
-    def info(self) -> Path:
-        return self.root / "sequence.json"
-
-    @property
-    def init_pose(self) -> Path:
-        return self.root / "init_pose.json"
-
-    @property
-    def init_overlay(self) -> Path:
-        """The picture ``torchhand init`` draws of the pose it found."""
-        return self.root / "init_overlay.png"
+    info = _Entry("sequence.json", "cameras, scene, frame count, units, provenance")
+    init_pose = _Entry("init_pose.json", "theta of frame 0 (the tracker starts from it)")
+    init_overlay = _Entry("init_overlay.png", "the picture ``torchhand init`` draws of the pose it found")
 
     def camera(self, camera: int = 0) -> Path:
         """The folder of a camera's images: the root for camera 0, else ``cam<k>/``."""
@@ -262,44 +229,27 @@ class OutputLayout(PosesLayout):
     poses, the MOTION files, the log, and what ``--viz``, ``--write-render`` and
     ``--write-vertices`` add."""
 
-    @property
-    def track_log(self) -> Path:
-        return self.root / "track_log.json"
-
-    @property
-    def motion_dir(self) -> Path:
-        return self.root / "motion"
+    track_log = _Entry("track_log.json", "every frame's log and fit quality, and the run's settings")
+    motion_dir = _Entry("motion")
+    overlays_dir = _Entry("overlays")
+    overlays_video = _Entry("overlays.mp4")
+    render_dir = _Entry("render")
+    vertices_dir = _Entry("vertices")
 
     def motion(self, model: str) -> Path:
         """``motion/<Model>.MOTION`` (``model``: the thesis' file name of the model)."""
         return self.motion_dir / f"{model}.MOTION"
 
-    @property
-    def overlays_dir(self) -> Path:
-        return self.root / "overlays"
+    def overlay_dir(self, camera: Optional[int] = None) -> Path:
+        return self.overlays_dir if camera is None else self.overlays_dir / f"cam{camera}"
 
     def overlay(self, frame: int, camera: Optional[int] = None) -> Path:
         """One camera's overlay: ``overlays/NNNNNN.png``, of a rig ``overlays/cam<k>/NNNNNN.png``."""
         return self.overlay_dir(camera) / frame_name(frame)
 
-    def overlay_dir(self, camera: Optional[int] = None) -> Path:
-        return self.overlays_dir if camera is None else self.overlays_dir / f"cam{camera}"
-
-    @property
-    def overlays_video(self) -> Path:
-        return self.root / "overlays.mp4"
-
-    @property
-    def render_dir(self) -> Path:
-        return self.root / "render"
-
     def render(self, frame: int) -> Path:
         """The rendered depth of the fitted models (16-bit mm)."""
         return self.render_dir / frame_name(frame)
-
-    @property
-    def vertices_dir(self) -> Path:
-        return self.root / "vertices"
 
     def vertices(self, model: str) -> Path:
         """A model's posed vertices per frame, camera 0's coordinates."""
