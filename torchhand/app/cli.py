@@ -199,6 +199,7 @@ def _eval(args) -> int:
 
 
 def _track(args) -> int:
+    from torchhand.app.options import TrackOptions
     from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, read_list, track_many
     from torchhand.tracking.energies import parse_energy
     from torchhand.tracking.tracker import TrackerConfig
@@ -211,10 +212,10 @@ def _track(args) -> int:
                         generations=args.generations, limit_slack=args.limit_slack)
     segment = _segment_config(args, "none") if args.segment else None
     dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
-    job = TrackJob(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
-                   write_vertices=args.write_vertices, reinit_iou=args.reinit_iou,
-                   models=tuple(args.models.split(",")) if args.models else None,
-                   threads=args.threads, nails=args.nails)
+    options = TrackOptions(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
+                           write_vertices=args.write_vertices, reinit_iou=args.reinit_iou,
+                           models=tuple(args.models.split(",")) if args.models else None, nails=args.nails)
+    job = TrackJob(options, threads=args.threads)
     run = track_many(dirs, args.out, job, workers=args.workers, ray=args.ray, batch=args.batch, resume=args.resume,
                      force=args.force, retries=args.retries)
     summaries = run["sequences"]
@@ -272,7 +273,7 @@ def _import(args) -> int:
 
 
 def _init(args) -> int:
-    from torchhand.app.runner import initialize_sequence
+    from torchhand.app.initialize import initialize_sequence
 
     res = initialize_sequence(args.seq, force=args.force, segment=_segment_config(args, "auto") if args.segment else None)
     print(f"wrote {res['init_pose']} and {res['overlay']}: silhouette IoU {res['iou']:.2f}, median depth residual "
@@ -281,7 +282,7 @@ def _init(args) -> int:
 
 
 def _calibrate(args) -> int:
-    from torchhand.app.runner import calibrate_sequence
+    from torchhand.app.calibrate import calibrate_sequence
 
     segment = _segment_config(args, "auto") if args.segment else None
     rep = calibrate_sequence(args.seq, args.model, args.out, frames=args.frames, force=args.force, segment=segment)
@@ -524,7 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reinit-iou", type=float, default=0.5,
                    help="re-initialise a frame whose fitted hands overlap their data with a silhouette IoU below this "
                         "(particle swarm seeded from the frame's blobs and the pose tracked; 0: never)")
-    # runner.NAIL_SOURCES, spelled out: importing the runner would slow every command's parsing by seconds
+    # options.NAIL_SOURCES, spelled out: importing it (and the tracker) would slow every command's parsing by seconds
     p.add_argument("--nails", choices=("auto", "detector"), default="auto",
                    help="nail detections of colour views (S): auto = each camera's salient.json where it has one, "
                         "else the shipped colour nail detector; detector = the shipped detector everywhere")
