@@ -1,7 +1,10 @@
 """The ``torchhand`` command line: argument parsing only; the work lives in the library.
 
 Exit status: 0 when everything worked, 1 when some sequence failed (its error is
-printed; the others are written), 2 for bad arguments or unusable input.
+printed; the others are written), 2 for bad arguments or unusable input (one line
+naming it, :func:`user_error`), also for an optional dependency that is not installed
+(the line names the extra to install). Any other exception is a bug in torchhand: its
+traceback is printed with a line asking to report it, and the status is 1.
 """
 
 from __future__ import annotations
@@ -11,9 +14,15 @@ import dataclasses
 import json
 import math
 import sys
+import traceback
 from pathlib import Path
+from typing import Optional
 
-__all__ = ["main", "build_parser"]
+from torchhand.core.errors import EXTRAS, MissingExtra, UsageError
+
+__all__ = ["main", "build_parser", "user_error"]
+
+_PACKAGE = Path(__file__).resolve().parents[1]
 
 _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
@@ -582,16 +591,54 @@ def main(argv=None) -> int:
     try:
         device = getattr(args, "device", "cpu")
         if str(device).startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError(f"--device {device}: no CUDA device is available (use --device cpu)")
+            raise UsageError(f"--device {device}: no CUDA device is available (use --device cpu)")
         return args.func(args)
-    except (FileExistsError, FileNotFoundError, ValueError, LookupError, TypeError, ImportError,
-            ConnectionError) as err:
-        print(f"torchhand {args.command}: error: {err}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"torchhand {args.command}: interrupted; every sequence already written is complete (rerun with "
               "--resume to finish the others)", file=sys.stderr)
         return 130
+    except Exception as err:
+        message = user_error(err)
+        if message is None:  # a bug: never reported as a usage error
+            traceback.print_exc()
+            print(f"torchhand {args.command}: internal error ({type(err).__name__}); this is a bug in torchhand, "
+                  "please report it with the traceback above", file=sys.stderr)
+            return 1
+        print(f"torchhand {args.command}: error: {message}", file=sys.stderr)
+        return 2
+
+
+def user_error(err: BaseException) -> Optional[str]:
+    """The one-line message of an error the user can fix, or None for a bug.
+
+    User errors: :class:`~torchhand.core.errors.UsageError` (a bad argument or input,
+    e.g. ``SequenceError``), a ``ValueError`` raised by torchhand's own checks (not one
+    from deep inside numpy or torch), an ``OSError`` (a path that is missing, taken or
+    unreadable; a cluster that does not answer), and an optional dependency that is not
+    installed (:class:`~torchhand.core.errors.MissingExtra`, the import of a module of
+    :data:`~torchhand.core.errors.EXTRAS`, or an ``ImportError`` whose message says what
+    to ``pip install``). Everything else (``TypeError``,
+    ``KeyError``, ``AttributeError``, an import of torchhand's own modules...) is a bug."""
+    if isinstance(err, (UsageError, OSError, MissingExtra)):
+        return str(err)
+    if isinstance(err, ImportError):
+        module = (err.name or "").split(".")[0]
+        if module in EXTRAS:
+            return str(MissingExtra("this command", module))
+        return str(err) if "pip install" in str(err) else None  # torchhand's own message naming the package
+    if isinstance(err, ValueError) and _raised_by_torchhand(err):
+        return str(err)
+    return None
+
+
+def _raised_by_torchhand(err: BaseException) -> bool:
+    """The innermost frame of the error's traceback is torchhand's code."""
+    tb = err.__traceback__
+    if tb is None:
+        return True
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return Path(tb.tb_frame.f_code.co_filename).resolve().is_relative_to(_PACKAGE)
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ import torch
 from tqdm import tqdm
 
 from torchhand.app.options import TrackOptions
+from torchhand.core.errors import MissingExtra
 from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
 from torchhand.io.output_dir import remove_partials
 from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
@@ -210,7 +211,7 @@ def connect_ray(address: str, num_cpus: int, timeout_s: float = 5.0) -> bool:
     try:
         import ray
     except ImportError:
-        raise ImportError("--ray needs Ray: pip install 'torchhand[ray]'") from None
+        raise MissingExtra("--ray", "ray") from None
     if ray.is_initialized():
         return False
     if address == "local":

@@ -39,6 +39,7 @@ from typing import Dict, List, Optional
 import cv2
 import numpy as np
 
+from torchhand.core.errors import UsageError
 from torchhand.geometry.camera import Camera
 
 __all__ = [
@@ -68,7 +69,7 @@ __all__ = [
 FORMAT = "torchhand-sequence/1"
 
 
-class SequenceError(ValueError):
+class SequenceError(UsageError):
     """A sequence folder is missing files or is inconsistent; the message names the path."""
 
 
@@ -295,7 +296,10 @@ def read_init_pose(root) -> np.ndarray:
     path = SequenceLayout(root).init_pose
     if not path.is_file():
         raise SequenceError(f"{path} not found: the tracker needs the pose of frame 0")
-    theta = np.asarray(json.loads(path.read_text())["theta"], np.float64)
+    try:
+        theta = np.asarray(json.loads(path.read_text())["theta"], np.float64)
+    except (ValueError, KeyError, TypeError) as err:
+        raise SequenceError(f"{path}: expected {{\"theta\": [numbers]}} ({type(err).__name__}: {err})") from None
     if not np.isfinite(theta).all():
         raise SequenceError(f"{path}: theta contains NaN or inf")
     return theta
@@ -387,7 +391,10 @@ def read_poses(folder) -> Poses:
     missing = [p.name for p in [folder.meta] + folder.arrays if not p.is_file()]
     if missing:
         raise SequenceError(f"{folder.root}: missing {missing} (expected the gt/ layout of datasets/README.md)")
-    meta = json.loads(folder.meta.read_text())
+    try:
+        meta = json.loads(folder.meta.read_text())
+    except ValueError as err:
+        raise SequenceError(f"{folder.meta}: invalid JSON ({err})") from None
     arrays = []
     for path in folder.arrays:
         try:
@@ -397,5 +404,7 @@ def read_poses(folder) -> Poses:
     try:
         return Poses(*arrays, meta["models"], meta["dof_names"], meta["keypoint_names"],
                      np.asarray(meta.get("valid", [True] * len(arrays[0]))))
+    except KeyError as err:
+        raise SequenceError(f"{folder.meta}: missing key {err}") from None
     except ValueError as err:
         raise SequenceError(f"{folder.root}: {err}") from None
