@@ -75,7 +75,7 @@ class FrameReader:
         return self._last
 
     def _read(self, f: int) -> FrameRecord:
-        rec = FrameRecord(f, [], [], [], [], [])
+        views, depths, colours, segmentations, errors = [], [], [], [], []
         for i, (root, info, seg) in enumerate(zip(self.roots, self.infos, self.segments)):
             depth, view, colour, s, err = None, None, None, None, ""
             if f < info.frames:
@@ -94,9 +94,12 @@ class FrameReader:
                     depth, view, colour, err = None, None, None, str(e)
                 if self.keep_masks:
                     self.masks[i][f] = None if s is None else (np.packbits(s.mask), np.packbits(s.cut))
-            for part, value in zip(rec[1:], (view, depth, colour, s, err)):
-                part.append(value)
-        return rec
+            views.append(view)
+            depths.append(depth)
+            colours.append(colour)
+            segmentations.append(s)
+            errors.append(err)
+        return FrameRecord(f, views, depths, colours, segmentations, errors)
 
     def _colour_view(self, i: int, camera: int, f: int) -> ColourView:
         """Frame ``f`` of a colour view, with its nail detections when the energy reads

@@ -208,8 +208,9 @@ def _track_batch(run: _Run, models: list, V: int, members: List[int],
     """Track one batch of same-scene sequences (``members``) and write them."""
     opt, needs = run.options, run.needs
     scene = Scene.from_names(models, device=opt.device)
-    tracker = Tracker(scene, opt.config, terms if terms is not None else _terms(opt.config, run.make_terms)
-                      if run.make_terms is not None else None)
+    if terms is None and run.make_terms is not None:
+        terms = run.make_terms()
+    tracker = Tracker(scene, opt.config, terms)  # terms None: the tracker's own of the config
     cams = [run.infos[k].cameras[0].to(opt.device) for k in members]
     rigs = [[c.to(opt.device) for c in run.infos[k].cameras] for k in members] if V > 1 else None
     segs = [segment_of(run.infos[k], opt.segment) if V == 1 else None for k in members]
