@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from _common import demo_scene, machine, set_threads, write_json
-from torchhand.data.layout import Poses, write_poses
+from torchhand.data.layout import Poses, SequenceLayout, write_poses
 from torchhand.app.scaleout import evaluate_pairs
 from torchhand.scoring.sequences import evaluate_many
 from torchhand.model.scene import Scene
@@ -29,13 +29,15 @@ def make_pair(root: Path, k: int, scene: Scene, theta: torch.Tensor, cam, frames
     idx = np.arange(frames) % len(theta)
     th = theta[idx].double().numpy()
     pred = th + rng.normal(0, 0.01, th.shape)
-    for name, t in (("gt", th), ("pred", pred)):
+    seq = SequenceLayout(root / f"seq{k:02d}")
+    folders = (seq.root / "pred", seq.gt.root)  # a prediction beside the sequence's gt/
+    for folder, t in zip(folders, (pred, th)):
         with torch.no_grad():
             kp = scene(torch.as_tensor(t, dtype=torch.float32)).keypoints
         poses = Poses(t, cam.to_camera(kp).numpy()[:, None], cam.project(kp).numpy()[:, None], list(scene.names),
                       scene.dof_names, scene.keypoint_names)
-        write_poses(root / f"seq{k:02d}" / name, poses)
-    return root / f"seq{k:02d}" / "pred", root / f"seq{k:02d}" / "gt"
+        write_poses(folder, poses)
+    return folders
 
 
 def main(argv=None) -> None:

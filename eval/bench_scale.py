@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, set_threads, write_json  # noqa: E402
 
 from torchhand.app.scaleout import TrackJob, track_many  # noqa: E402
+from torchhand.data.layout import OutputLayout  # noqa: E402
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence  # noqa: E402
 from torchhand.model.scene import Scene  # noqa: E402
 
@@ -106,8 +107,8 @@ def main(argv=None) -> dict:
         folders = {"sequential": "seq", "local_2": "local2", "ray_1": "ray1", "ray_2": "ray2"}
         for name in runs:
             for s in seqs:
-                same = np.array_equal(np.load(tmp / folders[name] / s.name / "theta.npy"),
-                                      np.load(tmp / "seq" / s.name / "theta.npy"))
+                same = np.array_equal(np.load(OutputLayout(tmp / folders[name] / s.name).theta),
+                                      np.load(OutputLayout(tmp / "seq" / s.name).theta))
                 assert same, f"{name}: {s.name} differs from the sequential run"
     result["runs"] = runs
     seq = runs["sequential"]

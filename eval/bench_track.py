@@ -38,8 +38,9 @@ import torch
 
 from _common import machine, set_threads, write_json
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence
+from torchhand.data.layout import OutputLayout, SequenceLayout
 from torchhand.scoring.sequences import evaluate_sequence
-from torchhand.app.runner import track_sequences
+from torchhand.app.runner import TrackOptions, track_sequences
 from torchhand.tracking.tracker import TrackerConfig
 
 
@@ -53,9 +54,9 @@ def timed_track(roots, out, cfg, device="cpu"):
     """(wall seconds of the whole call, seconds spent tracking frames) — the second
     excludes loading models, reading nothing else and writing the outputs."""
     t0 = time.perf_counter()
-    summaries = track_sequences(roots, out, cfg, device=device, force=True, progress=False)
+    summaries = track_sequences(roots, out, TrackOptions(cfg, device=device), force=True, progress=False)
     wall = time.perf_counter() - t0
-    log = json.loads((Path(summaries[0]["out"]) / "track_log.json").read_text())
+    log = json.loads(OutputLayout(summaries[0]["out"]).track_log.read_text())
     return wall, sum(f["seconds"] for f in log["frames"])
 
 
@@ -133,10 +134,10 @@ def scored_run(root: Path, out: Path, cfg: TrackerConfig, device: str = "cpu") -
     """Track one rendered sequence and score it against its ground truth."""
     timed_track([root], out, replace(cfg, max_iterations=1, first_frame_iterations=1), device)  # warm-up
     wall, secs = timed_track([root], out, cfg, device)
-    info = json.loads((root / "sequence.json").read_text())
+    info = json.loads(SequenceLayout(root).info.read_text())
     n, tracked = info["frames"], out / info["name"]
-    ev = evaluate_sequence(tracked, root / "gt", with_penetration=False)
-    log = json.loads((tracked / "track_log.json").read_text())
+    ev = evaluate_sequence(tracked, SequenceLayout(root).gt, with_penetration=False)
+    log = json.loads(OutputLayout(tracked).track_log.read_text())
     after_first = sum(f["seconds"] for f in log["frames"][1:]) / max(n - 1, 1)
     return {"seconds_per_frame": secs / n, "seconds_per_frame_with_io": wall / n,
             "seconds_per_frame_after_first": after_first,

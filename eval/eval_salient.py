@@ -32,7 +32,7 @@ import torch
 from _common import machine, median_seconds, set_threads, write_json
 from torchhand.data.synth import random_poses, thesis_motion
 from torchhand.io.thesis import sequence_models
-from torchhand.app.runner import NAIL_SCORE
+from torchhand.app.options import NAIL_SCORE
 from torchhand.salient import SalientDetector, average_precision
 from torchhand.salient.training_data import concat_frames, render_salient_frames, visible_mm2
 from torchhand.salient.detector import MODALITIES, shipped_weights

@@ -34,8 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, set_threads, write_json  # noqa: E402
 from exp_tracking import render_sequences  # noqa: E402
 
-from torchhand.app.runner import track_sequences  # noqa: E402
-from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info  # noqa: E402
+from torchhand.app.runner import TrackOptions, track_sequences  # noqa: E402
+from torchhand.data.layout import SequenceLayout, read_depth, read_poses, read_sequence_info  # noqa: E402
 from torchhand.io.thesis import sequence_models  # noqa: E402
 from torchhand.model.scene import Scene  # noqa: E402
 from torchhand.scoring.sequences import evaluate_sequence  # noqa: E402
@@ -50,10 +50,10 @@ def init_tries(folder: Path, tries: int, success_mm: float) -> dict:
     scene = Scene.from_names(info.models)
     tracker = Tracker(scene, TrackerConfig())
     cam = info.cameras[0]
-    path = camera_dir(folder, 0) / "depth" / frame_name(0)
+    path = SequenceLayout(folder).depth(0)
     depth = read_depth(path, info.depth_unit_mm)
     seg = segment_hands(depth, cam, SegmentConfig(hands=len(scene.models)), frame=str(path))
-    truth = torch.as_tensor(read_poses(folder / "gt").keypoints_3d[0], dtype=torch.float32)  # (K, 3)
+    truth = torch.as_tensor(read_poses(SequenceLayout(folder).gt).keypoints_3d[0], dtype=torch.float32)  # (K, 3)
     errors, seconds = [], []
     initializer = Initializer(tracker)
     for k in range(tries):
@@ -76,7 +76,8 @@ def without_init_pose(folder: Path, work: Path) -> Path:
     target = work / f"{folder.name}_noinit"
     if target.exists():
         shutil.rmtree(target)
-    shutil.copytree(folder, target, ignore=shutil.ignore_patterns("gt", "init_pose.json"))
+    layout = SequenceLayout(folder)
+    shutil.copytree(folder, target, ignore=shutil.ignore_patterns(layout.gt.root.name, layout.init_pose.name))
     return target
 
 
@@ -111,10 +112,10 @@ def main(argv=None) -> dict:
         r = init_tries(folder, args.tries, args.success_mm)
         plain = without_init_pose(folder, args.work)
         out = args.work / "tracked_noinit"
-        summary = track_sequences([plain], out, TrackerConfig(), force=True, progress=False)[0]
+        summary = track_sequences([plain], out, TrackOptions(TrackerConfig()), force=True, progress=False)[0]
         if summary["status"] != "ok":
             raise RuntimeError(f"sequence {s}: tracking failed: {summary['error']}")
-        score = evaluate_sequence(summary["out"], folder / "gt", with_penetration=False)
+        score = evaluate_sequence(summary["out"], SequenceLayout(folder).gt, with_penetration=False)
         r["tracking"] = {"frames": score["frames"], "mean_px": score["mean_px"], "mean_mm": score["mean_mm"],
                          "worst_frame_mm": float(max(score["per_frame"]["mm"])),
                          "frame0_mm": float(score["per_frame"]["mm"][0])}

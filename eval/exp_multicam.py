@@ -47,8 +47,8 @@ import torch
 
 from torchhand.app.drawing import HAND_SKELETON
 from torchhand.app.cli import limit_slack_arg
-from torchhand.app.runner import track_sequences
-from torchhand.data.layout import read_poses
+from torchhand.app.runner import TrackOptions, track_sequences
+from torchhand.data.layout import SequenceLayout, read_poses
 from torchhand.data.synth import thesis_motion, with_camera_ring, write_synthetic_sequence
 from torchhand.tracking.tracker import TrackerConfig
 
@@ -79,7 +79,7 @@ def render_sequences(hia_root: Path, work: Path, windows, frames: int, views: in
     for s, start in windows:
         size = "" if scale == 1 else f"_x{scale:g}"
         root = work / f"seq{s}_{start}_{frames}_v{views}{size}_seed{seed}"
-        if not (root / "sequence.json").is_file():
+        if not SequenceLayout(root).info.is_file():
             motion = thesis_motion(hia_root, s, slice(start, start + frames))
             motion = dataclasses.replace(motion, name=f"seq{s}")
             write_synthetic_sequence(with_camera_ring(motion, views, scale), root, noise="none", seed=seed, force=True,
@@ -163,13 +163,13 @@ def main(argv=None) -> int:
         config = TrackerConfig(energy=energy, min_joint_motion=args.min_motion, limit_slack=args.limit_slack)
         if particles is not None:  # the swarm over the same terms
             config = dataclasses.replace(config, solver="pso", particles=particles, generations=args.generations)
-        summaries = track_sequences(roots, out, config, force=True, progress=True, nails=nails)
+        summaries = track_sequences(roots, out, TrackOptions(config, nails=nails), force=True, progress=True)
         seconds = time.perf_counter() - t0
         parts = []
         for root, summary in zip(roots, summaries):
             if summary["status"] != "ok":
                 raise RuntimeError(f"{label}: {root}: {summary.get('error')}")
-            parts.append({"sequence": root.name, **score(Path(summary["out"]), root / "gt"),
+            parts.append({"sequence": root.name, **score(Path(summary["out"]), SequenceLayout(root).gt),
                           "seconds_per_frame": summary["seconds_per_frame"]})
         table[label] = {"energy": energy, "nails": nails, **pooled(parts), "sequences": parts,
                         "seconds_per_frame": seconds / sum(len(q["per_frame_mm"]) for q in parts)}

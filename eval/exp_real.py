@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from torchhand.app.cli import main as cli
-from torchhand.data.layout import camera_dir, frame_name, read_depth, read_sequence_info
+from torchhand.data.layout import OutputLayout, SequenceLayout, read_depth, read_sequence_info
 from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 
@@ -64,10 +64,10 @@ def main() -> None:
     rows, tiles = [], []
     for seq in seqs:
         info = read_sequence_info(seq)
-        log = json.loads((args.out / "track" / seq.name / "track_log.json").read_text())["frames"]
+        log = json.loads(OutputLayout(args.out / "track" / seq.name).track_log.read_text())["frames"]
         for f in range(info.frames):
-            depth = read_depth(camera_dir(seq, 0) / "depth" / frame_name(f), info.depth_unit_mm)
-            model = cv2.imread(str(args.out / "track" / seq.name / "render" / frame_name(f)),
+            depth = read_depth(SequenceLayout(seq).depth(f), info.depth_unit_mm)
+            model = cv2.imread(str(OutputLayout(args.out / "track" / seq.name).render(f)),
                                cv2.IMREAD_UNCHANGED).astype(np.float32)
             try:
                 seg = segment_hands(depth, info.cameras[0], SegmentConfig())
@@ -75,7 +75,7 @@ def main() -> None:
                 rows.append({"recording": seq.name, "frame": f, "error": str(err)})
                 continue
             iou, med = fit_quality(model, seg.apply(depth))
-            tiles.append(_tile(args.out / "track" / seq.name / "overlays" / frame_name(f), seg.mask | (model > 0),
+            tiles.append(_tile(OutputLayout(args.out / "track" / seq.name).overlay(f), seg.mask | (model > 0),
                                f"{seq.name[-6:]}/{f}: IoU {iou:.2f}"))
             rows.append({"recording": seq.name, "frame": f, "iou": iou, "depth_residual_mm": med,
                          "reinitialized": log[f]["reinitialized"], "tracker_iou": log[f]["iou"]})

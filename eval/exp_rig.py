@@ -34,8 +34,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from torchhand.app.rig import rig_folder  # noqa: E402
-from torchhand.app.runner import track_sequences  # noqa: E402
-from torchhand.data.layout import read_poses, read_sequence_info  # noqa: E402
+from torchhand.app.runner import TrackOptions, track_sequences  # noqa: E402
+from torchhand.data.layout import OutputLayout, SequenceLayout, read_poses, read_sequence_info  # noqa: E402
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence  # noqa: E402
 from torchhand.io.assets import save_assets  # noqa: E402
 from torchhand.model.scene import Scene  # noqa: E402
@@ -53,7 +53,7 @@ def _truth(seq: Path, model: str, frames: int) -> tuple:
     """(world, camera-0) true vertices (N, V, 3) of ``model`` in the sequence."""
     info = read_sequence_info(seq)
     scene = Scene.from_names(info.models, dtype=torch.float64)
-    th = torch.as_tensor(read_poses(seq / "gt").theta[:frames])
+    th = torch.as_tensor(read_poses(SequenceLayout(seq).gt).theta[:frames])
     with torch.no_grad():
         v = scene(th).vertices[:, scene.vertex_slices[model]]
         cam = info.cameras[0].to(dtype=torch.float64)
@@ -66,7 +66,7 @@ def _score(out: Path, log: dict, world: np.ndarray, camera: np.ndarray) -> dict:
     row = {"parts": log["parts"], "clusters": log["clusters"], "joint_dofs": log["joint_dofs"], "eigenvalues": log["eigenvalues"][:8],
            "deformable_mm": d["mean_closest_mm"], "deformable_same_order_mm": d["mean_same_order_mm"],
            "seconds": log["seconds"]}
-    tv = out / "track" / "vertices" / f"{log['name']}.npy"
+    tv = OutputLayout(out / "track").vertices(log['name'])
     if tv.is_file():
         t = vertex_errors(np.load(tv), camera[:len(dv)])
         row.update(tracked_mm=t["mean_closest_mm"], tracked_same_order_mm=t["mean_same_order_mm"],
@@ -117,9 +117,9 @@ def chains(args) -> list:
                                  if len(learned) else None)
         # the same sequence tracked with the true rig, in this run
         truth_out = args.work / f"{name}_true_track"
-        track_sequences([seq], truth_out, names=["track"], force=True, progress=False, reinit_iou=0.0,
-                        write_vertices=True)
-        t = vertex_errors(np.load(truth_out / "track" / "vertices" / f"{name}.npy"), camera)
+        track_sequences([seq], truth_out, TrackOptions(reinit_iou=0.0, write_vertices=True), names=["track"],
+                        force=True, progress=False)
+        t = vertex_errors(np.load(OutputLayout(truth_out / "track").vertices(name)), camera)
         row.update(true_rig_tracked_mm=t["mean_closest_mm"], true_rig_same_order_mm=t["mean_same_order_mm"])
         print(f"{name}: {row['parts']} parts (true {len(lengths)}), joints off by {row['joint_error_mm']} mm, "
               f"tracked {row.get('tracked_mm', float('nan')):.2f} mm (true rig {row['true_rig_tracked_mm']:.2f} mm), "
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
         _dump(args, result)
     if "pipe" in only:
         seq = args.work / "pipe17_seq"
-        if not (seq / "gt" / "meta.json").is_file():
+        if not SequenceLayout(seq).gt.meta.is_file():
             write_synthetic_sequence(thesis_motion(args.hia_root, "17", slice(0, args.frames)), seq, noise="none",
                                      rgb=False, force=True, progress=False)
         result["rows"] += table_62(args, "pipe", seq, "pipe")

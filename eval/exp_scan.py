@@ -86,7 +86,8 @@ def track_with_scan(hia_root: Path, work: Path, scan_dir: Path, alignment: np.nd
     import shutil
 
     from torchhand.app.runner import track_sequences
-    from torchhand.data.layout import read_init_pose, read_sequence_info, write_sequence_info
+    from torchhand.data.layout import (OutputLayout, SequenceLayout, read_init_pose, read_sequence_info,
+                                       write_sequence_info)
     from torchhand.data.synth import thesis_motion, write_synthetic_sequence
     from torchhand.io.assets import find_model, load_assets
     from torchhand.scoring.sequences import evaluate_sequence
@@ -102,7 +103,7 @@ def track_with_scan(hia_root: Path, work: Path, scan_dir: Path, alignment: np.nd
     scanned = work / f"hia_{sequence}_scanned"
     if scanned.exists():
         shutil.rmtree(scanned)
-    shutil.copytree(seq, scanned, ignore=shutil.ignore_patterns("gt"))
+    shutil.copytree(seq, scanned, ignore=shutil.ignore_patterns(SequenceLayout(seq).gt.root.name))
     theta_s = np.concatenate([theta[:k], scanned_pose(theta[k:], cube.rest_transforms[0, :3, 3], alignment)])
     write_sequence_info(scanned, dataclasses.replace(info, models=["hand_right", str(scan_dir / "model.npz")]),
                         init_theta=theta_s)
@@ -110,14 +111,15 @@ def track_with_scan(hia_root: Path, work: Path, scan_dir: Path, alignment: np.nd
     for name, root in (("shipped", seq), ("scanned", scanned)):
         res = track_sequences([root], work / f"track_{sequence}_{name}", force=True, progress=False,
                               names=[name])[0]
-        pred = np.load(work / f"track_{sequence}_{name}" / name / "keypoints_3d.npy")
-        gt = np.load(seq / "gt" / "keypoints_3d.npy")  # the hand's 21 keypoints (the cubes have none)
+        pred = np.load(OutputLayout(work / f"track_{sequence}_{name}" / name).keypoints_3d)
+        gt = np.load(SequenceLayout(seq).gt.keypoints_3d)  # the hand's 21 keypoints (the cubes have none)
         e = np.linalg.norm(pred - gt, axis=-1).mean(-1)[:, 0]
         out[name] = {"hand_mean_mm": float(e.mean()), "hand_median_mm": float(np.median(e)),
                      "hand_worst_frame_mm": float(e.max()), "seconds_per_frame": res["seconds_per_frame"],
                      "mean_iou": res["mean_iou"]}
         if name == "shipped":
-            ev = evaluate_sequence(work / f"track_{sequence}_{name}" / name, seq / "gt", with_penetration=False)
+            ev = evaluate_sequence(work / f"track_{sequence}_{name}" / name, SequenceLayout(seq).gt,
+                                   with_penetration=False)
             out[name]["cube_mean_mm"] = ev["models"]["cube"]["mean_mm"]
         print(sequence, name, out[name], flush=True)
     out["hand_error_ratio"] = out["scanned"]["hand_mean_mm"] / out["shipped"]["hand_mean_mm"]

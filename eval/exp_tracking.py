@@ -49,7 +49,7 @@ import hashlib
 import numpy as np
 
 from torchhand.data.synth import SyntheticFrames, thesis_motion, write_synthetic_sequence
-from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_sequence_info
+from torchhand.data.layout import SequenceLayout, read_depth, read_poses, read_sequence_info
 from torchhand.tracking.energies import (DataToModel, ModelToData, Robust, Salient, Weighted, data_to_model,
                                         default_data_to_model, default_priors, parse_energy)
 from torchhand.tracking.energies.salient_points import simulated_detector
@@ -60,7 +60,7 @@ from torchhand.model.scene import Scene
 from torchhand.scoring.sequences import evaluate_sequence, summarize
 from torchhand.io.thesis import FormatError, sequence_models
 from torchhand.app.cli import limit_slack_arg
-from torchhand.app.runner import track_sequences
+from torchhand.app.runner import TrackOptions, track_sequences
 from torchhand.tracking.tracker import TrackerConfig
 
 
@@ -90,7 +90,7 @@ def render_sequences(hia_root: Path, seqs, frames: int, work: Path, noise: str =
     out = {}
     for s in seqs:
         folder = work / (f"hia_{s}_{noise}_{frames}" if window == "start" else f"hia_{s}_{noise}_{frames}_contact")
-        if not (folder / "gt" / "meta.json").is_file():
+        if not SequenceLayout(folder).gt.meta.is_file():
             try:
                 start = 0 if window == "start" else contact_window(hia_root, s, frames)
                 fr = thesis_motion(hia_root, s, slice(start, start + frames), dtype=torch.float32)
@@ -128,11 +128,11 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "", 
     window = "_contact" if getattr(args, "window", "start") == "contact" else ""
     out = args.work / f"tracked_{tag}{_prediction_suffix(args)}_f{args.frames}{window}"
     t0 = time.perf_counter()
-    summaries = track_sequences(list(folders.values()), out, cfg, force=True, make_terms=make_terms)
+    summaries = track_sequences(list(folders.values()), out, TrackOptions(cfg), force=True, make_terms=make_terms)
     elapsed = time.perf_counter() - t0
     results = []
     for s, folder in folders.items():
-        r = evaluate_sequence(out / f"hia_{s}", folder / "gt", with_penetration=args.penetration)
+        r = evaluate_sequence(out / f"hia_{s}", SequenceLayout(folder).gt, with_penetration=args.penetration)
         worst = max(r["per_frame"]["mm"])
         results.append({"sequence": s, "frames": r["frames"], "mean_px": r["mean_px"], "median_px": r["median_px"],
                         "mean_mm": r["mean_mm"], "median_mm": r["median_mm"], "worst_frame_mm": worst,
@@ -141,7 +141,7 @@ def track_and_score(args, folders, energy: str, make_terms=None, tag: str = "", 
                                    for n, m in r["models"].items()},
                         "lost_frames": r["lost_frames"]})
         print(tag, {k: v for k, v in results[-1].items() if k != "penetration"}, flush=True)
-    pooled = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
+    pooled = summarize([evaluate_sequence(out / f"hia_{s}", SequenceLayout(f).gt, with_penetration=False)
                         for s, f in folders.items()])
     return {"energy": energy, "labels": labels, "tag": tag, "prediction": args.prediction,
             "prediction_limiter": args.prediction_limiter, "sequences": results,
@@ -168,7 +168,7 @@ def rope_sequence(hia_root: Path, sequence: str, frames: int, work: Path, noise:
     import math
 
     folder = work / f"rope_{sequence}_{noise}_{frames}_b{bend:g}"
-    if (folder / "gt" / "meta.json").is_file():
+    if SequenceLayout(folder).gt.meta.is_file():
         return folder
     hands = thesis_motion(hia_root, sequence, slice(0, frames), dtype=torch.float32)
     scene = Scene.from_names(list(hands.scene.names) + ["rope"], dtype=torch.float32)
@@ -215,7 +215,7 @@ def rope_from_pipe_sequence(hia_root: Path, frames: int, work: Path, noise: str,
     smooth, realistic motion of a held rope: its ends follow the hands, its middle
     bends by up to the pipe's angle."""
     folder = work / f"rope_pipe{sequence}_{noise}_{frames}"
-    if (folder / "gt" / "meta.json").is_file():
+    if SequenceLayout(folder).gt.meta.is_file():
         return folder
     src = thesis_motion(hia_root, sequence, slice(0, frames), dtype=torch.float64)
     names = [n for n in src.scene.names if n != "pipe"]
@@ -294,11 +294,11 @@ def run_rope(args) -> dict:
                                         prediction_limiter=args.prediction_limiter, labels=labels)
                     out = args.work / f"{name}_{energy.replace('+', '_')}_{labels}"
                     t0 = time.perf_counter()
-                    track_sequences([folder], out, cfg, force=True)
+                    track_sequences([folder], out, TrackOptions(cfg), force=True)
                     secs = time.perf_counter() - t0
                     tracked = out / read_sequence_info(folder).name
-                    hands = evaluate_sequence(tracked, folder / "gt", with_penetration=False)
-                    gt, pred = read_poses(folder / "gt"), read_poses(tracked)
+                    hands = evaluate_sequence(tracked, SequenceLayout(folder).gt, with_penetration=False)
+                    gt, pred = read_poses(SequenceLayout(folder).gt), read_poses(tracked)
                     scene = Scene.from_names(gt.models, dtype=torch.float64)
                     with torch.no_grad():
                         joints = [scene.models[-1].joints_from(
@@ -335,7 +335,7 @@ def run_ablation(args) -> dict:
     gt_penetration = {}
     if args.penetration:  # the ground truth's own interpenetration, for reference
         for s, f in folders.items():
-            r = evaluate_sequence(f / "gt", f / "gt")
+            r = evaluate_sequence(SequenceLayout(f).gt, SequenceLayout(f).gt)
             gt_penetration[s] = r.get("penetration")
     runs = []
     for e in (args.energies or "LO,LO+C").split(","):
@@ -379,7 +379,7 @@ def physics_displacement(tracked, folders) -> dict:
 
     out = {}
     for s, folder in folders.items():
-        poses = read_poses(folder / "gt" if tracked is None else tracked / f"hia_{s}")
+        poses = read_poses(SequenceLayout(folder).gt if tracked is None else tracked / f"hia_{s}")
         scene = Scene.from_names(poses.models, dtype=torch.float64)
         sim = GraspSimulation(scene)
         if not sim.objects:
@@ -404,7 +404,7 @@ def ballan_detections(folder: Path, rate: float, seed: int, fp_rate: float = 0.1
     """Simulated detections of a rendered sequence, keyed by the hash of each raw depth
     frame: {key: (N, 3) rows of u, v, score}."""
     info = read_sequence_info(folder)
-    gt = read_poses(folder / "gt")
+    gt = read_poses(SequenceLayout(folder).gt)
     scene = Scene.from_names(gt.models)
     cam = info.cameras[0]
     tips = fingertip_faces(scene)
@@ -414,7 +414,7 @@ def ballan_detections(folder: Path, rate: float, seed: int, fp_rate: float = 0.1
         with torch.no_grad():
             V = scene(torch.as_tensor(gt.theta[k : k + 1], dtype=torch.float32)).vertices
         rend = render(V, scene.faces, cam, scene.face_model_id, scene.face_bone_id)
-        depth = read_depth(camera_dir(folder, 0) / "depth" / frame_name(k), info.depth_unit_mm)
+        depth = read_depth(SequenceLayout(folder).depth(k), info.depth_unit_mm)
         raw = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
         t = fingertip_targets(V, rend.face_id, cam, tips, sensed=torch.as_tensor(raw > 0)[None])
         uv = t.uv[0].numpy()[t.area_mm2[0].numpy() >= VISIBLE_MM2]
@@ -439,10 +439,10 @@ def run_detector_quality(args) -> dict:
         cfg = TrackerConfig(energy="LO+S", metric=args.metric, max_iterations=args.iterations,
                             first_frame_iterations=args.iterations)
         out = args.work / f"tracked_s_rate{rate:g}"
-        track_sequences(list(folders.values()), out, cfg, force=True,
+        track_sequences(list(folders.values()), out, TrackOptions(cfg), force=True,
                         make_terms=lambda: [ModelToData(metric=args.metric), default_data_to_model(),
                                             Salient(detector=det), *default_priors()])
-        res = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
+        res = summarize([evaluate_sequence(out / f"hia_{s}", SequenceLayout(f).gt, with_penetration=False)
                          for s, f in folders.items()])
         rows.append({"detection_rate": rate, "mean_px": res["mean_px"], "mean_mm": res["mean_mm"],
                      "median_mm": res["median_mm"]})
@@ -461,9 +461,9 @@ def run_m2d(args) -> dict:
             cfg = TrackerConfig(energy="LO", metric=metric, max_iterations=iters, first_frame_iterations=iters,
                                 min_joint_motion=0.0)
             out = args.work / f"tracked_m2d_{metric}_{iters}"
-            summaries = track_sequences(list(folders.values()), out, cfg, force=True, progress=False,
+            summaries = track_sequences(list(folders.values()), out, TrackOptions(cfg), force=True, progress=False,
                                         make_terms=lambda: [ModelToData(metric=metric), *default_priors()])
-            res = summarize([evaluate_sequence(out / f"hia_{s}", f / "gt", with_penetration=False)
+            res = summarize([evaluate_sequence(out / f"hia_{s}", SequenceLayout(f).gt, with_penetration=False)
                              for s, f in folders.items()])
             rows.append({"metric": metric, "iterations": iters, "mean_px": res["mean_px"], "mean_mm": res["mean_mm"],
                          "seconds_per_frame": sum(s["seconds_per_frame"] for s in summaries) / len(summaries)})

@@ -309,3 +309,49 @@ def test_track_writes_labelled_overlays_and_eval_counts_flagged_frames(tmp_path,
     capsys.readouterr()
     assert main(["eval", str(out / name), "--gt", str(seq / "gt"), "--no-penetration"]) == 0
     assert "(1 flagged by the tracker)" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ error policy
+def _error_lines(capsys) -> list:
+    return capsys.readouterr().err.strip().splitlines()
+
+
+def test_a_bad_argument_is_one_line_naming_it(synth_out, tmp_path, capsys):
+    assert main(["track", str(synth_out), "--out", str(tmp_path / "o"), "--batch", "0"]) == 2
+    err = _error_lines(capsys)
+    assert len(err) == 1 and err[0].startswith("torchhand track: error: --batch"), err
+
+
+def test_a_missing_optional_dependency_names_its_extra(synth_out, tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails as where it is not installed
+    assert main(["track", str(synth_out), "--out", str(tmp_path / "o"), "--ray"]) == 2
+    err = [line for line in _error_lines(capsys) if not line.startswith("track ")]  # the progress bar's
+    assert len(err) == 1, err
+    assert err[0].startswith("torchhand track: error: --ray needs ray: pip install 'torchhand[ray]'"), err
+
+
+def test_an_import_of_an_extra_module_names_the_extra():
+    from torchhand.app.cli import user_error
+
+    assert "torchhand[physics]" in user_error(ModuleNotFoundError("No module named 'pybullet'", name="pybullet"))
+    assert user_error(ImportError("cannot import name 'x' from 'torchhand.app.runner'", name="torchhand.app.runner")) \
+        is None
+
+
+@pytest.mark.parametrize("bug", [TypeError("f() got an unexpected keyword argument 'x'"), KeyError("x"),
+                                 AttributeError("'NoneType' object has no attribute 'x'"), "numpy"])
+def test_a_library_bug_is_not_reported_as_a_usage_error(bug, synth_out, tmp_path, capsys, monkeypatch):
+    import torchhand.app.scaleout as scaleout
+
+    def broken(*args, **kwargs):
+        if bug == "numpy":
+            np.stack([])  # a ValueError from inside numpy: torchhand passed it something wrong
+        raise bug
+
+    monkeypatch.setattr(scaleout, "track_many", broken)
+    code = main(["track", str(synth_out), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "Traceback" in err and "in broken" in err and "bug in torchhand, please report it" in err

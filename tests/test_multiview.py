@@ -247,7 +247,7 @@ def test_the_default_prediction_follows_the_energy():
 def test_a_rig_of_mixed_image_sizes_is_refused_by_name(tmp_path):
     import json
 
-    from torchhand.app.runner import track_sequences
+    from torchhand.app.runner import TrackOptions, track_sequences
 
     seq = tmp_path / "views"
     write_synthetic_sequence(with_camera_ring(demo_motion(slice(0, 1)), 2), seq, colour="shaded", depth=False,
@@ -255,7 +255,7 @@ def test_a_rig_of_mixed_image_sizes_is_refused_by_name(tmp_path):
     meta = json.loads((seq / "sequence.json").read_text())
     meta["cameras"][1]["width"], meta["cameras"][1]["height"] = 320, 240
     (seq / "sequence.json").write_text(json.dumps(meta))
-    [summary] = track_sequences([seq], tmp_path / "out", TrackerConfig(energy="E+C"), progress=False)
+    [summary] = track_sequences([seq], tmp_path / "out", TrackOptions(TrackerConfig(energy="E+C")), progress=False)
     assert summary["status"] == "failed" and "camera 1 is 320x240 px" in summary["error"]
     assert not (tmp_path / "out" / "demo").exists()
 
@@ -267,7 +267,8 @@ def test_nail_detections_come_from_salient_json_or_the_shipped_detector(tmp_path
     import json
 
     from torchhand.app.cli import main
-    from torchhand.app.runner import NAIL_DETECTIONS, _Frames
+    from torchhand.app.frames import FrameReader as _Frames
+    from torchhand.app.options import NAIL_DETECTIONS
 
     seq = tmp_path / "views"
     assert main(["synth", "--demo", "--frames", ":2", "--views", "3", "--protocol", "ballan", "--out", str(seq)]) == 0

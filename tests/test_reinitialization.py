@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import torch
 
-from torchhand.app.runner import track_sequences
+from torchhand.app.runner import TrackOptions, track_sequences
 from torchhand.data.layout import camera_dir, frame_name, read_poses
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
 from torchhand.model.scene import Scene
@@ -48,6 +48,6 @@ def test_a_hand_back_in_view_is_reinitialised_within_five_frames(tmp_path):
     # there: the test measures the re-initialisation. (Whether local search alone finds
     # the hand again some frames later depends on package versions: with some it does by
     # frame 26, so only the first frame back is compared.)
-    [off] = track_sequences([seq], tmp_path / "off", progress=False, reinit_iou=0.0)
+    [off] = track_sequences([seq], tmp_path / "off", TrackOptions(reinit_iou=0.0), progress=False)
     err_off = np.linalg.norm(read_poses(tmp_path / "off" / "gap").keypoints_3d - gt.keypoints_3d, axis=-1).mean((1, 2))
     assert off["reinitialized_frames"] == 0 and err_off[flagged[0]] > 10.0 and err[flagged[0]] < 6.0

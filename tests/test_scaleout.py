@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from torchhand.app.cli import main
+from torchhand.app.options import TrackOptions
 from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, connect_ray, evaluate_pairs, read_list, track_many
 from torchhand.data.layout import camera_dir, frame_name
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
@@ -21,7 +22,7 @@ from torchhand.model.scene import Scene
 from torchhand.tracking.tracker import TrackerConfig
 
 FRAMES = 3
-JOB = TrackJob(TrackerConfig(max_iterations=8, first_frame_iterations=8))
+JOB = TrackJob(TrackOptions(TrackerConfig(max_iterations=8, first_frame_iterations=8)))
 
 
 @pytest.fixture(scope="module")
@@ -133,7 +134,7 @@ def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
     assert run["resumed"] == 2 and run["tasks"] == 2 and run["failed"] == 0
     assert (out / "s0" / "theta.npy").stat().st_mtime_ns == kept
     _assert_equal(out, sequential)
-    other = TrackJob(TrackerConfig(energy="LO", max_iterations=8, first_frame_iterations=8))
+    other = TrackJob(TrackOptions(TrackerConfig(energy="LO", max_iterations=8, first_frame_iterations=8)))
     with pytest.raises(ValueError, match="tracker.energy: 'LO\\+F' there, 'LO' now"):
         track_many(sequences, out, other, resume=True, progress=False)
 

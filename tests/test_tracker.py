@@ -17,7 +17,7 @@ from torchhand.tracking.energies import (DataToModel, FreeSpace, ModelToData, Ro
 from torchhand.scoring.sequences import evaluate_sequence
 from torchhand.geometry.render import render
 from torchhand.model.scene import Scene
-from torchhand.app.runner import track_sequences
+from torchhand.app.runner import TrackOptions, track_sequences
 from torchhand.tracking.tracker import Tracker, TrackerConfig, predicted_start
 
 SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "sample"
@@ -356,7 +356,7 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     shutil.move(str(seq / "gt"), gt)  # the tracker must not need gt/
     cfg = TrackerConfig(max_iterations=3, first_frame_iterations=3)
     out = tmp_path / "out"
-    summary = track_sequences([seq], out, cfg, progress=False)
+    summary = track_sequences([seq], out, TrackOptions(cfg), progress=False)
     name = summary[0]["sequence"]
     folder = out / name
     assert (folder / "motion" / "Model_Hand_R.MOTION").is_file()
@@ -366,7 +366,7 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     result = evaluate_sequence(folder, gt, with_penetration=False)
     assert result["frames"] == 4 and result["mean_mm"] < 6.0
     with pytest.raises(FileExistsError):
-        track_sequences([seq], out, cfg, progress=False)
+        track_sequences([seq], out, TrackOptions(cfg), progress=False)
 
 
 
@@ -397,7 +397,7 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
     for p in (0.0, 0.5):
         calls.clear()
         cfg = TrackerConfig(max_iterations=2, first_frame_iterations=2, prediction=p, prediction_limiter=False)
-        track_sequences([seq], tmp_path / f"out{p}", cfg, progress=False)
+        track_sequences([seq], tmp_path / f"out{p}", TrackOptions(cfg), progress=False)
         assert len(calls) == 4 and calls[0][1] is None and calls[1][1] is None
         for f in (2, 3):
             previous, start, _, first_solve, tracker = calls[f]

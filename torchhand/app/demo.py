@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchhand.data.layout import OutputLayout, SequenceLayout
 from torchhand.geometry.camera import kinect_camera
 from torchhand.io.assets import load_demo_motion
 from torchhand.geometry.render import render
@@ -38,7 +39,8 @@ def run_demo(out: Path, frames: int | None = None, force: bool = False, device: 
     scene = Scene.from_names(names, device=device)
     theta = theta.to(device)
     cam = kinect_camera().to(device)
-    (out / "overlays").mkdir()
+    overlays = OutputLayout(out)  # the overlays as a tracker's output folder has them
+    overlays.overlays_dir.mkdir()
     depths, kp2d, t_render = [], [], 0.0
     hands = [n for n, m in zip(scene.names, scene.models) if m.kind == "hand"]
     for k in tqdm(range(len(theta)), desc="demo", unit="frame"):
@@ -59,7 +61,7 @@ def run_demo(out: Path, frames: int | None = None, force: bool = False, device: 
         draw_colorbar(img, near, far)
         draw_legend(img, f"frame {k}", [(f"{n}: posed" if n in hands else f"{n} (depth only)", None)
                                         for n in scene.names])
-        cv2.imwrite(str(out / "overlays" / f"{k:06d}.png"), img)
+        cv2.imwrite(str(overlays.overlay(k)), img)
         images.append(img)
     write_video(images, out / "demo.mp4")
     (out / "keypoints_2d.json").write_text(json.dumps(kp2d))
@@ -84,6 +86,7 @@ def _track_demo(out: Path, scene: Scene, theta: torch.Tensor, cam, device: str) 
     """Synthesise -> track -> evaluate a few frames; returns the headline scores."""
     from torchhand.data.synth import SyntheticFrames, write_synthetic_sequence
     from torchhand.scoring.sequences import evaluate_sequence
+    from torchhand.app.options import TrackOptions
     from torchhand.app.runner import track_sequences
     from torchhand.tracking.tracker import TrackerConfig
 
@@ -91,9 +94,9 @@ def _track_demo(out: Path, scene: Scene, theta: torch.Tensor, cam, device: str) 
     seq = write_synthetic_sequence(frames, out / "sequence", noise="kinect", seed=0)
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=10, first_frame_iterations=10)
     t0 = time.perf_counter()
-    track_sequences([seq], out / "track", cfg, device=device, viz=True)
+    track_sequences([seq], out / "track", TrackOptions(cfg, device=device, viz=True))
     seconds = (time.perf_counter() - t0) / len(theta)
-    result = evaluate_sequence(out / "track" / "demo", seq / "gt", with_penetration=False)
+    result = evaluate_sequence(out / "track" / "demo", SequenceLayout(seq).gt.root, with_penetration=False)
     (out / "eval.json").write_text(json.dumps(result, indent=2))
     return {"frames": len(theta), "seconds_per_frame": seconds, "mean_px": result["mean_px"],
             "mean_mm": result["mean_mm"], "auc_0_50mm": result["auc_0_50mm"]}

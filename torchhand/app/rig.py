@@ -42,8 +42,9 @@ import numpy as np
 import torch
 
 from torchhand.app.drawing import draw_rig, part_colors
+from torchhand.app.options import TrackOptions
 from torchhand.app.runner import track_sequences
-from torchhand.data.layout import camera_dir, frame_name, read_depth, read_init_pose, read_poses, read_sequence_info
+from torchhand.data.layout import SequenceLayout, read_depth, read_init_pose, read_poses, read_sequence_info
 from torchhand.geometry.render import Renderer, model_masks
 from torchhand.io.assets import find_model, load_assets, save_assets
 from torchhand.io.mesh_files import check_mesh, read_object_mesh, write_mesh
@@ -92,7 +93,7 @@ def _template_placement(root: Path, info, template: np.ndarray, template_pose) -
                 or not np.allclose(T[3], [0, 0, 0, 1]):
             raise RigError(f"template_pose must be a rigid (4, 4) transform, got {T.tolist()}")
         return T
-    theta = read_init_pose(root) if (root / "init_pose.json").is_file() else None
+    theta = read_init_pose(root) if SequenceLayout(root).init_pose.is_file() else None
     if theta is not None:
         scene = Scene.from_names(info.models, dtype=torch.float64)
         if theta.shape == (scene.num_dofs,):
@@ -147,15 +148,16 @@ def _hand_masks(root: Path, work: Path, info, hands: list, n: int, dilation: int
     """Track the hands (in camera 0, as the runner does), then (theta (n, D_hands), their
     masks in every camera (n, H, W))."""
     starts = None  # without init_pose.json: the runner's automatic initialisation of the hands
-    if (root / "init_pose.json").is_file():
+    init_pose = SequenceLayout(root).init_pose
+    if init_pose.is_file():
         full = Scene.from_names(info.models, dtype=torch.float64)
         th0 = read_init_pose(root)
         if th0.shape != (full.num_dofs,):
-            raise RigError(f"{root / 'init_pose.json'}: {th0.size} values, the sequence's models {info.models} have "
+            raise RigError(f"{init_pose}: {th0.size} values, the sequence's models {info.models} have "
                            f"{full.num_dofs} DoF")
         starts = [np.concatenate([th0[full.slices[h]] for h in hands])]
-    summary = track_sequences([root], work, models=hands, names=["hands"], init_poses=starts, progress=progress,
-                              reinit_iou=0.0)[0]
+    summary = track_sequences([root], work, TrackOptions(models=tuple(hands), reinit_iou=0.0), names=["hands"],
+                              init_poses=starts, progress=progress)[0]
     if summary["status"] != "ok":
         raise RigError(f"{root}: the hands could not be tracked: {summary.get('error')}")
     scene = Scene.from_names(hands, dtype=torch.float64)
@@ -183,13 +185,13 @@ def _rig_into(work: Path, root: Path, info, n: int, tv, tf, what: str, T0: np.nd
         for f in range(n):
             views = []
             for c, cam in enumerate(info.cameras):
-                d = read_depth(camera_dir(root, c) / "depth" / frame_name(f), info.depth_unit_mm)
+                d = read_depth(SequenceLayout(root).depth(f, c), info.depth_unit_mm)
                 d = np.where((d >= near) & (d <= far), d, 0).astype(np.float32)
                 if masks is not None:
                     d[masks[c][f]] = 0
                 if not (d > 0).any():
                     after = " once the hands are removed" if hands else ""
-                    raise RigError(f"{camera_dir(root, c) / 'depth' / frame_name(f)}: no depth of the object is left "
+                    raise RigError(f"{SequenceLayout(root).depth(f, c)}: no depth of the object is left "
                                    f"between {near:g} and {far:g} mm{after}")
                 views.append(preprocess_depth(d, cam, pre))
             yield views
@@ -233,8 +235,8 @@ def _rig_into(work: Path, root: Path, info, n: int, tv, tf, what: str, T0: np.nd
         th_obj = fit_rig(model, res.vertices[0]).numpy()  # the rig's pose on the deformable frame 0 (world)
         start = np.concatenate([hand_theta[0], th_obj]) if hands else th_obj
         t3 = time.perf_counter()
-        summary = track_sequences([root], work, models=hands + [str(work / "model.npz")], names=["track"],
-                                  init_poses=[start], progress=progress, reinit_iou=0.0, write_vertices=True)[0]
+        options = TrackOptions(models=(*hands, str(work / "model.npz")), reinit_iou=0.0, write_vertices=True)
+        summary = track_sequences([root], work, options, names=["track"], init_poses=[start], progress=progress)[0]
         seconds["tracking"] = time.perf_counter() - t3
         if summary["status"] != "ok":
             raise RigError(f"{root}: tracking with the rigged model failed: {summary.get('error')}")

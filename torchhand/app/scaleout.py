@@ -47,35 +47,27 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 from tqdm import tqdm
 
-from torchhand.data.layout import SequenceError, read_sequence_info
+from torchhand.app.options import TrackOptions
+from torchhand.core.errors import MissingExtra
+from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
 from torchhand.io.output_dir import remove_partials
 from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
-from torchhand.tracking.initialization import InitConfig
-from torchhand.tracking.segmentation import SegmentConfig
-from torchhand.tracking.tracker import TrackerConfig
 
 __all__ = ["TrackJob", "track_many", "evaluate_pairs", "run_tasks", "read_list", "connect_ray", "default_batch",
            "TaskFailure", "SUMMARY_NAME"]
 
 #: The run summary written into ``--out``: every sequence's status, time and frames.
-SUMMARY_NAME = "track_summary.json"
+SUMMARY_NAME = TRACK_SUMMARY
 
 
 @dataclass(frozen=True)
 class TrackJob:
-    """What :func:`~torchhand.app.runner.track_sequences` is asked for every task."""
+    """What every task of a run is asked: the options that
+    :func:`~torchhand.app.runner.track_sequences` takes, and the torch threads of each
+    worker (which change no result)."""
 
-    config: TrackerConfig = field(default_factory=TrackerConfig)
-    device: str = "cpu"
-    viz: bool = False
-    segment: Optional[SegmentConfig] = None
-    write_render: bool = False
-    write_vertices: bool = False
-    reinit_iou: Optional[float] = None  # None: the runner's default
-    init_config: InitConfig = field(default_factory=InitConfig)
-    models: Optional[tuple] = None
+    options: TrackOptions = field(default_factory=TrackOptions)
     threads: int = 1
-    nails: str = "auto"  # the colour views' nail detections (runner.NAIL_SOURCES)
 
 
 @dataclass(frozen=True)
@@ -219,7 +211,7 @@ def connect_ray(address: str, num_cpus: int, timeout_s: float = 5.0) -> bool:
     try:
         import ray
     except ImportError:
-        raise ImportError("--ray needs Ray: pip install 'torchhand[ray]'") from None
+        raise MissingExtra("--ray", "ray") from None
     if ray.is_initialized():
         return False
     if address == "local":
@@ -323,7 +315,7 @@ def read_list(path, columns: int = 1) -> List[tuple]:
 def _signature(target: Path) -> Optional[tuple]:
     """Which write of ``target``'s track log is there (inode, mtime), or None."""
     try:
-        st = (target / "track_log.json").stat()
+        st = OutputLayout(target).track_log.stat()
     except OSError:
         return None
     return st.st_ino, st.st_mtime_ns
@@ -333,7 +325,6 @@ def _track_task(spec: dict, report: _Report) -> List[dict]:
     from torchhand.app.runner import track_sequences
 
     job: TrackJob = spec["job"]
-    extra = {} if job.reinit_iou is None else {"reinit_iou": job.reinit_iou}
     # A worker that dies after a sequence's folder was renamed complete, before the task
     # returned, leaves that folder to the task's retry: it is kept, not tracked again. A
     # folder that was there before the run (--force replaces it) is never kept.
@@ -346,12 +337,9 @@ def _track_task(spec: dict, report: _Report) -> List[dict]:
                 pass
     todo = [j for j in range(len(spec["names"])) if j not in finished]
     if todo:
-        tracked = track_sequences([spec["roots"][j] for j in todo], spec["out"], job.config, device=job.device,
-                                  viz=job.viz, force=spec["force"], progress=False, segment=job.segment,
-                                  write_render=job.write_render, write_vertices=job.write_vertices,
-                                  init_config=job.init_config, models=job.models,
-                                  names=[spec["names"][j] for j in todo], nails=job.nails,
-                                  on_frames=lambda n: report("frames", n), **extra)
+        tracked = track_sequences([spec["roots"][j] for j in todo], spec["out"], job.options,
+                                  names=[spec["names"][j] for j in todo], force=spec["force"], progress=False,
+                                  on_frames=lambda n: report("frames", n))
         finished.update(zip(todo, tracked))
     return [finished[j] for j in range(len(spec["names"]))]
 
@@ -370,7 +358,7 @@ def _differences(old: dict, new: dict, prefix: str = "") -> List[str]:
 def _complete(target: Path, settings: dict) -> Optional[dict]:
     """The summary of a finished sequence folder tracked with ``settings``; errors for a
     folder of another command or other settings."""
-    log = target / "track_log.json"
+    log = OutputLayout(target).track_log
     if not log.is_file():
         raise ValueError(f"--resume: {target} was not written by torchhand track (no track_log.json); "
                          "choose another --out")
@@ -392,29 +380,9 @@ def _complete(target: Path, settings: dict) -> Optional[dict]:
             "reinitialized_frames": sum(bool(f.get("reinitialized")) for f in frames)}
 
 
-def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: int = 1, ray: Optional[str] = None,
-               batch: Optional[int] = None, resume: bool = False, force: bool = False, retries: int = 2,
-               progress: bool = True, on_event: Optional[Callable[[tuple], None]] = None) -> dict:
-    """``torchhand track DIR... [--workers N | --ray [ADDRESS]] [--resume]``: track
-    sequence folders as tasks (see the module), with one progress bar over all their
-    frames, and write ``<out>/track_summary.json``.
-
-    Every folder is checked before any work starts (all unreadable ones are named in
-    one error), as is every existing output folder (refused unless ``force`` or, with
-    ``resume``, complete with the same settings). Returns the summary: ``sequences``
-    (each one's status, error, frames, time, output), ``failed``, ``frames``,
-    ``seconds``, and the run's ``settings``."""
-    from torchhand.app.runner import REINIT_IOU, output_names, track_settings
-
-    t0 = time.perf_counter()
-    job = job or TrackJob()
-    if resume and force:
-        raise ValueError("--resume keeps finished sequences and --force replaces them: give one")
-    if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int) or batch < 1):
-        raise ValueError(f"--batch must be an integer >= 1, got {batch!r}")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"--workers must be an integer >= 1, got {workers!r}")
-    roots = [Path(r).resolve() for r in roots]
+def _read_infos(roots: List[Path], options: TrackOptions) -> list:
+    """Every sequence's ``sequence.json`` (the scene of ``options.models`` where given);
+    all unreadable folders are named in one error."""
     if not roots:
         raise ValueError("no sequence folders given (DIR... or --list FILE)")
     infos, bad = [], []
@@ -426,12 +394,15 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     if bad:
         raise ValueError(f"{len(bad)} of {len(roots)} sequence folders cannot be read, nothing was tracked:\n  "
                          + "\n  ".join(bad))
-    if job.models is not None:
-        infos = [dataclasses.replace(i, models=list(job.models)) for i in infos]
-    out = Path(out).resolve()
-    names = output_names(infos)
-    reinit = REINIT_IOU if job.reinit_iou is None else job.reinit_iou
-    settings = track_settings(job.config, job.segment, reinit, job.init_config, job.models, job.device, job.nails)
+    if options.models is not None:
+        infos = [dataclasses.replace(i, models=list(options.models)) for i in infos]
+    return infos
+
+
+def _finished(out: Path, names: List[str], settings: dict, resume: bool, force: bool) -> Dict[int, dict]:
+    """The summaries of the sequences whose output folders are complete with these
+    settings (``resume``); errors for a non-empty folder that is neither kept
+    (``resume``) nor replaced (``force``)."""
     done: Dict[int, dict] = {}
     taken = []
     for k, n in enumerate(names):
@@ -444,8 +415,40 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     if taken:
         raise FileExistsError(f"{len(taken)} output folders are not empty: {', '.join(taken)}; choose another --out, "
                               "pass --resume to keep the finished ones, or --force to replace them")
+    return done
+
+
+def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: int = 1, ray: Optional[str] = None,
+               batch: Optional[int] = None, resume: bool = False, force: bool = False, retries: int = 2,
+               progress: bool = True, on_event: Optional[Callable[[tuple], None]] = None) -> dict:
+    """``torchhand track DIR... [--workers N | --ray [ADDRESS]] [--resume]``: track
+    sequence folders as tasks (see the module), with one progress bar over all their
+    frames, and write ``<out>/track_summary.json``.
+
+    Every folder is checked before any work starts (all unreadable ones are named in
+    one error), as is every existing output folder (refused unless ``force`` or, with
+    ``resume``, complete with the same settings). Returns the summary: ``sequences``
+    (each one's status, error, frames, time, output), ``failed``, ``frames``,
+    ``seconds``, and the run's ``settings``."""
+    from torchhand.app.runner import output_names
+
+    t0 = time.perf_counter()
+    job = job or TrackJob()
+    if resume and force:
+        raise ValueError("--resume keeps finished sequences and --force replaces them: give one")
+    if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int) or batch < 1):
+        raise ValueError(f"--batch must be an integer >= 1, got {batch!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"--workers must be an integer >= 1, got {workers!r}")
+    roots = [Path(r).resolve() for r in roots]
+    options = job.options
+    infos = _read_infos(roots, options)
+    out = Path(out).resolve()
+    names = output_names(infos)
+    settings = options.settings()
+    done = _finished(out, names, settings, resume, force)
     remove_partials(out, set(names))  # what killed runs left: never results
-    batch = batch or default_batch(job.device)
+    batch = batch or default_batch(options.device)
     groups: Dict[tuple, List[int]] = {}
     for k, info in enumerate(infos):
         if k not in done:

@@ -24,6 +24,7 @@ hand and all, aligned frame to model by ICP alone, no hand tracking.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import time
@@ -34,8 +35,9 @@ import numpy as np
 import torch
 
 from torchhand.app.drawing import depth_to_color, depth_range, draw_mask_outline
+from torchhand.app.options import TrackOptions
 from torchhand.app.runner import track_sequences
-from torchhand.data.layout import camera_dir, frame_name, read_depth, read_poses, read_rgb, read_sequence_info
+from torchhand.data.layout import OutputLayout, SequenceLayout, read_depth, read_poses, read_rgb, read_sequence_info
 from torchhand.geometry.render import Renderer, model_masks
 from torchhand.io.assets import rigid_assets, save_assets
 from torchhand.io.mesh_files import write_mesh
@@ -86,8 +88,8 @@ def _scan_into(work: Path, final: Path, root: Path, info, hand: str, config: Sca
         if not info.has_rgb:
             raise ScanError(f"{root}: in-hand scanning segments the hand by skin colour and needs rgb/ frames")
         segment = SegmentConfig(mode="skin", near=near, far=far)
-        summary = track_sequences([root], work, segment=segment, models=[hand], names=["hand"], progress=progress,
-                                  reinit_iou=reinit_iou)[0]
+        options = TrackOptions(segment=segment, models=(hand,), reinit_iou=reinit_iou)
+        summary = track_sequences([root], work, options, names=["hand"], progress=progress)[0]
         if summary["status"] != "ok":
             raise ScanError(f"{root}: the hand could not be tracked: {summary.get('error')}")
         track_seconds = time.perf_counter() - t0
@@ -102,10 +104,10 @@ def _scan_into(work: Path, final: Path, root: Path, info, hand: str, config: Sca
 
     def object_depths():
         for f in range(info.frames):
-            d = read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm)
+            d = read_depth(SequenceLayout(root).depth(f), info.depth_unit_mm)
             d = np.where((d >= near) & (d <= far), d, 0).astype(np.float32)
             if not baseline:
-                rgb = read_rgb(camera_dir(root, 0) / "rgb" / frame_name(f))
+                rgb = read_rgb(SequenceLayout(root).rgb(f))
                 d[hand_masks[f] | skin_mask(rgb)] = 0
                 if erode:  # the object's outline: mixed and noisy pixels of the sensor
                     d[cv2.erode((d > 0).astype(np.uint8), np.ones((2 * erode + 1,) * 2, np.uint8)) == 0] = 0
@@ -162,21 +164,22 @@ def _write_outputs(work: Path, root: Path, info, result: ScanResult, baseline: b
             "marching_cubes_faces": int(mesh.raw_faces),
             "contacts": result.contacts.tolist(), "icp_pairs": result.icp_pairs.tolist(),
             "scan_seconds_per_frame": sec.tolist(),
-            "settings": {"registration": config.registration._asdict(), "contacts": config.contacts._asdict(),
-                         "fusion": config.fusion._asdict(), "points": config.points,
+            "settings": {"registration": dataclasses.asdict(config.registration),
+                         "contacts": dataclasses.asdict(config.contacts),
+                         "fusion": dataclasses.asdict(config.fusion), "points": config.points,
                          "model_voxel": config.model_voxel, "min_points": config.min_points,
                          "lost_frames": config.lost_frames, "refine_passes": config.refine_passes}}
 
 
 def _write_overlays(work: Path, root: Path, info, verts, faces, poses, fused, hand_masks, every: int) -> None:
-    out = work / "overlays"
-    out.mkdir()
+    out = OutputLayout(work)  # the overlays as a tracker's output folder has them
+    out.overlays_dir.mkdir()
     cam = info.cameras[0].to(dtype=torch.float64)
     to_world = torch.linalg.inv(cam.T_cw)  # the poses are model -> camera; the renderer takes world points
     renderer = Renderer(torch.as_tensor(faces))
     V = torch.as_tensor(verts)
     for f in range(0, len(poses), max(1, every)):
-        d = read_depth(camera_dir(root, 0) / "depth" / frame_name(f), info.depth_unit_mm)
+        d = read_depth(SequenceLayout(root).depth(f), info.depth_unit_mm)
         img = depth_to_color(d, *depth_range([d]))  # BGR
         if hand_masks is not None:
             img[hand_masks[f]] = (0.5 * img[hand_masks[f]] + 0.5 * np.array([120, 160, 230])).astype(np.uint8)
@@ -184,4 +187,4 @@ def _write_overlays(work: Path, root: Path, info, verts, faces, poses, fused, ha
             P = to_world @ torch.as_tensor(poses[f])
             res = renderer((V @ P[:3, :3].T + P[:3, 3])[None], cam, normals=False)
             draw_mask_outline(img, (res.model_id[0] >= 0).numpy(), (60, 220, 60))
-        cv2.imwrite(str(out / frame_name(f)), img)
+        cv2.imwrite(str(out.overlay(f)), img)

@@ -24,7 +24,7 @@ from typing import Dict, List, Optional, Sequence
 import cv2
 import numpy as np
 
-from torchhand.data.layout import SequenceError, SequenceInfo, frame_name, write_sequence_info
+from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, write_sequence_info
 from torchhand.geometry.camera import Camera
 from torchhand.io.assets import find_model
 from torchhand.io.output_dir import prepare_output_dir
@@ -139,15 +139,16 @@ def import_depth_folder(src, out, intrinsics: Dict, depth_unit_mm: float, models
     camera = Camera.from_intrinsics(float(intrinsics["fx"]), float(intrinsics["fy"]), float(intrinsics["cx"]),
                                     float(intrinsics["cy"]), W, H, name="camera0")
     out = prepare_output_dir(out, force)
-    (out / "depth").mkdir()
+    seq = SequenceLayout(out)
+    seq.depth_dir().mkdir()
     for k, p in enumerate(files):
-        shutil.copyfile(p, out / "depth" / frame_name(k))
+        shutil.copyfile(p, seq.depth(k))
     if rgb_files:
-        (out / "rgb").mkdir()
+        seq.rgb_dir().mkdir()
         for k, p in enumerate(rgb_files):
             img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if not cv2.imwrite(str(out / "rgb" / frame_name(k)), img):
-                raise OSError(f"cannot write {out / 'rgb' / frame_name(k)}")
+            if not cv2.imwrite(str(seq.rgb(k)), img):
+                raise OSError(f"cannot write {seq.rgb(k)}")
     source = {"imported_from": str(src.resolve()), "files": [p.name for p in files]}
     if rgb_files:
         source["rgb_files"] = [str(p) for p in rgb_files]

@@ -22,7 +22,11 @@
         salient_visible.npy    (N, C, P) bool: the nail centre is seen (colour renders)
 
 A tracker's output folder uses the ``gt/`` layout (without ``ids/``), so ground
-truth scored against itself gives 0.
+truth scored against itself gives 0, and adds its own files (:class:`OutputLayout`).
+
+This module is the one authority for these paths: :class:`SequenceLayout`,
+:class:`GroundTruthLayout` and :class:`OutputLayout` name every file of a sequence
+folder and of a tracker's output folder; no other module joins them by hand.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from typing import Dict, List, Optional
 import cv2
 import numpy as np
 
+from torchhand.core.errors import UsageError
 from torchhand.geometry.camera import Camera
 
 __all__ = [
@@ -42,6 +47,7 @@ __all__ = [
     "SequenceInfo",
     "SequenceError",
     "read_init_pose",
+    "write_init_pose",
     "write_sequence_info",
     "read_sequence_info",
     "frame_name",
@@ -53,12 +59,17 @@ __all__ = [
     "write_poses",
     "read_poses",
     "Poses",
+    "SequenceLayout",
+    "PosesLayout",
+    "GroundTruthLayout",
+    "OutputLayout",
+    "TRACK_SUMMARY",
 ]
 
 FORMAT = "torchhand-sequence/1"
 
 
-class SequenceError(ValueError):
+class SequenceError(UsageError):
     """A sequence folder is missing files or is inconsistent; the message names the path."""
 
 
@@ -100,6 +111,7 @@ class SequenceInfo:
 
 
 def frame_name(k: int) -> str:
+    """The file name of frame ``k`` in every per-frame folder (``000123.png``)."""
     return f"{k:06d}.png"
 
 
@@ -108,16 +120,158 @@ def camera_dir(root: Path, camera: int) -> Path:
     return Path(root) if camera == 0 else Path(root) / f"cam{camera}"
 
 
+#: The run summary of ``torchhand track`` in its ``--out`` folder, beside the sequences' folders.
+TRACK_SUMMARY = "track_summary.json"
+
+
+class _Entry:
+    """A file or folder of a layout, named once: ``theta = _Entry("theta.npy")`` makes
+    ``layout.theta`` the path ``layout.root / "theta.npy"``."""
+
+    def __init__(self, name: str, doc: str = ""):
+        self.name, self.__doc__ = name, doc or f"``{name}``"
+
+    def __get__(self, layout, owner=None):
+        return self if layout is None else layout.root / self.name
+
+
+class _Folder:
+    """A folder whose files a layout names; ``root`` is kept as a :class:`Path`."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    def __fspath__(self) -> str:
+        return str(self.root)
+
+
+@dataclass(frozen=True)
+class PosesLayout(_Folder):
+    """The ``gt/`` layout of poses and keypoints (ground truth, or a tracker's output)."""
+
+    root: Path
+    meta = _Entry("meta.json", "models, dof_names, keypoint_names, frames, per-frame valid flags")
+    theta = _Entry("theta.npy", "(N, D) float64 poses")
+    keypoints_3d = _Entry("keypoints_3d.npy", "(N, C, P, 3) float64 mm, in each camera's frame")
+    keypoints_2d = _Entry("keypoints_2d.npy", "(N, C, P, 2) float64 px")
+
+    @property
+    def arrays(self) -> List[Path]:
+        """The pose arrays, in the order :class:`Poses` takes them."""
+        return [self.theta, self.keypoints_3d, self.keypoints_2d]
+
+
+@dataclass(frozen=True)
+class GroundTruthLayout(PosesLayout):
+    """A sequence's ``gt/`` folder: the poses, and what synthesis and recordings add."""
+
+    ids_dir = _Entry("ids")
+    salient_2d = _Entry("salient_2d.npy", "(N, C, P, 2) float64 px: the nail centres in each camera")
+    salient_visible = _Entry("salient_visible.npy", "(N, C, P) bool: the nail centre is seen")
+    annotations_2d = _Entry("annotations_2d.json", "sparse manual 2D labels of a converted thesis recording")
+    object_pose = _Entry("object_pose.npy", "(N, 4, 4) poses of the scanned object, mesh -> camera, mm")
+    object_mesh = _Entry("object.ply", "the scanned object's mesh")
+    object_meta = _Entry("object.json", "the scanned object's mesh file and the grasp")
+
+    def ids(self, frame: int) -> Path:
+        """8-bit per-pixel model id of camera 0 (0 background, k+1 model k)."""
+        return self.ids_dir / frame_name(frame)
+
+
+@dataclass(frozen=True)
+class SequenceLayout(_Folder):
+    """Every path of a sequence folder (module docstring; datasets/README.md).
+
+    ``SequenceLayout(root).depth(12, camera=1)`` is ``root/cam1/depth/000012.png``."""
+
+    root: Path
+    info = _Entry("sequence.json", "cameras, scene, frame count, units, provenance")
+    init_pose = _Entry("init_pose.json", "theta of frame 0 (the tracker starts from it)")
+    init_overlay = _Entry("init_overlay.png", "the picture ``torchhand init`` draws of the pose it found")
+
+    def camera(self, camera: int = 0) -> Path:
+        """The folder of a camera's images: the root for camera 0, else ``cam<k>/``."""
+        return camera_dir(self.root, camera)
+
+    def depth_dir(self, camera: int = 0) -> Path:
+        return self.camera(camera) / "depth"
+
+    def rgb_dir(self, camera: int = 0) -> Path:
+        return self.camera(camera) / "rgb"
+
+    def occluders_dir(self, camera: int = 0) -> Path:
+        return self.camera(camera) / "occluders"
+
+    def depth(self, frame: int, camera: int = 0) -> Path:
+        return self.depth_dir(camera) / frame_name(frame)
+
+    def rgb(self, frame: int, camera: int = 0) -> Path:
+        return self.rgb_dir(camera) / frame_name(frame)
+
+    def occluders(self, frame: int, camera: int = 0) -> Path:
+        """The protocol's occluder mask of a colour frame (255 where circles cover it)."""
+        return self.occluders_dir(camera) / frame_name(frame)
+
+    def salient(self, camera: int = 0) -> Path:
+        """A camera's salient point detections, per frame."""
+        return self.camera(camera) / "salient.json"
+
+    @property
+    def gt(self) -> GroundTruthLayout:
+        """Ground truth, kept apart: a tracker never reads it."""
+        return GroundTruthLayout(self.root / "gt")
+
+
+@dataclass(frozen=True)
+class OutputLayout(PosesLayout):
+    """A tracker's output folder for one sequence: the ``gt/`` layout of the tracked
+    poses, the MOTION files, the log, and what ``--viz``, ``--write-render`` and
+    ``--write-vertices`` add."""
+
+    track_log = _Entry("track_log.json", "every frame's log and fit quality, and the run's settings")
+    motion_dir = _Entry("motion")
+    overlays_dir = _Entry("overlays")
+    overlays_video = _Entry("overlays.mp4")
+    render_dir = _Entry("render")
+    vertices_dir = _Entry("vertices")
+
+    def motion(self, model: str) -> Path:
+        """``motion/<Model>.MOTION`` (``model``: the thesis' file name of the model)."""
+        return self.motion_dir / f"{model}.MOTION"
+
+    def overlay_dir(self, camera: Optional[int] = None) -> Path:
+        return self.overlays_dir if camera is None else self.overlays_dir / f"cam{camera}"
+
+    def overlay(self, frame: int, camera: Optional[int] = None) -> Path:
+        """One camera's overlay: ``overlays/NNNNNN.png``, of a rig ``overlays/cam<k>/NNNNNN.png``."""
+        return self.overlay_dir(camera) / frame_name(frame)
+
+    def render(self, frame: int) -> Path:
+        """The rendered depth of the fitted models (16-bit mm)."""
+        return self.render_dir / frame_name(frame)
+
+    def vertices(self, model: str) -> Path:
+        """A model's posed vertices per frame, camera 0's coordinates."""
+        return self.vertices_dir / f"{model}.npy"
+
+
 def write_sequence_info(root, info: SequenceInfo, init_theta: Optional[np.ndarray] = None) -> None:
-    root = Path(root)
-    (root / "sequence.json").write_text(json.dumps(info.to_dict(), indent=2))
+    seq = SequenceLayout(root)
+    seq.info.write_text(json.dumps(info.to_dict(), indent=2))
     if init_theta is not None:
-        (root / "init_pose.json").write_text(json.dumps({"theta": [float(x) for x in np.asarray(init_theta).ravel()]}))
+        write_init_pose(root, init_theta)
+
+
+def write_init_pose(root, theta) -> None:
+    """``init_pose.json``: the theta of frame 0, as the tracker reads it."""
+    SequenceLayout(root).init_pose.write_text(json.dumps({"theta": [float(x) for x in np.asarray(theta).ravel()]}))
 
 
 def read_sequence_info(root) -> SequenceInfo:
     root = Path(root)
-    path = root / "sequence.json"
+    path = SequenceLayout(root).info
     if not path.is_file():
         raise SequenceError(f"{path} not found: {root} is not a torchhand sequence folder")
     try:
@@ -139,10 +293,13 @@ def read_sequence_info(root) -> SequenceInfo:
 
 
 def read_init_pose(root) -> np.ndarray:
-    path = Path(root) / "init_pose.json"
+    path = SequenceLayout(root).init_pose
     if not path.is_file():
         raise SequenceError(f"{path} not found: the tracker needs the pose of frame 0")
-    theta = np.asarray(json.loads(path.read_text())["theta"], np.float64)
+    try:
+        theta = np.asarray(json.loads(path.read_text())["theta"], np.float64)
+    except (ValueError, KeyError, TypeError) as err:
+        raise SequenceError(f"{path}: expected {{\"theta\": [numbers]}} ({type(err).__name__}: {err})") from None
     if not np.isfinite(theta).all():
         raise SequenceError(f"{path}: theta contains NaN or inf")
     return theta
@@ -217,32 +374,37 @@ class Poses:
 
 
 def write_poses(folder, poses: Poses) -> None:
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    np.save(folder / "theta.npy", np.asarray(poses.theta, np.float64))
-    np.save(folder / "keypoints_3d.npy", np.asarray(poses.keypoints_3d, np.float64))
-    np.save(folder / "keypoints_2d.npy", np.asarray(poses.keypoints_2d, np.float64))
+    """``folder`` (a path or a :class:`PosesLayout`) receives the ``gt/`` layout."""
+    out = PosesLayout(Path(folder))
+    out.root.mkdir(parents=True, exist_ok=True)
+    np.save(out.theta, np.asarray(poses.theta, np.float64))
+    np.save(out.keypoints_3d, np.asarray(poses.keypoints_3d, np.float64))
+    np.save(out.keypoints_2d, np.asarray(poses.keypoints_2d, np.float64))
     meta = {"models": poses.models, "dof_names": poses.dof_names, "keypoint_names": poses.keypoint_names,
             "frames": int(len(poses.theta)), "valid": np.asarray(poses.valid, bool).tolist()}
-    (folder / "meta.json").write_text(json.dumps(meta))
+    out.meta.write_text(json.dumps(meta))
 
 
 def read_poses(folder) -> Poses:
-    folder = Path(folder)
-    need = ["meta.json", "theta.npy", "keypoints_3d.npy", "keypoints_2d.npy"]
-    missing = [n for n in need if not (folder / n).is_file()]
+    """The poses of a folder in the ``gt/`` layout (a path or a :class:`PosesLayout`)."""
+    folder = PosesLayout(Path(folder))
+    missing = [p.name for p in [folder.meta] + folder.arrays if not p.is_file()]
     if missing:
-        raise SequenceError(f"{folder}: missing {missing} (expected the gt/ layout of datasets/README.md)")
-    meta = json.loads((folder / "meta.json").read_text())
-    arrays = {}
-    for n in need[1:]:
-        try:
-            arrays[n] = np.load(folder / n, allow_pickle=False)
-        except ValueError as err:
-            raise SequenceError(f"{folder / n}: unreadable ({err})") from None
+        raise SequenceError(f"{folder.root}: missing {missing} (expected the gt/ layout of datasets/README.md)")
     try:
-        return Poses(arrays["theta.npy"], arrays["keypoints_3d.npy"], arrays["keypoints_2d.npy"], meta["models"],
-                     meta["dof_names"], meta["keypoint_names"],
-                     np.asarray(meta.get("valid", [True] * len(arrays["theta.npy"]))))
+        meta = json.loads(folder.meta.read_text())
     except ValueError as err:
-        raise SequenceError(f"{folder}: {err}") from None
+        raise SequenceError(f"{folder.meta}: invalid JSON ({err})") from None
+    arrays = []
+    for path in folder.arrays:
+        try:
+            arrays.append(np.load(path, allow_pickle=False))
+        except ValueError as err:
+            raise SequenceError(f"{path}: unreadable ({err})") from None
+    try:
+        return Poses(*arrays, meta["models"], meta["dof_names"], meta["keypoint_names"],
+                     np.asarray(meta.get("valid", [True] * len(arrays[0]))))
+    except KeyError as err:
+        raise SequenceError(f"{folder.meta}: missing key {err}") from None
+    except ValueError as err:
+        raise SequenceError(f"{folder.root}: {err}") from None

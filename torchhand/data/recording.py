@@ -56,7 +56,8 @@ import numpy as np
 from tqdm import tqdm
 
 from torchhand.geometry.camera import kinect_camera
-from torchhand.data.layout import SequenceError, SequenceInfo, frame_name, write_depth, write_rgb, write_sequence_info
+from torchhand.data.layout import (SequenceError, SequenceInfo, SequenceLayout, write_depth, write_rgb,
+                                   write_sequence_info)
 
 __all__ = [
     "RECORDING_FORMAT",
@@ -450,19 +451,20 @@ def convert_recording(
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        (tmp / DEPTH_DIR).mkdir()
+        seq = SequenceLayout(tmp)
+        seq.depth_dir().mkdir()
         if has_rgb:
-            (tmp / RGB_DIR).mkdir()
+            seq.rgb_dir().mkdir()
         frames_2d: Dict[str, Dict[str, List[float]]] = {}
         for i, k in enumerate(tqdm(numbers, desc=f"convert {name}", unit="frame", disable=not progress)):
             frame = _read_frame(depth_files[k], rgb_files[k] if has_rgb else None, joint_files.get(k), scale)
-            write_depth(tmp / DEPTH_DIR / frame_name(i), frame.depth)
+            write_depth(seq.depth(i), frame.depth)
             if frame.rgb is not None:
-                write_rgb(tmp / RGB_DIR / frame_name(i), frame.rgb)
+                write_rgb(seq.rgb(i), frame.rgb)
             if frame.joints_2d is not None:
                 frames_2d[str(i)] = {str(j): [x, y] for j, (x, y) in sorted(frame.joints_2d.items())}
         if joint_files:
-            (tmp / "gt").mkdir()
+            seq.gt.root.mkdir()
             annotations = {
                 "source": f"{RECORDING_FORMAT}: {JOINTS_DIR}/",
                 "units": "px",
@@ -470,7 +472,7 @@ def convert_recording(
                         "torchhand keypoint indices; frames without labels have no entry",
                 "frames": frames_2d,
             }
-            (tmp / "gt" / "annotations_2d.json").write_text(json.dumps(annotations))
+            seq.gt.annotations_2d.write_text(json.dumps(annotations))
         info = SequenceInfo(name=name, cameras=[kinect_camera()], models=models, frames=len(numbers),
                             depth_unit_mm=1.0, has_rgb=has_rgb, source=source)
         write_sequence_info(tmp, info, init_theta)

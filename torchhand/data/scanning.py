@@ -35,6 +35,7 @@ from torchhand.model.articulated import ArticulatedModel, load_model
 from torchhand.model.kinematics import so3_log
 from torchhand.model.scene import Scene
 from torchhand.model.shape import finger_bones
+from torchhand.data.layout import SequenceLayout
 from torchhand.data.synth import SyntheticFrames, quat_to_matrix, write_synthetic_sequence
 
 __all__ = ["Grasp", "grasp", "scan_motion", "write_scan_sequence", "scan_frames", "OBJECT_NAME"]
@@ -296,9 +297,10 @@ def write_scan_sequence(mesh_path, out, hand: str = "hand_right", frames: Option
     sf = scan_motion(mesh, hand, frames=frames, seed=seed, turns=turns)
     poses = sf.source.pop("object_pose")
     out = write_synthetic_sequence(sf, out, noise=noise, seed=seed, force=force, progress=progress, backend=backend)
-    np.save(out / "gt" / "object_pose.npy", poses)
-    write_mesh(out / "gt" / "object.ply", mesh.vertices, mesh.faces)
+    gt = SequenceLayout(out).gt
+    np.save(gt.object_pose, poses)
+    write_mesh(gt.object_mesh, mesh.vertices, mesh.faces)
     meta: Dict = {"mesh": str(mesh.path), "object_pose": "object_pose.npy: (N, 4, 4) mesh -> camera, mm",
                   "contacts": sf.source["grasp"]["contacts"]}
-    (out / "gt" / "object.json").write_text(json.dumps(meta, indent=1))
+    gt.object_meta.write_text(json.dumps(meta, indent=1))
     return out

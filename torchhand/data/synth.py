@@ -26,7 +26,8 @@ from torchhand.model.motion import motion_to_theta
 from torchhand.geometry.render import Renderer, RenderResult
 from torchhand.model.scene import Scene
 from torchhand.io.output_dir import prepare_output_dir
-from torchhand.data.layout import Poses, SequenceInfo, camera_dir, frame_name, write_depth, write_poses, write_rgb, write_sequence_info
+from torchhand.data.layout import (Poses, SequenceInfo, SequenceLayout, write_depth, write_poses, write_rgb,
+                                   write_sequence_info)
 from torchhand.data.noise import apply_kinect_noise, noise_model
 from torchhand.data.appearance import background_texture, face_albedo, model_albedo, shade
 from torchhand.data.ballan_protocol import protocol as noise_protocol, simulate_detections, structural_noise
@@ -248,10 +249,12 @@ def write_synthetic_sequence(
         sal2d = np.zeros((N, len(cams), len(salient), 2))
         sal_vis = np.zeros((N, len(cams), len(salient)), bool)
         detections = [[] for _ in cams]
+    seq = SequenceLayout(out)
     for c in range(len(cams)):
-        for sub in (["depth"] if depth else []) + (["rgb"] if rgb else []) + (["occluders"] if proto else []):
-            (camera_dir(out, c) / sub).mkdir(parents=True, exist_ok=True)
-    (out / "gt" / "ids").mkdir(parents=True)
+        for folder, wanted in ((seq.depth_dir(c), depth), (seq.rgb_dir(c), rgb), (seq.occluders_dir(c), proto)):
+            if wanted:
+                folder.mkdir(parents=True, exist_ok=True)
+    seq.gt.ids_dir.mkdir(parents=True)
     kp3d = np.zeros((N, len(cams), len(scene.keypoint_names), 3))
     kp2d = np.zeros((N, len(cams), len(scene.keypoint_names), 2))
     bar = tqdm(total=N, desc=f"synth {frames.name}", unit="frame", disable=not progress)
@@ -277,20 +280,20 @@ def write_synthetic_sequence(
             for b in range(len(th)):
                 k = s + b
                 if depth:
-                    write_depth(camera_dir(out, c) / "depth" / frame_name(k), dmap[b].cpu().numpy())
+                    write_depth(seq.depth(k, c), dmap[b].cpu().numpy())
                 if rgb:
                     img = image[b].cpu().numpy()
                     if proto is not None:
                         img, circles = structural_noise(img, rng, proto)
-                        cv2.imwrite(str(camera_dir(out, c) / "occluders" / frame_name(k)),
+                        cv2.imwrite(str(seq.occluders(k, c)),
                                     circles.astype(np.uint8) * 255)
                         seen = sal2d[k, c][sal_vis[k, c]]
                         detections[c].append(simulate_detections(seen, rng, proto, (cam.width, cam.height))
                                              .round(2).tolist())
-                    write_rgb(camera_dir(out, c) / "rgb" / frame_name(k), img)
+                    write_rgb(seq.rgb(k, c), img)
                 if c == 0:
                     ids = (res.model_id[b] + 1).clamp(0, 255).to(torch.uint8).cpu().numpy()
-                    cv2.imwrite(str(out / "gt" / "ids" / frame_name(k)), ids)
+                    cv2.imwrite(str(seq.gt.ids(k)), ids)
         bar.update(len(th))
     bar.close()
     listed = [n for n in scene.names if n not in frames.hidden]
@@ -303,15 +306,15 @@ def write_synthetic_sequence(
     if proto is not None:
         source["protocol"] = {"name": protocol, **dataclasses.asdict(proto)}
         for c in range(len(cams)):
-            (camera_dir(out, c) / "salient.json").write_text(json.dumps(
+            seq.salient(c).write_text(json.dumps(
                 {"format": "torchhand-salient/1", "source": f"simulated detections of the nail centres, protocol "
                  f"{protocol} (torchhand.data.ballan_protocol)", "frames": detections[c]}))
     if shaded:
-        np.save(out / "gt" / "salient_2d.npy", sal2d)
-        np.save(out / "gt" / "salient_visible.npy", sal_vis)
+        np.save(seq.gt.salient_2d, sal2d)
+        np.save(seq.gt.salient_visible, sal_vis)
     info = SequenceInfo(frames.name, cams, listed, N, has_rgb=rgb, source=source, has_depth=depth)
     th = theta.cpu().numpy()[:, dofs]
     write_sequence_info(out, info, init_theta=th[0])
-    write_poses(out / "gt", Poses(th, kp3d[:, :, kps], kp2d[:, :, kps], listed,
+    write_poses(seq.gt, Poses(th, kp3d[:, :, kps], kp2d[:, :, kps], listed,
                                   [scene.dof_names[d] for d in dofs], [scene.keypoint_names[k] for k in kps]))
     return out

@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, Dataset
 
-from torchhand.data.layout import SequenceError, camera_dir, frame_name, read_depth, read_poses, read_rgb, read_sequence_info
+from torchhand.data.layout import (SequenceError, SequenceLayout, read_depth, read_poses, read_rgb,
+                                   read_sequence_info)
 
 __all__ = ["Frame", "SequenceDataset", "MultiSequenceDataset", "collate_frames"]
 
@@ -67,12 +68,13 @@ class SequenceDataset(Dataset):
     def __init__(self, root, rgb: bool = False, ground_truth: Union[bool, str] = "auto",
                  frames: Optional[Sequence[int]] = None):
         self.root = Path(root)
+        self.layout = SequenceLayout(self.root)
         self.info = read_sequence_info(self.root)
         self.rgb = rgb and self.info.has_rgb
-        gt_dir = self.root / "gt"
-        if ground_truth is True and not (gt_dir / "meta.json").is_file():
-            raise SequenceError(f"{gt_dir}: no ground truth in this sequence")
-        self.with_gt = ground_truth is True or (ground_truth == "auto" and (gt_dir / "meta.json").is_file())
+        gt = self.layout.gt
+        if ground_truth is True and not gt.meta.is_file():
+            raise SequenceError(f"{gt.root}: no ground truth in this sequence")
+        self.with_gt = ground_truth is True or (ground_truth == "auto" and gt.meta.is_file())
         self.frames = list(range(self.info.frames)) if frames is None else list(frames)
         bad = [k for k in self.frames if not 0 <= k < self.info.frames]
         if bad:
@@ -86,9 +88,9 @@ class SequenceDataset(Dataset):
 
     def _ground_truth(self):
         if self._gt is None:
-            poses = read_poses(self.root / "gt")
+            poses = read_poses(self.layout.gt)
             if len(poses.theta) != self.info.frames:
-                raise SequenceError(f"{self.root / 'gt'}: {len(poses.theta)} frames of ground truth, "
+                raise SequenceError(f"{self.layout.gt.root}: {len(poses.theta)} frames of ground truth, "
                                     f"sequence.json says {self.info.frames}")
             self._gt = poses
         return self._gt
@@ -96,18 +98,18 @@ class SequenceDataset(Dataset):
     def __getitem__(self, i: int) -> Frame:
         k = self.frames[i]
         C = len(self.info.cameras)
-        depth = np.stack([read_depth(camera_dir(self.root, c) / "depth" / frame_name(k), self.info.depth_unit_mm)
+        depth = np.stack([read_depth(self.layout.depth(k, c), self.info.depth_unit_mm)
                           for c in range(C)])
         frame = Frame(depth=torch.from_numpy(depth), K=self.K, T_cw=self.T_cw, sequence=self.info.name, index=k)
         if self.rgb:
-            frame.rgb = torch.from_numpy(np.stack([read_rgb(camera_dir(self.root, c) / "rgb" / frame_name(k))
+            frame.rgb = torch.from_numpy(np.stack([read_rgb(self.layout.rgb(k, c))
                                                    for c in range(C)]))
         if self.with_gt:
             gt = self._ground_truth()
             frame.theta = torch.from_numpy(gt.theta[k]).float()
             frame.keypoints_3d = torch.from_numpy(gt.keypoints_3d[k]).float()
             frame.keypoints_2d = torch.from_numpy(gt.keypoints_2d[k]).float()
-            ids_path = self.root / "gt" / "ids" / frame_name(k)
+            ids_path = self.layout.gt.ids(k)
             if ids_path.is_file():
                 import cv2
 

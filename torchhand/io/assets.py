@@ -36,6 +36,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from torchhand.core.errors import UnknownName
 from torchhand.io.thesis import BoneLimits, FormatError, ThesisModelFiles
 
 __all__ = [
@@ -441,7 +442,7 @@ def find_model(name: str) -> Path:
     for d in model_dirs():
         if (d / f"{name}.npz").is_file():
             return d / f"{name}.npz"
-    raise LookupError(f"unknown model {name!r}; available models: {available_models()}")
+    raise UnknownName(f"unknown model {name!r}; available models: {available_models()}")
 
 
 def load_demo_motion():

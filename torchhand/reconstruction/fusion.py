@@ -10,6 +10,7 @@ object; the mesh is then simplified (quadric decimation) when that keeps it clos
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -17,7 +18,8 @@ import numpy as np
 __all__ = ["FusionConfig", "TSDF", "SurfaceMesh", "extract_surface"]
 
 
-class FusionConfig(NamedTuple):
+@dataclass(frozen=True)
+class FusionConfig:
     """voxel: mm (the thesis: 350 mm at 256 voxels, 1.4 mm); truncation: mm of the
     signed distance; poisson_depth: octree depth of the Poisson reconstruction (the
     thesis: 10); triangles: the simplified mesh's target size; min_component: faces

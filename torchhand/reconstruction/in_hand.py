@@ -34,6 +34,7 @@ previous pose and is aligned by ICP alone.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 import time
 from typing import Iterable, List, NamedTuple, Optional
 
@@ -55,7 +56,8 @@ class ScanError(ValueError):
     the message names the frame."""
 
 
-class ScanConfig(NamedTuple):
+@dataclass(frozen=True)
+class ScanConfig:
     """points: the most object points per frame used for registration (a random
     subset); model_voxel: mm, the reconstruction's point spacing; min_points: a frame
     with fewer object points is not registered nor fused (the hand covers the object);
@@ -64,9 +66,9 @@ class ScanConfig(NamedTuple):
     all frames (ICP alone, from its pose) before the depth is fused (0: fuse as the
     frames come)."""
 
-    registration: RegistrationConfig = RegistrationConfig()
-    contacts: ContactConfig = ContactConfig()
-    fusion: FusionConfig = FusionConfig()
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    contacts: ContactConfig = field(default_factory=ContactConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
     points: int = 3000
     model_voxel: float = 1.5
     min_points: int = 150

@@ -9,6 +9,7 @@ inverse. Points are (n, 3) float64 tensors in mm.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import List, NamedTuple, Optional
 
 import torch
@@ -21,7 +22,8 @@ __all__ = ["contact_vertices", "ContactConfig", "RegistrationConfig", "register_
            "nearest_rotation", "Registration"]
 
 
-class ContactConfig(NamedTuple):
+@dataclass(frozen=True)
+class ContactConfig:
     """Sec. 5.4.1: an end-effector is a contact bone when more than ``min_vertices`` of
     its vertices lie within ``distance`` mm of the object's points; the distance grows
     by ``step`` mm until ``min_bones`` end-effectors are found (at most ``max_distance``)."""
@@ -96,7 +98,8 @@ def kabsch(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return T
 
 
-class RegistrationConfig(NamedTuple):
+@dataclass(frozen=True)
+class RegistrationConfig:
     """gamma_t: weight of the contact term against the ICP term (Eq. 5.2; both are sums
     over their correspondences, each contact residual divided by the number of contact
     vertices and multiplied by the number of ICP points, so that gamma_t = 1 gives the

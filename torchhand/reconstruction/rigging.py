@@ -41,6 +41,7 @@ from typing import Dict, List, NamedTuple, Optional
 import numpy as np
 import torch
 
+from torchhand.core.errors import MissingExtra
 from torchhand.io.assets import ModelAssets, rigid_assets
 from torchhand.model.kinematics import so3_log
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
@@ -129,7 +130,7 @@ def curve_skeleton(vertices: np.ndarray, faces: np.ndarray) -> Skeleton:
     try:
         from pygel3d import graph, hmesh
     except ImportError:
-        raise ImportError("rigging needs pygel3d for the curve skeleton: pip install 'torchhand[rig]'") from None
+        raise MissingExtra("rigging (the curve skeleton)", "pygel3d") from None
     m = hmesh.Manifold.from_triangles(np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
     with _quiet_stdout():
         skel, mapping = graph.LS_skeleton_and_map(graph.from_mesh(m))

@@ -26,7 +26,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from torchhand.data.layout import Poses, SequenceError, read_poses
+from torchhand.data.layout import OutputLayout, Poses, PosesLayout, SequenceError, SequenceLayout, read_poses
 from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, max_depth, model_pair_counts, pck_curve
 
 __all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize", "model_errors", "fit_report",
@@ -47,8 +47,9 @@ class EvaluationError(ValueError):
 def _resolve(folder) -> Path:
     """Accept a gt/-layout folder or a sequence folder holding gt/."""
     folder = Path(folder)
-    if not (folder / "meta.json").is_file() and (folder / "gt" / "meta.json").is_file():
-        return folder / "gt"
+    gt = SequenceLayout(folder).gt
+    if not PosesLayout(folder).meta.is_file() and gt.meta.is_file():
+        return gt.root
     return folder
 
 
@@ -268,7 +269,7 @@ def fit_report(pred_dirs: Sequence) -> Dict:
     ``flagged_frames``."""
     rows = []
     for d in pred_dirs:
-        path = Path(d) / "track_log.json"
+        path = OutputLayout(d).track_log
         try:
             log = json.loads(path.read_text())
             frames = log["frames"]

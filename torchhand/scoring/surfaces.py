@@ -130,14 +130,15 @@ def score_scan(scan_dir, sequence_dir) -> dict:
     (:func:`trajectory_errors`)."""
     from pathlib import Path
 
+    from torchhand.data.layout import SequenceLayout
     from torchhand.io.assets import load_assets
     from torchhand.io.mesh_files import read_object_mesh
 
-    scan_dir, gt = Path(scan_dir), Path(sequence_dir) / "gt"
+    scan_dir, gt = Path(scan_dir), SequenceLayout(sequence_dir).gt
     model = load_assets(scan_dir / "model.npz")
-    truth = read_object_mesh(gt / "object.ply")
+    truth = read_object_mesh(gt.object_mesh)
     poses = np.load(scan_dir / "object_pose.npy")
-    true_poses = np.load(gt / "object_pose.npy")
+    true_poses = np.load(gt.object_pose)
     ok = np.isfinite(poses).all((1, 2))
     k0 = int(np.argmax(ok))
     start = np.linalg.inv(true_poses[k0]) @ poses[k0]

@@ -207,10 +207,10 @@ class EnergyTerm:
     reads of the images: ``"depth"`` (depth frames, ``state.frames``), ``"colour"``
     (colour frames, ``state.colours``), or None for a term of the pose alone
     (collisions, physics, priors). A term that reads images is prepared once per view
-    of a camera rig (``TrackState``). ``detections`` names where the term's detections
-    come from when they are not in the images themselves: ``"salient.json"`` for
-    terms that read a colour view's salient point detections (the nails), which the
-    runner loads for them; None otherwise.
+    of a camera rig (``TrackState``). ``detections``: ``"salient"`` for a term that
+    reads each colour view's salient point detections (``ColourFrame.salient``: the
+    nails), which the runner provides (a camera's ``salient.json``, or the shipped
+    nail detector); None otherwise.
     """
 
     name: str = "term"

@@ -49,7 +49,7 @@ class Nails(VertexPixelTerm):
 
     name = "nails"
     needs = "colour"
-    detections = "salient.json"
+    detections = "salient"
 
     def __init__(self, gate_px: float = 60.0):
         check_number(gate_px, "gate_px", low=0, unit="px")

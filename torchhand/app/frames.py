@@ -1,0 +1,208 @@
+"""The frames of sequence folders as the tracker takes them: read, segmented and (for
+colour views) given their nail detections, once per frame, for a batch of sequences;
+and the helpers the runner, ``torchhand init`` and ``torchhand calibrate`` share (one
+frame read and segmented, the segmentation of a sequence, the fit of a pose)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Dict, Iterator, List, NamedTuple, Optional
+
+import cv2
+import numpy as np
+import torch
+
+from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE
+from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb
+from torchhand.model.scene import Scene
+from torchhand.salient import SalientDetector
+from torchhand.scoring.metrics import fit_quality
+from torchhand.tracking.preprocess import ColourView
+from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
+
+__all__ = ["FrameRecord", "FrameReader", "read_frame", "read_colour", "segment_of", "segment_for_search",
+           "pose_fit"]
+
+
+class FrameRecord(NamedTuple):
+    """One frame of a batch of sequences, one entry per sequence.
+
+    index: the frame. views: what the tracker's depth frames hold per problem, a depth
+    map (H, W) mm (one camera) or the list of every view's (a rig); None past a
+    sequence's end, where unreadable or where the segmentation found no hand.
+    depths: camera 0's depth map (H, W) mm or None. colours: the colour views
+    (:class:`ColourView`, a list of them on a rig) or None. segmentations: camera 0's
+    segmentation or None. errors: why a sequence has no frame ("" when it has one).
+    """
+
+    index: int
+    views: list
+    depths: List[Optional[np.ndarray]]
+    colours: list
+    segmentations: List[Optional[Segmentation]]
+    errors: List[str]
+
+
+class FrameReader:
+    """The frames of a batch of sequences, each read and segmented once.
+
+    :meth:`record` reads frame ``f`` of every sequence (depth maps of ``views`` cameras
+    when ``depth``, colour views when ``colour``, with the protocol's occluders,
+    ``occluders/``, as pixels whose features are ignored) and keeps the last frame read,
+    so that the tracker's depth and colour iterators (:meth:`depth_frames`,
+    :meth:`colour_frames`), the re-initialisation and the runner each ask for the frame
+    they are at and read it once. ``nails``: the source of colour views' nail detections
+    (:data:`~torchhand.app.options.NAIL_SOURCES`; None: none read). With ``keep_masks``
+    every frame's segmentation masks are kept (packed) for the overlays (:meth:`masks_of`).
+    """
+
+    def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
+                 segments: List[Optional[SegmentConfig]], keep_masks: bool = False, views: int = 1,
+                 depth: bool = True, colour: bool = False, nails: Optional[str] = None):
+        self.roots, self.infos, self.n_frames, self.segments = roots, infos, n_frames, segments
+        self.layouts = [SequenceLayout(r) for r in roots]
+        self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
+        self.nails, self._nail_detector = nails, None
+        self.masks: List[Dict[int, Optional[tuple]]] = [{} for _ in roots]  # per sequence, per frame
+        self._last: Optional[FrameRecord] = None
+        self._detections: Dict[tuple, Optional[list]] = {}
+
+    def record(self, f: int) -> FrameRecord:
+        """Frame ``f`` of every sequence (read once; the last frame read is kept)."""
+        if self._last is None or self._last.index != f:
+            self._last = self._read(f)
+        return self._last
+
+    def _read(self, f: int) -> FrameRecord:
+        views, depths, colours, segmentations, errors = [], [], [], [], []
+        for i, (root, info, seg) in enumerate(zip(self.roots, self.infos, self.segments)):
+            depth, view, colour, s, err = None, None, None, None, ""
+            if f < info.frames:
+                try:
+                    if self.depth and self.views == 1:
+                        depth, s = read_frame(root, info, f, seg)
+                        view = depth
+                    elif self.depth:
+                        view = [read_depth(self.layouts[i].depth(f, c), info.depth_unit_mm)
+                                for c in range(self.views)]
+                        depth = view[0]
+                    if self.colour:
+                        colour = [self._colour_view(i, c, f) for c in range(self.views)]
+                        colour = colour[0] if self.views == 1 else colour
+                except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
+                    depth, view, colour, err = None, None, None, str(e)
+                if self.keep_masks:
+                    self.masks[i][f] = None if s is None else (np.packbits(s.mask), np.packbits(s.cut))
+            views.append(view)
+            depths.append(depth)
+            colours.append(colour)
+            segmentations.append(s)
+            errors.append(err)
+        return FrameRecord(f, views, depths, colours, segmentations, errors)
+
+    def _colour_view(self, i: int, camera: int, f: int) -> ColourView:
+        """Frame ``f`` of a colour view, with its nail detections when the energy reads
+        them (``nails``): the camera's ``salient.json`` where it has one (``"auto"``),
+        else the shipped colour nail detector's (:data:`NAIL_SCORE`, at most
+        :data:`NAIL_DETECTIONS`)."""
+        detections = self._salient(i, camera) if self.nails == "auto" else None
+        view = read_colour(self.layouts[i], camera, f, detections)
+        if self.nails is not None and detections is None:
+            if self._nail_detector is None:  # loaded once, where a view first needs it
+                self._nail_detector = SalientDetector.load_onnx(modality="colour", threshold=NAIL_SCORE,
+                                                                max_detections=NAIL_DETECTIONS)
+            found = self._nail_detector.detect(view.image)
+            view = view._replace(salient=found.uv.numpy().astype(np.float64))
+        return view
+
+    def _salient(self, i: int, camera: int) -> Optional[list]:
+        """The salient point detections of sequence ``i``'s camera (``salient.json``: per
+        frame a list of (u, v) px), read once; None without the file."""
+        key = (i, camera)
+        if key not in self._detections:
+            path = self.layouts[i].salient(camera)
+            frames = None
+            if path.is_file():
+                try:
+                    frames = json.loads(path.read_text())["frames"]
+                    if len(frames) != self.infos[i].frames:
+                        raise ValueError(f"{len(frames)} frames, sequence.json has {self.infos[i].frames}")
+                except (ValueError, KeyError, TypeError) as err:
+                    raise SequenceError(f"{path}: expected {{'frames': [[[u, v], ...] per frame]}} ({err})") from None
+            self._detections[key] = frames
+        return self._detections[key]
+
+    def depth_frames(self) -> Iterator[list]:
+        for f in range(self.n_frames):
+            yield self.record(f).views
+
+    def colour_frames(self) -> Iterator[list]:
+        for f in range(self.n_frames):
+            yield self.record(f).colours
+
+    def masks_of(self, i: int, f: int, shape: tuple) -> Optional[tuple]:
+        """(hands' mask, forearm cut) of sequence ``i``'s frame ``f``, or None."""
+        packed = self.masks[i].get(f)
+        if packed is None:
+            return None
+        n = shape[0] * shape[1]
+        return tuple(np.unpackbits(p, count=n).reshape(shape).astype(bool) for p in packed)
+
+
+def read_colour(seq: SequenceLayout, camera: int, f: int, detections: Optional[list] = None) -> ColourView:
+    """A colour view as the tracker takes it: the image, the protocol's ``occluders/``
+    mask of the frame where the folder has one (ignored pixels), and the frame's salient
+    point detections."""
+    image = read_rgb(seq.rgb(f, camera))
+    occluders = seq.occluders(f, camera)
+    mask = None
+    if occluders.is_file():
+        mask = cv2.imread(str(occluders), cv2.IMREAD_GRAYSCALE)
+        if mask is None or mask.shape != image.shape[:2]:
+            raise SequenceError(f"{occluders}: expected an 8-bit mask of the image's size {image.shape[:2]}")
+        mask = mask > 0
+    salient = None
+    if detections is not None:
+        salient = np.asarray(detections[f], np.float64).reshape(-1, 2) if len(detections[f]) else np.zeros((0, 2))
+    return ColourView(image, mask, salient)
+
+
+def read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig]):
+    """(depth mm of camera 0 with only the hands' pixels when segmented, segmentation or None)."""
+    seq = SequenceLayout(root)
+    path = seq.depth(f)
+    depth = read_depth(path, info.depth_unit_mm)
+    if segment is None:
+        return depth, None
+    rgb_path = seq.rgb(f)
+    rgb = read_rgb(rgb_path) if segment.mode == "skin" and rgb_path.is_file() else None
+    seg = segment_hands(depth, info.cameras[0], segment, frame=str(path), rgb=rgb)
+    return seg.apply(depth), seg
+
+
+def segment_for_search(segment: Optional[SegmentConfig], scene: Scene) -> SegmentConfig:
+    """The segmentation that seeds a search: the sequence's, else the automatic one with
+    as many hands as the scene has."""
+    if segment is not None:
+        return segment
+    return SegmentConfig(hands=max(1, sum(m.kind == "hand" for m in scene.models)))
+
+
+def segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[SegmentConfig]:
+    """The segmentation of a sequence: the one given, else its ``sequence.json``'s."""
+    if given is not None:
+        return None if given.mode == "none" else given
+    if info.segmentation:
+        try:
+            return SegmentConfig.from_dict(info.segmentation)
+        except (TypeError, ValueError) as err:
+            raise SequenceError(f"{info.name}: sequence.json segmentation: {err}") from None
+    return None
+
+
+def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray) -> tuple:
+    """(silhouette IoU, median depth residual) of a scene at one pose (D,) against data (H, W) mm."""
+    with torch.no_grad():
+        model = renderer(scene(theta[None]).vertices, cam, normals=False).depth[0].cpu().numpy()
+    return fit_quality(model, data)
