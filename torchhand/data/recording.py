@@ -305,20 +305,8 @@ def write_recording_sample(
     root = Path(root)
     if root.exists() and not _is_empty_dir(root):
         raise FileExistsError(f"{root} exists and is not an empty folder; refusing to write a recording into it")
-    n = len(depth_frames)
-    depths = []
-    for i, d in enumerate(depth_frames):
-        d = np.asarray(d)
-        if d.shape != RECORDING_SHAPE:
-            raise ValueError(f"depth_frames[{i}] has shape {d.shape}, expected {RECORDING_SHAPE}")
-        if d.dtype == np.uint16:
-            depths.append(d)
-        elif d.dtype in (np.float32, np.float64):
-            if not np.isfinite(d).all() or (d < 0).any():
-                raise ValueError(f"depth_frames[{i}] contains NaN, inf or negative values")
-            depths.append(d.astype(np.float32))
-        else:
-            raise TypeError(f"depth_frames[{i}] has dtype {d.dtype}; expected uint16 (16U) or float32 (32F)")
+    depths = _checked_depths(depth_frames)
+    n = len(depths)
     rgbs: List[Optional[np.ndarray]] = [None] * n
     if rgb_frames is not None:
         if len(rgb_frames) != n:
@@ -331,23 +319,7 @@ def write_recording_sample(
                 raise ValueError(f"rgb_frames[{i}] must be a {RECORDING_SHAPE + (3,)} uint8 image, "
                                  f"got {img.dtype} with shape {img.shape}")
             rgbs[i] = img
-    labels: Dict[int, Joints2D] = {}
-    if joints_2d is not None:
-        items = joints_2d.items() if isinstance(joints_2d, Mapping) else enumerate(joints_2d)
-        for k, joints in items:
-            if joints is None:
-                continue
-            k = _check_frame_index(k)
-            if k >= n:
-                raise ValueError(f"joints_2d has labels for frame {k} but there are only {n} depth frames")
-            clean: Joints2D = {}
-            for jid, xy in joints.items():
-                x, y = (float(v) for v in xy)
-                if not (math.isfinite(x) and math.isfinite(y)):
-                    raise ValueError(f"joints_2d[{k}][{jid}] is not finite: {xy!r}")
-                clean[int(jid)] = (x, y)
-            labels[k] = clean
-
+    labels = _checked_labels(joints_2d, n)
     for sub in (DEPTH_DIR,) + ((RGB_DIR,) if any(r is not None for r in rgbs) else ()) + \
                ((JOINTS_DIR,) if labels else ()):
         (root / sub).mkdir(parents=True, exist_ok=True)
@@ -364,6 +336,45 @@ def write_recording_sample(
             lines = [f"{jid} {x!r} {y!r}\n" for jid, (x, y) in sorted(labels[k].items())]
             (root / JOINTS_DIR / f"{stem}{JOINTS_SUFFIX}").write_text("".join(lines))
     return root
+
+
+def _checked_depths(depth_frames: Sequence[np.ndarray]) -> List[np.ndarray]:
+    """The depth frames as uint16 (16U) or float32 (32F) recording arrays, or a clear error."""
+    depths = []
+    for i, d in enumerate(depth_frames):
+        d = np.asarray(d)
+        if d.shape != RECORDING_SHAPE:
+            raise ValueError(f"depth_frames[{i}] has shape {d.shape}, expected {RECORDING_SHAPE}")
+        if d.dtype == np.uint16:
+            depths.append(d)
+        elif d.dtype in (np.float32, np.float64):
+            if not np.isfinite(d).all() or (d < 0).any():
+                raise ValueError(f"depth_frames[{i}] contains NaN, inf or negative values")
+            depths.append(d.astype(np.float32))
+        else:
+            raise TypeError(f"depth_frames[{i}] has dtype {d.dtype}; expected uint16 (16U) or float32 (32F)")
+    return depths
+
+
+def _checked_labels(joints_2d, n: int) -> Dict[int, "Joints2D"]:
+    """``write_recording_sample``'s 2D labels by frame, checked against n frames."""
+    labels: Dict[int, Joints2D] = {}
+    if joints_2d is not None:
+        items = joints_2d.items() if isinstance(joints_2d, Mapping) else enumerate(joints_2d)
+        for k, joints in items:
+            if joints is None:
+                continue
+            k = _check_frame_index(k)
+            if k >= n:
+                raise ValueError(f"joints_2d has labels for frame {k} but there are only {n} depth frames")
+            clean: Joints2D = {}
+            for jid, xy in joints.items():
+                x, y = (float(v) for v in xy)
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    raise ValueError(f"joints_2d[{k}][{jid}] is not finite: {xy!r}")
+                clean[int(jid)] = (x, y)
+            labels[k] = clean
+    return labels
 
 
 # ---------------------------------------------------------------- conversion
@@ -407,41 +418,12 @@ def convert_recording(
         SequenceError: a bad recording (the message names the file).
     """
     root, out = Path(root), Path(out)
-    if not root.is_dir():
-        raise SequenceError(f"{root}: recording folder not found")
-    if _overlaps(root, out):
-        raise ValueError(f"out ({out}) must not be, contain or lie inside the recording folder ({root})")
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder")
-    if out.is_dir() and not _is_empty_dir(out) and not force:
-        raise FileExistsError(f"{out} is not empty; pass force=True to replace it")
-    if isinstance(models, (str, os.PathLike)):
-        models = [models]
-    models = [str(m) for m in models]
-    if not models:
-        raise ValueError("models must name at least one model")
-    if init_theta is not None:
-        init_theta = np.asarray(init_theta, np.float64)
-        if init_theta.ndim != 1 or not np.isfinite(init_theta).all():
-            raise ValueError(f"init_theta must be a finite (D,) vector, got shape {init_theta.shape}")
+    models, init_theta = _check_conversion(root, out, models, init_theta, force)
     scale = _check_depth_scale(depth_scale)
     name = name if name is not None else root.resolve().name
-
-    depth_files = _scan(_depth_folder(root), DEPTH_SUFFIX)
+    depth_files, rgb_files, joint_files = _recording_files(root)
     numbers = sorted(depth_files)
-    if not numbers:
-        raise SequenceError(f"{root / DEPTH_DIR}: no depth frames (expected NNN{DEPTH_SUFFIX} files)")
-    rgb_files = _scan(root / RGB_DIR, RGB_SUFFIX)
-    joint_files = _scan(root / JOINTS_DIR, JOINTS_SUFFIX)
-    has_rgb = all(k in rgb_files for k in numbers)
-    if rgb_files and not has_rgb:
-        missing = [k for k in numbers if k not in rgb_files]
-        warnings.warn(f"{root / RGB_DIR}: {len(missing)} of {len(numbers)} frames have no colour image "
-                      f"(first: {missing[0]}); the converted sequence has no rgb/", stacklevel=2)
-    orphans = sorted(set(joint_files) - set(depth_files))
-    if orphans:
-        warnings.warn(f"{root / JOINTS_DIR}: annotations of frames {orphans[:10]} have no depth frame and "
-                      "are not converted", stacklevel=2)
+    has_rgb = rgb_files is not None
     source: Dict = {"format": RECORDING_FORMAT, "path": str(root)}
     if numbers != list(range(len(numbers))):
         warnings.warn(f"{root / DEPTH_DIR}: frame numbers are not 0..{len(numbers) - 1} (first {numbers[0]}, "
@@ -452,17 +434,8 @@ def convert_recording(
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
         seq = SequenceLayout(tmp)
-        seq.depth_dir().mkdir()
-        if has_rgb:
-            seq.rgb_dir().mkdir()
-        frames_2d: Dict[str, Dict[str, List[float]]] = {}
-        for i, k in enumerate(tqdm(numbers, desc=f"convert {name}", unit="frame", disable=not progress)):
-            frame = _read_frame(depth_files[k], rgb_files[k] if has_rgb else None, joint_files.get(k), scale)
-            write_depth(seq.depth(i), frame.depth)
-            if frame.rgb is not None:
-                write_rgb(seq.rgb(i), frame.rgb)
-            if frame.joints_2d is not None:
-                frames_2d[str(i)] = {str(j): [x, y] for j, (x, y) in sorted(frame.joints_2d.items())}
+        frames_2d = _convert_frames(seq, numbers, depth_files, rgb_files, joint_files, scale, f"convert {name}",
+                                    progress)
         if joint_files:
             seq.gt.root.mkdir()
             annotations = {
@@ -481,6 +454,69 @@ def convert_recording(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def _check_conversion(root: Path, out: Path, models, init_theta, force: bool) -> tuple:
+    """(models as a list of str, init_theta as a float64 vector or None) of
+    :func:`convert_recording`'s arguments, or a clear error before anything is written."""
+    if not root.is_dir():
+        raise SequenceError(f"{root}: recording folder not found")
+    if _overlaps(root, out):
+        raise ValueError(f"out ({out}) must not be, contain or lie inside the recording folder ({root})")
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder")
+    if out.is_dir() and not _is_empty_dir(out) and not force:
+        raise FileExistsError(f"{out} is not empty; pass force=True to replace it")
+    if isinstance(models, (str, os.PathLike)):
+        models = [models]
+    models = [str(m) for m in models]
+    if not models:
+        raise ValueError("models must name at least one model")
+    if init_theta is not None:
+        init_theta = np.asarray(init_theta, np.float64)
+        if init_theta.ndim != 1 or not np.isfinite(init_theta).all():
+            raise ValueError(f"init_theta must be a finite (D,) vector, got shape {init_theta.shape}")
+    return models, init_theta
+
+
+def _recording_files(root: Path) -> tuple:
+    """(depth, colour, joint label files) of a recording, each {frame number: path};
+    colour is None unless every depth frame has an image (a warning says so), and
+    labels of frames without depth are left out (with a warning)."""
+    depth_files = _scan(_depth_folder(root), DEPTH_SUFFIX)
+    numbers = sorted(depth_files)
+    if not numbers:
+        raise SequenceError(f"{root / DEPTH_DIR}: no depth frames (expected NNN{DEPTH_SUFFIX} files)")
+    rgb_files = _scan(root / RGB_DIR, RGB_SUFFIX)
+    joint_files = _scan(root / JOINTS_DIR, JOINTS_SUFFIX)
+    has_rgb = all(k in rgb_files for k in numbers)
+    if rgb_files and not has_rgb:
+        missing = [k for k in numbers if k not in rgb_files]
+        warnings.warn(f"{root / RGB_DIR}: {len(missing)} of {len(numbers)} frames have no colour image "
+                      f"(first: {missing[0]}); the converted sequence has no rgb/", stacklevel=3)
+    orphans = sorted(set(joint_files) - set(depth_files))
+    if orphans:
+        warnings.warn(f"{root / JOINTS_DIR}: annotations of frames {orphans[:10]} have no depth frame and "
+                      "are not converted", stacklevel=3)
+    return depth_files, rgb_files if has_rgb else None, joint_files
+
+
+def _convert_frames(seq: SequenceLayout, numbers: List[int], depth_files: dict, rgb_files: Optional[dict],
+                    joint_files: dict, scale: float, desc: str, progress: bool) -> Dict[str, Dict[str, List[float]]]:
+    """Write the recording's frames ``numbers`` as frames 0, 1, ... of ``seq`` (depth, and
+    colour when ``rgb_files``); returns the 2D joint labels by frame."""
+    seq.depth_dir().mkdir()
+    if rgb_files is not None:
+        seq.rgb_dir().mkdir()
+    frames_2d: Dict[str, Dict[str, List[float]]] = {}
+    for i, k in enumerate(tqdm(numbers, desc=desc, unit="frame", disable=not progress)):
+        frame = _read_frame(depth_files[k], rgb_files[k] if rgb_files is not None else None, joint_files.get(k), scale)
+        write_depth(seq.depth(i), frame.depth)
+        if frame.rgb is not None:
+            write_rgb(seq.rgb(i), frame.rgb)
+        if frame.joints_2d is not None:
+            frames_2d[str(i)] = {str(j): [x, y] for j, (x, y) in sorted(frame.joints_2d.items())}
+    return frames_2d
 
 
 def _move_into_place(tmp: Path, out: Path) -> None:

@@ -11,7 +11,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import List, NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -224,7 +224,79 @@ def write_synthetic_sequence(
     circles in ``occluders/``) and writes simulated salient detections per camera
     (``salient.json``).
     """
-    params = noise_model(noise)  # validates the names before anything is written
+    params, proto = _checked_settings(noise, protocol, colour, depth, rgb)
+    out = prepare_output_dir(out, force)
+    scene, theta, cams = frames.scene, frames.theta, frames.cameras
+    shaded = rgb and colour == "shaded"
+    acc = _Accumulated.empty(len(theta), len(cams), scene, shaded)
+    seq = SequenceLayout(out)
+    for c in range(len(cams)):
+        for folder, wanted in ((seq.depth_dir(c), depth), (seq.rgb_dir(c), rgb), (seq.occluders_dir(c), proto)):
+            if wanted:
+                folder.mkdir(parents=True, exist_ok=True)
+    seq.gt.ids_dir.mkdir(parents=True)
+    looks = _Looks(face_albedo(scene) if shaded else model_albedo(scene),
+                   [torch.as_tensor(background_texture(c.height, c.width, seed=1000 * seed + k))
+                    for k, c in enumerate(cams)] if shaded else None, shaded, rgb, depth, params, proto)
+    g, rng = torch.Generator().manual_seed(seed), np.random.default_rng(seed)
+    bar = tqdm(total=len(theta), desc=f"synth {frames.name}", unit="frame", disable=not progress)
+    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=backend)
+    for s in range(0, len(theta), batch_size):
+        th = theta[s : s + batch_size].to(scene.lower.dtype)
+        with torch.no_grad():
+            posed = scene(th)
+        for c, cam in enumerate(cams):
+            _write_view(seq, renderer, posed, cam, c, s, looks, acc, g, rng)
+        bar.update(len(th))
+    bar.close()
+    source = {**frames.source, "noise": noise if depth else None, "seed": seed}
+    if rgb:
+        source["colour"] = colour
+    _write_ground_truth(out, seq, frames, acc, source, rgb, depth, protocol, proto)
+    return out
+
+
+class _Looks(NamedTuple):
+    """How :func:`write_synthetic_sequence` renders: albedo, backgrounds (per camera, or
+    None), shaded, rgb, depth, the noise parameters and the protocol."""
+
+    albedo: torch.Tensor
+    backgrounds: Optional[list]
+    shaded: bool
+    rgb: bool
+    depth: bool
+    params: object
+    proto: object
+
+
+class _Accumulated(NamedTuple):
+    """What the frames give the ground truth: keypoints (N, C, P, 3) mm and (N, C, P, 2)
+    px; with shading the nail vertices, their centres (N, C, T, 2) and visibility, and
+    each camera's simulated detections."""
+
+    kp3d: np.ndarray
+    kp2d: np.ndarray
+    nails: Optional[torch.Tensor]
+    sal2d: Optional[np.ndarray]
+    sal_vis: Optional[np.ndarray]
+    detections: list
+
+    @classmethod
+    def empty(cls, N: int, C: int, scene, shaded: bool) -> "_Accumulated":
+        P = len(scene.keypoint_names)
+        nails = sal2d = sal_vis = None
+        if shaded:
+            from torchhand.model.fingertips import nail_vertices
+
+            nails = nail_vertices(scene)  # empty without hands
+            sal2d, sal_vis = np.zeros((N, C, len(nails), 2)), np.zeros((N, C, len(nails)), bool)
+        return cls(np.zeros((N, C, P, 3)), np.zeros((N, C, P, 2)), nails, sal2d, sal_vis, [[] for _ in range(C)])
+
+
+def _checked_settings(noise: str, protocol: Optional[str], colour: str, depth: bool, rgb: bool) -> tuple:
+    """(noise parameters, protocol) of :func:`write_synthetic_sequence`'s settings, or a
+    clear error before anything is written."""
+    params = noise_model(noise)
     proto = noise_protocol(protocol)
     if colour not in ("flat", "shaded"):
         raise ValueError(f"colour must be 'flat' or 'shaded', got {colour!r}")
@@ -233,88 +305,65 @@ def write_synthetic_sequence(
     if proto is not None and not (rgb and colour == "shaded"):
         raise ValueError(f"protocol {protocol!r} perturbs colour images and nail detections: it needs rgb and "
                          "colour='shaded'")
-    out = prepare_output_dir(out, force)
-    scene, theta, cams = frames.scene, frames.theta, frames.cameras
-    N = len(theta)
-    g = torch.Generator().manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    shaded = rgb and colour == "shaded"
-    albedo = face_albedo(scene) if shaded else model_albedo(scene)
-    backgrounds = [torch.as_tensor(background_texture(c.height, c.width, seed=1000 * seed + k))
-                   for k, c in enumerate(cams)] if shaded else None
-    if shaded:
-        from torchhand.model.fingertips import nail_vertices
+    return params, proto
 
-        salient = nail_vertices(scene)  # empty without hands
-        sal2d = np.zeros((N, len(cams), len(salient), 2))
-        sal_vis = np.zeros((N, len(cams), len(salient)), bool)
-        detections = [[] for _ in cams]
-    seq = SequenceLayout(out)
-    for c in range(len(cams)):
-        for folder, wanted in ((seq.depth_dir(c), depth), (seq.rgb_dir(c), rgb), (seq.occluders_dir(c), proto)):
-            if wanted:
-                folder.mkdir(parents=True, exist_ok=True)
-    seq.gt.ids_dir.mkdir(parents=True)
-    kp3d = np.zeros((N, len(cams), len(scene.keypoint_names), 3))
-    kp2d = np.zeros((N, len(cams), len(scene.keypoint_names), 2))
-    bar = tqdm(total=N, desc=f"synth {frames.name}", unit="frame", disable=not progress)
-    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, backend=backend)
-    for s in range(0, N, batch_size):
-        th = theta[s : s + batch_size].to(scene.lower.dtype)
-        with torch.no_grad():
-            posed = scene(th)
-        for c, cam in enumerate(cams):
-            camd = cam.to(dtype=posed.vertices.dtype)
-            res = renderer(posed.vertices, camd)
-            dmap = res.depth
-            if params is not None and depth:
-                dmap = apply_kinect_noise(dmap, res.normals, camd.K.float(), params, generator=g)
-            kp3d[s : s + len(th), c] = camd.to_camera(posed.keypoints).cpu().numpy()
-            kp2d[s : s + len(th), c] = camd.project(posed.keypoints).cpu().numpy()
-            if shaded:
-                image = shade(res, posed.vertices, scene.faces, albedo, camd, backgrounds[c])
-                sal2d[s : s + len(th), c], sal_vis[s : s + len(th), c] = _salient_in_view(
-                    posed.vertices[:, salient], camd, res.depth)
-            else:
-                image = shade_rgb(res, albedo) if rgb else None
-            for b in range(len(th)):
-                k = s + b
-                if depth:
-                    write_depth(seq.depth(k, c), dmap[b].cpu().numpy())
-                if rgb:
-                    img = image[b].cpu().numpy()
-                    if proto is not None:
-                        img, circles = structural_noise(img, rng, proto)
-                        cv2.imwrite(str(seq.occluders(k, c)),
-                                    circles.astype(np.uint8) * 255)
-                        seen = sal2d[k, c][sal_vis[k, c]]
-                        detections[c].append(simulate_detections(seen, rng, proto, (cam.width, cam.height))
-                                             .round(2).tolist())
-                    write_rgb(seq.rgb(k, c), img)
-                if c == 0:
-                    ids = (res.model_id[b] + 1).clamp(0, 255).to(torch.uint8).cpu().numpy()
-                    cv2.imwrite(str(seq.gt.ids(k)), ids)
-        bar.update(len(th))
-    bar.close()
+
+def _write_view(seq: SequenceLayout, renderer: Renderer, posed, cam, c: int, s: int, looks: _Looks,
+                acc: _Accumulated, g: torch.Generator, rng: np.random.Generator) -> None:
+    """Camera ``c``'s frames s, s + 1, ... of the posed batch: depth, colour, occluders
+    and ids written, keypoints and nails into ``acc``."""
+    n = posed.vertices.shape[0]
+    camd = cam.to(dtype=posed.vertices.dtype)
+    res = renderer(posed.vertices, camd)
+    dmap = res.depth
+    if looks.params is not None and looks.depth:
+        dmap = apply_kinect_noise(dmap, res.normals, camd.K.float(), looks.params, generator=g)
+    acc.kp3d[s : s + n, c] = camd.to_camera(posed.keypoints).cpu().numpy()
+    acc.kp2d[s : s + n, c] = camd.project(posed.keypoints).cpu().numpy()
+    if looks.shaded:
+        image = shade(res, posed.vertices, renderer.faces, looks.albedo, camd, looks.backgrounds[c])
+        acc.sal2d[s : s + n, c], acc.sal_vis[s : s + n, c] = _salient_in_view(posed.vertices[:, acc.nails], camd,
+                                                                              res.depth)
+    else:
+        image = shade_rgb(res, looks.albedo) if looks.rgb else None
+    for b in range(n):
+        k = s + b
+        if looks.depth:
+            write_depth(seq.depth(k, c), dmap[b].cpu().numpy())
+        if looks.rgb:
+            img = image[b].cpu().numpy()
+            if looks.proto is not None:
+                img, circles = structural_noise(img, rng, looks.proto)
+                cv2.imwrite(str(seq.occluders(k, c)), circles.astype(np.uint8) * 255)
+                seen = acc.sal2d[k, c][acc.sal_vis[k, c]]
+                acc.detections[c].append(simulate_detections(seen, rng, looks.proto, (cam.width, cam.height))
+                                         .round(2).tolist())
+            write_rgb(seq.rgb(k, c), img)
+        if c == 0:
+            ids = (res.model_id[b] + 1).clamp(0, 255).to(torch.uint8).cpu().numpy()
+            cv2.imwrite(str(seq.gt.ids(k)), ids)
+
+
+def _write_ground_truth(out, seq: SequenceLayout, frames: SyntheticFrames, acc: _Accumulated, source: dict, rgb: bool,
+                        depth: bool, protocol: Optional[str], proto) -> None:
+    """``sequence.json`` (with ``source``), the first frame's pose, ``gt/`` and the
+    protocol's detections."""
+    scene, theta, cams = frames.scene, frames.theta, frames.cameras
     listed = [n for n in scene.names if n not in frames.hidden]
     dofs = np.concatenate([np.arange(scene.slices[n].start, scene.slices[n].stop) for n in listed])
     kps = np.concatenate([np.arange(scene.keypoint_slices[n].start, scene.keypoint_slices[n].stop, dtype=np.int64)
                           for n in listed])
-    source = {**frames.source, "noise": noise if depth else None, "seed": seed}
-    if rgb:
-        source["colour"] = colour
     if proto is not None:
         source["protocol"] = {"name": protocol, **dataclasses.asdict(proto)}
         for c in range(len(cams)):
             seq.salient(c).write_text(json.dumps(
                 {"format": "torchhand-salient/1", "source": f"simulated detections of the nail centres, protocol "
-                 f"{protocol} (torchhand.data.ballan_protocol)", "frames": detections[c]}))
-    if shaded:
-        np.save(seq.gt.salient_2d, sal2d)
-        np.save(seq.gt.salient_visible, sal_vis)
-    info = SequenceInfo(frames.name, cams, listed, N, has_rgb=rgb, source=source, has_depth=depth)
+                 f"{protocol} (torchhand.data.ballan_protocol)", "frames": acc.detections[c]}))
+    if acc.sal2d is not None:
+        np.save(seq.gt.salient_2d, acc.sal2d)
+        np.save(seq.gt.salient_visible, acc.sal_vis)
+    info = SequenceInfo(frames.name, cams, listed, len(theta), has_rgb=rgb, source=source, has_depth=depth)
     th = theta.cpu().numpy()[:, dofs]
     write_sequence_info(out, info, init_theta=th[0])
-    write_poses(seq.gt, Poses(th, kp3d[:, :, kps], kp2d[:, :, kps], listed,
-                                  [scene.dof_names[d] for d in dofs], [scene.keypoint_names[k] for k in kps]))
-    return out
+    write_poses(seq.gt, Poses(th, acc.kp3d[:, :, kps], acc.kp2d[:, :, kps], listed,
+                              [scene.dof_names[d] for d in dofs], [scene.keypoint_names[k] for k in kps]))
