@@ -36,6 +36,7 @@ def test_resize_is_exact_and_poses_like_the_resized_model():
         resize_hand(a, 0.0)
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_the_size_of_a_larger_hand(tmp_path):
     from torchhand.app.cli import main
     from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence

@@ -162,6 +162,7 @@ def test_pso_finds_the_minimum_of_a_batch():
         particle_swarm(lambda x: x.sum(-1).sum(-1), init, lo, hi, generations=1)
 
 
+@pytest.mark.slow
 def test_track_with_segmentation_on_a_floating_render(tmp_path, capsys):
     """The range segmentation keeps every pixel of a floating render, so θ is
     bit-identical to tracking without one; a blanked frame under the automatic
@@ -275,6 +276,7 @@ def test_detected_fingertips_seed_the_hand_axis():
     assert ((tips[nearest < 15.0] - pts.mean(0)) @ length > 0).mean() >= 0.75
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SR305.is_dir(), reason="shared SR305 frames not available")
 def test_cli_init_on_a_real_frame(tmp_path, capsys):
     src = tmp_path / "rec"

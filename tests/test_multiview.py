@@ -53,6 +53,7 @@ def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
     assert torch.equal(single.theta, rig.theta) and torch.equal(single.energy, rig.energy)
 
 
+@pytest.mark.slow
 def test_depth_views_of_a_rig_are_tracked_together(ring):
     scene, cams, gt, _, depth, _ = ring
     start = _shifted(scene, gt[:1], [6.0, -4.0, 8.0])
@@ -64,6 +65,7 @@ def test_depth_views_of_a_rig_are_tracked_together(ring):
     assert int(res.correspondences[0]) > 1.5 * int(one.correspondences[0])  # every view's pairs count
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("energy, limit", [("E+C", 2.5), ("E+C+O", 1.5)])
 def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
     scene, cams, gt, colour, _, _ = ring
@@ -96,6 +98,7 @@ def test_models_outside_the_view_find_no_pairs_and_stay_in_place(ring):
             assert (res.theta[0, sl.start : sl.start + 3] - away[0, sl.start : sl.start + 3]).abs().max() < 0.5
 
 
+@pytest.mark.slow
 def test_larger_images_of_the_ring_are_tracked_closer(tmp_path):
     """Nothing in the colour terms assumes 640x480, and the pixel is what limits them: from
     the true pose, the edges of 4 views at twice the size (the same field of view) keep
@@ -170,6 +173,7 @@ def test_rig_bad_input_is_named(ring):
     assert [t.needs for t in parse_energy("E+O+C")][:3] == ["colour", "colour", None]
 
 
+@pytest.mark.slow
 def test_track_command_on_colour_views(tmp_path, capsys):
     from torchhand.app.cli import main
 
@@ -213,6 +217,7 @@ def test_nails_pull_the_salient_vertices_onto_their_detections(ring):
         Nails(gate_px=0)
 
 
+@pytest.mark.slow
 def test_the_swarm_never_returns_worse_than_its_start(ring, monkeypatch):
     import torchhand.tracking.tracker as tracker_module
 
@@ -260,6 +265,7 @@ def test_a_rig_of_mixed_image_sizes_is_refused_by_name(tmp_path):
     assert not (tmp_path / "out" / "demo").exists()
 
 
+@pytest.mark.slow
 def test_nail_detections_come_from_salient_json_or_the_shipped_detector(tmp_path):
     """``--nails auto`` reads each camera's ``salient.json``; ``--nails detector`` (and a
     camera without the file, e.g. a user's own recording) runs the shipped colour nail

@@ -62,6 +62,7 @@ def test_embedding_carries_the_fine_mesh(chain3):
     assert np.linalg.norm(moved - (chain3.vertices @ R.T + [5, 0, 0]), axis=1).max() < 0.25
 
 
+@pytest.mark.slow
 def test_motion_segmentation_finds_the_links(chain3):
     traj, _ = _trajectories(chain3)
     seg = segment_motion(traj, chain3.vertices, chain3.faces)
@@ -83,6 +84,7 @@ def test_motion_segmentation_finds_the_links(chain3):
     assert segment_motion(rigid, chain3.vertices, chain3.faces).parts == 1
 
 
+@pytest.mark.slow
 def test_refinement_keeps_an_extra_cluster_only_where_it_is_a_joint(chain3):
     traj, _ = _trajectories(chain3)
     ev = segment_motion(traj, chain3.vertices, chain3.faces, refine=False).eigenvalues
@@ -119,6 +121,7 @@ def test_redundant_parts_are_joined(chain3):
         segment_motion(traj, chain3.vertices, chain3.faces, merge_ratio=-1)
 
 
+@pytest.mark.slow
 def test_rig_from_true_trajectories(chain3):
     traj, th = _trajectories(chain3)
     seg = segment_motion(traj, chain3.vertices, chain3.faces)
@@ -194,6 +197,7 @@ def chain_sequence(tmp_path_factory):
     return root, seq, assets
 
 
+@pytest.mark.slow
 def test_rig_folder_end_to_end(chain_sequence, monkeypatch):
     from torchhand.app.rig import rig_folder
 
@@ -254,6 +258,7 @@ def test_rig_bad_input(chain_sequence, monkeypatch, tmp_path):
     assert not any((tmp_path / n).exists() for n in "abcdef")
 
 
+@pytest.mark.slow
 def test_rigid_object_gives_a_rigid_model(tmp_path, monkeypatch):
     from torchhand.app.rig import rig_folder
     from torchhand.data.synth import write_synthetic_sequence

@@ -59,6 +59,7 @@ def _assert_equal(a: Path, b: Path, names=("s0", "s1", "s2", "s3")) -> None:
     assert not [p for p in a.iterdir() if ".partial-" in p.name]
 
 
+@pytest.mark.slow
 def test_processes_equal_the_sequential_run(sequences, sequential, tmp_path):
     events = []
     run = track_many(sequences, tmp_path / "out", JOB, workers=2, progress=False, on_event=events.append)
@@ -85,6 +86,7 @@ def _kill_once(state: dict):
     return handle
 
 
+@pytest.mark.slow
 def test_a_killed_worker_is_retried_and_the_outputs_equal(sequences, sequential, tmp_path):
     state = {}
     run = track_many(sequences, tmp_path / "out", JOB, workers=2, progress=False, on_event=_kill_once(state))
@@ -93,6 +95,7 @@ def test_a_killed_worker_is_retried_and_the_outputs_equal(sequences, sequential,
     _assert_equal(tmp_path / "out", sequential)
 
 
+@pytest.mark.slow
 def test_a_retry_keeps_what_its_killed_attempt_finished_and_force_replaces_older_folders(
         sequences, sequential, tmp_path):
     import shutil
@@ -114,6 +117,7 @@ def test_a_retry_keeps_what_its_killed_attempt_finished_and_force_replaces_older
     _assert_equal(out, sequential)
 
 
+@pytest.mark.slow
 def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
     out = tmp_path / "out"
 
@@ -144,6 +148,7 @@ def test_resume_refuses_a_folder_of_another_command(sequences, tmp_path):
         track_many(sequences[:1], tmp_path, JOB, resume=True, progress=False)
 
 
+@pytest.mark.slow
 def test_a_failing_sequence_among_good_ones(sequences, sequential, tmp_path, capsys):
     import shutil
 
@@ -200,6 +205,7 @@ def test_an_unreachable_ray_address_fails_fast():
     assert time.perf_counter() - t0 < 10
 
 
+@pytest.mark.slow
 def test_ray_equals_the_sequential_run_and_retries_a_killed_worker(ray_cluster, sequences, sequential, tmp_path):
     events = []
     run = track_many(sequences, tmp_path / "ray", JOB, ray="local", progress=False, on_event=events.append)

@@ -68,6 +68,7 @@ def test_rigid_model_moves_its_mesh_rigidly(box_path):
     assert torch.allclose(v, torch.as_tensor(m.vertices) @ R.T + theta[0, :3], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_grasp_touches_without_penetrating(box_path):
     import open3d as o3d
 
@@ -142,6 +143,7 @@ def _gt_scan(seq, frames):
                 frames=frames, progress=False)
 
 
+@pytest.mark.slow
 def test_scan_with_the_true_hand_follows_the_object(scan_seq):
     res = _gt_scan(scan_seq, 16)
     truth = np.load(scan_seq / "gt" / "object_pose.npy")
@@ -176,6 +178,7 @@ def test_object_leaving_the_view_is_an_error(tmp_path):
         _check_in_view(d, 3, tmp_path)
 
 
+@pytest.mark.slow
 def test_scan_command_end_to_end(scan_seq, tmp_path, capsys):
     out = tmp_path / "obj"
     assert main(["scan", str(scan_seq), "--out", str(out)]) == 0
@@ -195,6 +198,7 @@ def test_scan_command_end_to_end(scan_seq, tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
     import shutil
 
@@ -209,6 +213,7 @@ def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
     assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]  # nothing half-written is left
 
 
+@pytest.mark.slow
 def test_synth_scan_object_command(tmp_path, box_path, capsys):
     out = tmp_path / "s"
     assert main(["synth", "--scan-object", str(box_path), "--out", str(out), "--frames", "4", "--noise", "none"]) == 0
