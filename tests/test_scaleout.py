@@ -142,6 +142,20 @@ def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
         track_many(sequences, out, other, resume=True, progress=False)
 
 
+def test_one_sequence_in_this_process_writes_it_and_the_summary(sequences, tmp_path):
+    """The default tier's run of track_many: one sequence, no worker processes."""
+    job = TrackJob(TrackerConfig(max_iterations=2, first_frame_iterations=2))
+    events = []
+    run = track_many(sequences[:1], tmp_path / "out", job, progress=False, on_event=events.append)
+    assert run["failed"] == 0 and run["tasks"] == 1 and run["frames"] == FRAMES
+    assert [e[1] for e in events][0] == "start" and [e[1] for e in events][-1] == "done"
+    theta = np.load(tmp_path / "out" / "s0" / "theta.npy")
+    assert theta.shape == (FRAMES, 37) and np.isfinite(theta).all()
+    summary = json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())
+    assert [(s["sequence"], s["status"]) for s in summary["sequences"]] == [("s0", "ok")]
+    assert not [p for p in (tmp_path / "out").iterdir() if ".partial-" in p.name]
+
+
 def test_resume_refuses_a_folder_of_another_command(sequences, tmp_path):
     assert main(["demo", "--out", str(tmp_path / "s0"), "--frames", "2", "--track-frames", "0"]) == 0
     with pytest.raises(ValueError, match="not written by torchhand track"):
