@@ -193,8 +193,14 @@ def test_track_command_on_colour_views(tmp_path, capsys):
     report = json.loads((tmp_path / "eval.json").read_text())
     assert report["models"]["hand_right"]["mean_mm"] < 12.0, report["models"]  # 4 views, the noise protocol
     # the depth terms on colour views: a clear message, nothing written
-    assert main(["track", str(seq), "--out", str(tmp_path / "lo")]) != 0
-    assert "colour views only" in capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["track", str(seq), "--out", str(tmp_path / "lo")]) == 1
+    err = capsys.readouterr().err
+    name = read_sequence_info(seq).name
+    assert (f"torchhand track: error: {name}: {seq}: colour views only (sequence.json has_depth false, "
+            "no depth/), but the energy's terms read depth") in err
+    assert "; nothing written" in err and "torchhand track: 1 of 1 sequences failed" in err
+    assert not (tmp_path / "lo" / name).exists()
 
 
 def test_nails_pull_the_salient_vertices_onto_their_detections(ring):

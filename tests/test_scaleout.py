@@ -189,8 +189,9 @@ def test_bad_input_is_named(sequences, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "missing_a" in err and "missing_b" in err and "nothing was tracked" in err
     assert not (tmp_path / "out").exists()
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as ex:
         main(["track", str(sequences[0]), "--out", str(tmp_path / "out"), "--workers", "0"])
+    assert ex.value.code == 2
     assert "--workers: expected an integer >= 1, got 0" in capsys.readouterr().err
     with pytest.raises(ValueError, match="2 path"):
         listing.write_text("only_one\n")
