@@ -183,9 +183,14 @@ def test_track_command_on_colour_views(tmp_path, capsys):
     res = out / read_sequence_info(seq).name
     kp2 = np.load(res / "keypoints_2d.npy")
     assert kp2.shape[:2] == (3, 4)  # every frame in every camera
+    import cv2
+
     for c in range(4):
-        assert (res / "overlays" / f"cam{c}" / frame_name(2)).is_file()
-    assert (res / "overlays.mp4").is_file()
+        overlay = cv2.imread(str(res / "overlays" / f"cam{c}" / frame_name(2)))
+        assert overlay is not None and overlay.shape[:2] == (480, 640), c
+    video = cv2.VideoCapture(str(res / "overlays.mp4"))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 3  # one picture of every view per frame
+    video.release()
     assert "fit: not measured (no depth views)" in capsys.readouterr().out  # not "IoU nan"
     assert main(["eval", str(res), "--gt", str(seq), "--json", str(tmp_path / "eval.json")]) == 0
     import json

@@ -55,7 +55,8 @@ def _assert_equal(a: Path, b: Path, names=("s0", "s1", "s2", "s3")) -> None:
     ta, tb = _theta(a, names), _theta(b, names)
     for n in names:
         assert np.array_equal(ta[n], tb[n]), n  # to the last bit
-        assert (a / n / "track_log.json").is_file() and (a / n / "motion").is_dir()
+        assert len(json.loads((a / n / "track_log.json").read_text())["frames"]) == FRAMES, n
+        assert [p.name for p in (a / n / "motion").iterdir()] == ["Model_Hand_R.MOTION"], n
     assert not [p for p in a.iterdir() if ".partial-" in p.name]
 
 

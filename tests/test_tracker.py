@@ -362,8 +362,16 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     summary = track_sequences([seq], out, cfg, progress=False)
     name = summary[0]["sequence"]
     folder = out / name
-    assert (folder / "motion" / "Model_Hand_R.MOTION").is_file()
-    assert (folder / "motion" / "Model_Object_Ball.MOTION").is_file()
+    from torchhand import load_model
+    from torchhand.io.thesis import read_motion
+
+    for file, model in (("Model_Hand_R", "hand_right"), ("Model_Object_Ball", "ball")):
+        motion = read_motion(folder / "motion" / f"{file}.MOTION")  # row 0: the rigging pose, row k+1: frame k
+        assert list(motion) == list(load_model(model).bone_names), file
+        for bone, M in motion.items():
+            assert M.shape == (5, 4, 4) and np.isfinite(M).all(), (file, bone)
+            np.testing.assert_allclose(M[:, :3, :3] @ M[:, :3, :3].transpose(0, 2, 1), np.broadcast_to(np.eye(3), (5, 3, 3)),
+                                       atol=1e-4)
     poses = read_poses(folder)
     assert poses.theta.shape == (4, 80) and np.isfinite(poses.theta).all()
     result = evaluate_sequence(folder, gt, with_penetration=False)
