@@ -11,6 +11,10 @@
 * ``model64``: a session cache of the shipped models in float64 (do not mutate them).
 * ``scene_at``: ``scene_at(names, centres)`` -> (float64 Scene, (1, D) theta) with each
   model's rest shape moved so that its centroid lies at its centre (mm, camera frame).
+
+Tiers: tests marked ``@pytest.mark.slow`` (end-to-end and benchmark-like runs) are
+skipped unless ``--runslow`` is given; ``python -m pytest -q --runslow -m slow`` runs
+only them.
 """
 
 from __future__ import annotations
@@ -26,6 +30,21 @@ import torch
 
 # torch warns once that sparse CSR support is in beta (the sparse skinning-matrix tests).
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--runslow", action="store_true", default=False,
+                     help="also run the tests marked slow (end-to-end and benchmark-like runs)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` are skipped unless ``--runslow`` is given."""
+    if config.getoption("--runslow"):
+        return
+    skip_slow = pytest.mark.skip(reason="slow: run with --runslow")
+    for item in items:
+        if item.get_closest_marker("slow") is not None:
+            item.add_marker(skip_slow)
 
 
 def pytest_configure(config):

@@ -36,6 +36,41 @@ def test_resize_is_exact_and_poses_like_the_resized_model():
         resize_hand(a, 0.0)
 
 
+def test_calibrate_hand_on_one_rendered_frame():
+    """The default tier's calibration: one clean frame of the shipped hand at its true
+    pose, one short round; and its bad input."""
+    from torchhand.data.synth import demo_motion
+    from torchhand.geometry.render import render
+    from torchhand.model.scene import Scene
+    from torchhand.tracking.calibration import CalibrationConfig, calibrate_hand
+    from torchhand.tracking.tracker import Tracker, TrackerConfig
+
+    demo = demo_motion(slice(0, 1), dtype=torch.float64)
+    scene = Scene.from_names(["hand_right"], dtype=torch.float64)
+    theta = demo.theta[:, demo.scene.slices["hand_right"]]
+    cam = demo.cameras[0].to(dtype=torch.float64)
+    with torch.no_grad():
+        posed = scene(theta)
+    depth = render(posed.vertices, scene.faces, cam, scene.face_model_id, scene.face_bone_id).depth[0]
+    depth = depth.float().numpy()
+    tracker = Tracker(scene, TrackerConfig(max_iterations=2, first_frame_iterations=2))
+    cfg = CalibrationConfig(rounds=1, particles=4, generations=2, resolution=48, iterations=2)
+    res = calibrate_hand(tracker, [depth], [cam], theta, cfg, name="mine")
+    assert res.assets.name == "mine" and set(res.fingers) == set(FINGERS)
+    assert res.theta.shape == (1, 37) and res.before.shape == res.after.shape == (1,)
+    assert res.before[0] == pytest.approx(0.0, abs=1e-6)  # the frame is this hand's render at this pose
+    # the start is one of the particles: the true size is kept, and the pose stays on the data
+    assert res.scale == pytest.approx(1.0, abs=0.05) and all(0.85 <= f <= 1.18 for f in res.fingers.values())
+    assert res.after[0] < 1.0
+    with pytest.raises(ValueError, match="one camera and one pose per frame"):
+        calibrate_hand(tracker, [depth, depth], [cam], theta, cfg)
+    with pytest.raises(ValueError, match="calibration fits one hand"):
+        calibrate_hand(Tracker(demo.scene), [depth], [cam], demo.theta, cfg)
+    with pytest.raises(ValueError, match="CalibrationConfig.rounds must be an integer >= 1"):
+        CalibrationConfig(rounds=0)
+
+
+@pytest.mark.slow
 def test_calibrate_recovers_the_size_of_a_larger_hand(tmp_path):
     from torchhand.app.cli import main
     from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence

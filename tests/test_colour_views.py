@@ -132,8 +132,15 @@ def test_synth_views_command_line(tmp_path, capsys):
     assert info.has_depth and (tmp_path / "s" / "cam1" / "depth" / frame_name(1)).is_file()
     # the tracker refuses colour-only views with a clear message, and the two flags need --views
     assert main(["synth", "--demo", "--frames", ":2", "--views", "2", "--out", str(tmp_path / "c")]) == 0
-    assert main(["track", str(tmp_path / "c"), "--out", str(tmp_path / "t")]) != 0
-    assert "colour views only" in capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["track", str(tmp_path / "c"), "--out", str(tmp_path / "t")]) == 1
+    err = capsys.readouterr().err
+    name = read_sequence_info(tmp_path / "c").name
+    assert (f"torchhand track: error: {name}: {tmp_path / 'c'}: colour views only (sequence.json has_depth false, "
+            "no depth/), but the energy's terms read depth") in err
+    assert "(--energy E+C+O)" in err and "; nothing written" in err
+    assert "torchhand track: 1 of 1 sequences failed" in err
+    assert not (tmp_path / "t" / name).exists()
     # larger images of the same ring: 1.5 x 640x480, the focal length scaled with them
     assert main(["synth", "--demo", "--frames", ":1", "--views", "2", "--image-scale", "1.5",
                  "--out", str(tmp_path / "big")]) == 0

@@ -179,6 +179,7 @@ def test_missing_prediction_folder(gt_dir, tmp_path):
 
 
 # ------------------------------------------------------------------ many sequences
+@pytest.mark.slow
 def test_evaluate_many_parallel_equals_serial(gt1, tmp_path):
     pairs = []
     for k, shift in enumerate([(1.0, 0, 0), (0, 7.0, 0), (0, 0, 20.0)]):
@@ -264,6 +265,7 @@ def test_penetration_metric_on_meshes():
     assert pen.pairs > 0
 
 
+@pytest.mark.slow
 def test_max_depth_sign_does_not_flip_on_a_grazing_ray(hia_root):
     """Frame 71 of thesis sequence 03 (float32 pose, as rendered): with one ray for the
     inside test, a vertex of one hand 19 mm outside the other was counted 19 mm deep

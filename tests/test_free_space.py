@@ -87,6 +87,7 @@ def test_data_far_behind_the_model_is_free_space(hand_and_ball):
     assert int(found.counts.diagnostics["pixels"][0]) > 20
 
 
+@pytest.mark.slow
 def test_lo_f_tracks_a_displaced_ball_back(hand_and_ball):
     scene, theta, cam, depth = hand_and_ball
     b = scene.slices["ball"]
@@ -141,6 +142,7 @@ def test_labels_without_data_near_any_model_are_empty(hand_and_ball):
     assert (labels == -1).all()
 
 
+@pytest.mark.slow
 def test_the_labelling_is_a_tracker_option(hand_and_ball):
     scene, theta, cam, depth = hand_and_ball
     with pytest.raises(ValueError, match="labels must be one of"):

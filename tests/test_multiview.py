@@ -55,6 +55,7 @@ def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
     assert torch.equal(single.theta, rig.theta) and torch.equal(single.energy, rig.energy)
 
 
+@pytest.mark.slow
 def test_depth_views_of_a_rig_are_tracked_together(ring):
     scene, cams, gt, _, depth, _ = ring
     start = _shifted(scene, gt[:1], [6.0, -4.0, 8.0])
@@ -66,6 +67,7 @@ def test_depth_views_of_a_rig_are_tracked_together(ring):
     assert int(res.correspondences[0]) > 1.5 * int(one.correspondences[0])  # every view's pairs count
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("energy, limit", [("E+C", 2.5), ("E+C+O", 1.5)])
 def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
     scene, cams, gt, colour, _, _ = ring
@@ -98,6 +100,7 @@ def test_models_outside_the_view_find_no_pairs_and_stay_in_place(ring):
             assert (res.theta[0, sl.start : sl.start + 3] - away[0, sl.start : sl.start + 3]).abs().max() < 0.5
 
 
+@pytest.mark.slow
 def test_larger_images_of_the_ring_are_tracked_closer(tmp_path):
     """Nothing in the colour terms assumes 640x480, and the pixel is what limits them: from
     the true pose, the edges of 4 views at twice the size (the same field of view) keep
@@ -173,6 +176,7 @@ def test_rig_bad_input_is_named(ring):
     assert [t.needs for t in parse_energy("E+O+C")][:3] == ["colour", "colour", None]
 
 
+@pytest.mark.slow
 def test_track_command_on_colour_views(tmp_path, capsys):
     from torchhand.app.cli import main
 
@@ -182,9 +186,14 @@ def test_track_command_on_colour_views(tmp_path, capsys):
     res = out / read_sequence_info(seq).name
     kp2 = np.load(res / "keypoints_2d.npy")
     assert kp2.shape[:2] == (3, 4)  # every frame in every camera
+    import cv2
+
     for c in range(4):
-        assert (res / "overlays" / f"cam{c}" / frame_name(2)).is_file()
-    assert (res / "overlays.mp4").is_file()
+        overlay = cv2.imread(str(res / "overlays" / f"cam{c}" / frame_name(2)))
+        assert overlay is not None and overlay.shape[:2] == (480, 640), c
+    video = cv2.VideoCapture(str(res / "overlays.mp4"))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 3  # one picture of every view per frame
+    video.release()
     assert "fit: not measured (no depth views)" in capsys.readouterr().out  # not "IoU nan"
     assert main(["eval", str(res), "--gt", str(seq), "--json", str(tmp_path / "eval.json")]) == 0
     import json
@@ -192,8 +201,14 @@ def test_track_command_on_colour_views(tmp_path, capsys):
     report = json.loads((tmp_path / "eval.json").read_text())
     assert report["models"]["hand_right"]["mean_mm"] < 12.0, report["models"]  # 4 views, the noise protocol
     # the depth terms on colour views: a clear message, nothing written
-    assert main(["track", str(seq), "--out", str(tmp_path / "lo")]) != 0
-    assert "colour views only" in capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["track", str(seq), "--out", str(tmp_path / "lo")]) == 1
+    err = capsys.readouterr().err
+    name = read_sequence_info(seq).name
+    assert (f"torchhand track: error: {name}: {seq}: colour views only (sequence.json has_depth false, "
+            "no depth/), but the energy's terms read depth") in err
+    assert "; nothing written" in err and "torchhand track: 1 of 1 sequences failed" in err
+    assert not (tmp_path / "lo" / name).exists()
 
 
 def test_nails_pull_the_salient_vertices_onto_their_detections(ring):
@@ -216,6 +231,7 @@ def test_nails_pull_the_salient_vertices_onto_their_detections(ring):
         Nails(gate_px=0)
 
 
+@pytest.mark.slow
 def test_the_swarm_never_returns_worse_than_its_start(ring):
     scene, cams, gt, colour, _, _ = ring
     start = _shifted(scene, gt[:1], [3.0, 0.0, 0.0])
@@ -260,6 +276,7 @@ def test_a_rig_of_mixed_image_sizes_is_refused_by_name(tmp_path):
     assert not (tmp_path / "out" / "demo").exists()
 
 
+@pytest.mark.slow
 def test_nail_detections_come_from_salient_json_or_the_shipped_detector(tmp_path):
     """``--nails auto`` reads each camera's ``salient.json``; ``--nails detector`` (and a
     camera without the file, e.g. a user's own recording) runs the shipped colour nail

@@ -100,6 +100,7 @@ def test_parse_energy_adds_the_weighted_physics_term():
     assert not any(isinstance(getattr(t, "term", t), Physics) for t in parse_energy("LO+CS"))
 
 
+@pytest.mark.slow
 def test_a_held_cube_gets_supporting_fingers_and_the_term_pulls_them_on(hia_root):
     """Frame 50 of "Moving a cube" (sequence 20) as the thesis' motion poses it: the
     cube falls from the hand (no table is modelled); moving two finger parts onto it holds

@@ -4,12 +4,16 @@ import json
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from torchhand.app.runner import TrackOptions, track_sequences
 from torchhand.data.layout import camera_dir, frame_name, read_poses
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
 from torchhand.model.scene import Scene
+
+# a 32-frame sequence tracked twice end to end
+pytestmark = pytest.mark.slow
 
 
 def _gap_sequence(root):

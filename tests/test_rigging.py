@@ -17,7 +17,7 @@ from torchhand.io.thesis import FormatError  # noqa: E402
 from torchhand.model.articulated import ArticulatedModel  # noqa: E402
 from torchhand.reconstruction.deformable import DeformConfig, cotangent_laplacian, embed  # noqa: E402
 from torchhand.reconstruction.motion_segments import merge_rigid_parts, segment_motion  # noqa: E402
-from torchhand.reconstruction.rigging import build_rig, fit_rig  # noqa: E402
+from torchhand.reconstruction.rigging import Skeleton, build_rig, fit_rig  # noqa: E402
 from torchhand.scoring.surfaces import vertex_errors  # noqa: E402
 
 
@@ -62,6 +62,7 @@ def test_embedding_carries_the_fine_mesh(chain3):
     assert np.linalg.norm(moved - (chain3.vertices @ R.T + [5, 0, 0]), axis=1).max() < 0.25
 
 
+@pytest.mark.slow
 def test_motion_segmentation_finds_the_links(chain3):
     traj, _ = _trajectories(chain3)
     seg = segment_motion(traj, chain3.vertices, chain3.faces)
@@ -83,6 +84,7 @@ def test_motion_segmentation_finds_the_links(chain3):
     assert segment_motion(rigid, chain3.vertices, chain3.faces).parts == 1
 
 
+@pytest.mark.slow
 def test_refinement_keeps_an_extra_cluster_only_where_it_is_a_joint(chain3):
     traj, _ = _trajectories(chain3)
     ev = segment_motion(traj, chain3.vertices, chain3.faces, refine=False).eigenvalues
@@ -119,6 +121,7 @@ def test_redundant_parts_are_joined(chain3):
         segment_motion(traj, chain3.vertices, chain3.faces, merge_ratio=-1)
 
 
+@pytest.mark.slow
 def test_rig_from_true_trajectories(chain3):
     traj, th = _trajectories(chain3)
     seg = segment_motion(traj, chain3.vertices, chain3.faces)
@@ -135,6 +138,27 @@ def test_rig_from_true_trajectories(chain3):
         with torch.no_grad():
             v = model(pose[None]).vertices[0].numpy()
         assert np.linalg.norm(v - traj[f], axis=1).mean() < 1.5
+
+
+def test_rig_of_a_coarse_chain_from_its_true_parts():
+    """The default tier's rig: a coarse two-link chain (16 mm edges), its true links as
+    the parts, ten frames of its motion."""
+    chain = chain_object((110.0, 110.0), ("z",), edge=16.0, name="coarse")
+    traj, _ = _trajectories(chain, frames=10)
+    parts = np.digitize(chain.vertices[:, 0], chain_joints(chain)[:, 0])
+    # the tube's axis as its curve skeleton (pygel3d's skeletonisation takes tens of seconds here)
+    x = np.linspace(-110.0, 110.0, 23)
+    skeleton = Skeleton(np.stack([x, 0 * x, 0 * x], 1), np.stack([np.arange(22), np.arange(1, 23)], 1),
+                        np.abs(chain.vertices[:, :1] - x[None]).argmin(1))
+    rig = build_rig(chain.vertices, chain.faces, traj, parts, "coarse", skeleton=skeleton)
+    assert rig.assets.num_bones == 2 and list(rig.assets.parents) == [-1, 0]
+    assert np.linalg.norm(rig.joints[0] - chain_joints(chain)[0]) < 3.0 and list(rig.joint_dofs) == [1]
+    assert np.array_equal(rig.assets.vertices, chain.vertices) and np.array_equal(rig.assets.faces, chain.faces)
+    model = ArticulatedModel(rig.assets, dtype=torch.float64)
+    pose = fit_rig(model, traj[-1], iterations=10, samples=500)
+    with torch.no_grad():
+        v = model(pose[None]).vertices[0].numpy()
+    assert np.linalg.norm(v - traj[-1], axis=1).mean() < 2.0
 
 
 def test_stretch_term_keeps_edge_lengths_and_leaves_rotations_free(chain3):
@@ -194,6 +218,7 @@ def chain_sequence(tmp_path_factory):
     return root, seq, assets
 
 
+@pytest.mark.slow
 def test_rig_folder_end_to_end(chain_sequence, monkeypatch):
     from torchhand.app.rig import rig_folder
 
@@ -254,6 +279,7 @@ def test_rig_bad_input(chain_sequence, monkeypatch, tmp_path):
     assert not any((tmp_path / n).exists() for n in "abcdef")
 
 
+@pytest.mark.slow
 def test_rigid_object_gives_a_rigid_model(tmp_path, monkeypatch):
     from torchhand.app.rig import rig_folder
     from torchhand.data.synth import write_synthetic_sequence

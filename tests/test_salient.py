@@ -465,6 +465,7 @@ def _torchrun(args, cwd):
                           timeout=300)
 
 
+@pytest.mark.slow
 def test_ddp_two_processes_match_one_and_resume_exactly(tmp_path):
     """torchrun with 2 CPU ranks (gloo): the loss curve of the single-process run at the
     same global batch (BatchNorm statistics are per rank on CPU, hence the tolerance),

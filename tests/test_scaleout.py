@@ -56,10 +56,12 @@ def _assert_equal(a: Path, b: Path, names=("s0", "s1", "s2", "s3")) -> None:
     ta, tb = _theta(a, names), _theta(b, names)
     for n in names:
         assert np.array_equal(ta[n], tb[n]), n  # to the last bit
-        assert (a / n / "track_log.json").is_file() and (a / n / "motion").is_dir()
+        assert len(json.loads((a / n / "track_log.json").read_text())["frames"]) == FRAMES, n
+        assert [p.name for p in (a / n / "motion").iterdir()] == ["Model_Hand_R.MOTION"], n
     assert not [p for p in a.iterdir() if ".partial-" in p.name]
 
 
+@pytest.mark.slow
 def test_processes_equal_the_sequential_run(sequences, sequential, tmp_path):
     events = []
     run = track_many(sequences, tmp_path / "out", JOB, workers=2, progress=False, on_event=events.append)
@@ -86,6 +88,7 @@ def _kill_once(state: dict):
     return handle
 
 
+@pytest.mark.slow
 def test_a_killed_worker_is_retried_and_the_outputs_equal(sequences, sequential, tmp_path):
     state = {}
     run = track_many(sequences, tmp_path / "out", JOB, workers=2, progress=False, on_event=_kill_once(state))
@@ -94,6 +97,7 @@ def test_a_killed_worker_is_retried_and_the_outputs_equal(sequences, sequential,
     _assert_equal(tmp_path / "out", sequential)
 
 
+@pytest.mark.slow
 def test_a_retry_keeps_what_its_killed_attempt_finished_and_force_replaces_older_folders(
         sequences, sequential, tmp_path):
     import shutil
@@ -115,6 +119,7 @@ def test_a_retry_keeps_what_its_killed_attempt_finished_and_force_replaces_older
     _assert_equal(out, sequential)
 
 
+@pytest.mark.slow
 def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
     out = tmp_path / "out"
 
@@ -139,12 +144,27 @@ def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
         track_many(sequences, out, other, resume=True, progress=False)
 
 
+def test_one_sequence_in_this_process_writes_it_and_the_summary(sequences, tmp_path):
+    """The default tier's run of track_many: one sequence, no worker processes."""
+    job = TrackJob(TrackerConfig(max_iterations=2, first_frame_iterations=2))
+    events = []
+    run = track_many(sequences[:1], tmp_path / "out", job, progress=False, on_event=events.append)
+    assert run["failed"] == 0 and run["tasks"] == 1 and run["frames"] == FRAMES
+    assert [e[1] for e in events][0] == "start" and [e[1] for e in events][-1] == "done"
+    theta = np.load(tmp_path / "out" / "s0" / "theta.npy")
+    assert theta.shape == (FRAMES, 37) and np.isfinite(theta).all()
+    summary = json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())
+    assert [(s["sequence"], s["status"]) for s in summary["sequences"]] == [("s0", "ok")]
+    assert not [p for p in (tmp_path / "out").iterdir() if ".partial-" in p.name]
+
+
 def test_resume_refuses_a_folder_of_another_command(sequences, tmp_path):
     assert main(["demo", "--out", str(tmp_path / "s0"), "--frames", "2", "--track-frames", "0"]) == 0
     with pytest.raises(ValueError, match="not written by torchhand track"):
         track_many(sequences[:1], tmp_path, JOB, resume=True, progress=False)
 
 
+@pytest.mark.slow
 def test_a_failing_sequence_among_good_ones(sequences, sequential, tmp_path, capsys):
     import shutil
 
@@ -171,8 +191,9 @@ def test_bad_input_is_named(sequences, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "missing_a" in err and "missing_b" in err and "nothing was tracked" in err
     assert not (tmp_path / "out").exists()
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as ex:
         main(["track", str(sequences[0]), "--out", str(tmp_path / "out"), "--workers", "0"])
+    assert ex.value.code == 2
     assert "--workers: expected an integer >= 1, got 0" in capsys.readouterr().err
     with pytest.raises(ValueError, match="2 path"):
         listing.write_text("only_one\n")
@@ -201,6 +222,7 @@ def test_an_unreachable_ray_address_fails_fast():
     assert time.perf_counter() - t0 < 10
 
 
+@pytest.mark.slow
 def test_ray_equals_the_sequential_run_and_retries_a_killed_worker(ray_cluster, sequences, sequential, tmp_path):
     events = []
     run = track_many(sequences, tmp_path / "ray", JOB, ray="local", progress=False, on_event=events.append)

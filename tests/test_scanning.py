@@ -20,8 +20,9 @@ from torchhand.io.mesh_files import read_object_mesh
 from torchhand.io.thesis import FormatError
 from torchhand.model.articulated import ArticulatedModel, load_model
 from torchhand.model.scene import Scene
-from torchhand.reconstruction.in_hand import ScanError, scan
-from torchhand.reconstruction.registration import kabsch
+from torchhand.reconstruction.fusion import FusionConfig
+from torchhand.reconstruction.in_hand import ScanConfig, ScanError, scan
+from torchhand.reconstruction.registration import RegistrationConfig, kabsch
 from torchhand.scoring.surfaces import score_scan, surface_errors
 from torchhand.tracking.segmentation import skin_mask
 
@@ -68,6 +69,7 @@ def test_rigid_model_moves_its_mesh_rigidly(box_path):
     assert torch.allclose(v, torch.as_tensor(m.vertices) @ R.T + theta[0, :3], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_grasp_touches_without_penetrating(box_path):
     import open3d as o3d
 
@@ -125,7 +127,7 @@ def test_kabsch_recovers_a_rigid_transform():
     assert torch.allclose(T[:3, :3], R, atol=1e-9) and torch.allclose(T[:3, 3], t, atol=1e-8)
 
 
-def _gt_scan(seq, frames):
+def _gt_scan(seq, frames, config=ScanConfig()):
     info = read_sequence_info(seq)
     gt = read_poses(seq / "gt")
     scene = Scene.from_names(["hand_right"], dtype=torch.float64)
@@ -139,9 +141,10 @@ def _gt_scan(seq, frames):
 
     cam = info.cameras[0]
     return scan(depths(), cam.K.double().numpy(), cam.width, cam.height, list(V), _effectors(scene.models[0]),
-                frames=frames, progress=False)
+                config=config, frames=frames, progress=False)
 
 
+@pytest.mark.slow
 def test_scan_with_the_true_hand_follows_the_object(scan_seq):
     res = _gt_scan(scan_seq, 16)
     truth = np.load(scan_seq / "gt" / "object_pose.npy")
@@ -154,6 +157,21 @@ def test_scan_with_the_true_hand_follows_the_object(scan_seq):
     assert exact["add_mm"]["max"] < 1e-9 and exact["rotation_deg"]["max"] < 1e-5
     assert err["rotation_deg"]["max"] < 2.5 and err["translation_mm"]["max"] < 3.0
     assert res.mesh.watertight and res.fused.all()
+
+
+def test_scan_of_three_frames_registers_them(scan_seq):
+    """The default tier's scan: the first three frames (11 degrees of turn) registered
+    and fused, with the true hand, at a coarse resolution (3 mm voxels, 600 points)."""
+    coarse = ScanConfig(registration=RegistrationConfig(iterations=4), points=600, model_voxel=3.0,
+                        fusion=FusionConfig(voxel=3.0, poisson_depth=6, triangles=1000), refine_passes=0)
+    res = _gt_scan(scan_seq, 3, coarse)
+    truth = np.load(scan_seq / "gt" / "object_pose.npy")[:3]
+    from torchhand.scoring.surfaces import trajectory_errors
+
+    assert res.poses.shape == (3, 4, 4) and res.fused.shape == res.contacts.shape == res.seconds.shape == (3,)
+    err = trajectory_errors(res.poses, truth, read_object_mesh(scan_seq / "gt" / "object.ply").vertices)
+    assert err["rotation_deg"]["max"] < 2.5 and err["translation_mm"]["max"] < 3.0
+    assert res.fused.all() and res.mesh.watertight and 0 < len(res.mesh.faces) <= 1000
 
 
 def test_surface_errors_measure_a_known_offset(box_path):
@@ -176,6 +194,7 @@ def test_object_leaving_the_view_is_an_error(tmp_path):
         _check_in_view(d, 3, tmp_path)
 
 
+@pytest.mark.slow
 def test_scan_command_end_to_end(scan_seq, tmp_path, capsys):
     out = tmp_path / "obj"
     assert main(["scan", str(scan_seq), "--out", str(out)]) == 0
@@ -195,6 +214,7 @@ def test_scan_command_end_to_end(scan_seq, tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
     import shutil
 
@@ -209,6 +229,7 @@ def test_object_hidden_by_the_hand_is_an_error(scan_seq, tmp_path, capsys):
     assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]  # nothing half-written is left
 
 
+@pytest.mark.slow
 def test_synth_scan_object_command(tmp_path, box_path, capsys):
     out = tmp_path / "s"
     assert main(["synth", "--scan-object", str(box_path), "--out", str(out), "--frames", "4", "--noise", "none"]) == 0

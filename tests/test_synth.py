@@ -176,11 +176,25 @@ def test_force_replaces_stale_content(frames, tmp_path):
     assert (out / "depth" / frame_name(0)).is_file() and read_sequence_info(out).frames == 1
 
 
-def test_empty_existing_out_is_fine(frames, tmp_path):
+def test_empty_existing_out_is_fine(frames, seq, tmp_path):
     out = tmp_path / "empty"
     out.mkdir()
-    write_synthetic_sequence(_one(frames), out, noise="none", rgb=False, progress=False)
-    assert (out / "sequence.json").is_file()
+    assert write_synthetic_sequence(_one(frames), out, noise="none", rgb=False, progress=False) == out
+    meta = json.loads((out / "sequence.json").read_text())
+    assert meta["frames"] == 1 and meta["models"] == ["hand_right"] and meta["depth_unit_mm"] == 1.0
+    assert meta["has_rgb"] is False and meta["has_depth"] is True and meta["source"]["noise"] == "none"
+    info = read_sequence_info(out)
+    assert info.frames == 1 and [(c.width, c.height) for c in info.cameras] == [(640, 480)]
+    assert torch.equal(info.cameras[0].K, read_sequence_info(seq).cameras[0].K)
+    # the first frame of the three-frame sequence, in millimetres
+    depth = read_depth(out / "depth" / frame_name(0))
+    assert depth.shape == (480, 640)
+    np.testing.assert_array_equal(depth, read_depth(seq / "depth" / frame_name(0)))
+    assert 300 < np.median(depth[depth > 0]) < 1000
+    gt = read_poses(out / "gt")
+    assert gt.theta.shape == (1, 37) and gt.keypoints_3d.shape == (1, 1, 21, 3)
+    np.testing.assert_array_equal(gt.theta, frames.theta[:1].numpy())
+    np.testing.assert_array_equal(read_init_pose(out), gt.theta[0])
 
 
 def test_unknown_noise_is_rejected_before_writing(frames, tmp_path):

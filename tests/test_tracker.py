@@ -249,6 +249,7 @@ def test_batched_problems_are_independent(hand_frame):
             torch.testing.assert_close(batch.energy[b : b + 1], one.energy)
 
 
+@pytest.mark.slow
 def test_recovery_re_solves_a_frame_whose_energy_rose(hand_frame):
     """After three frames tracked at the truth, a frame started 20 mm off ends with a
     high energy: it is re-solved from perturbed previous poses, a re-solve is kept only
@@ -289,6 +290,7 @@ def test_far_off_initial_pose_is_flagged_and_finite(hand_frame):
     assert "no correspondences" in res.notes[0]
 
 
+@pytest.mark.slow
 def test_the_box_holds_the_initial_pose_outside_the_limits(hand_frame):
     """The thesis' own motions leave its joint limits: a hand spread past its abduction
     limits, given as a sequence's initial pose, is tracked where it is (the box grows to
@@ -349,6 +351,7 @@ def test_parse_energy_rejects_unknown_and_future_components():
     assert [t.needs for t in parse_energy("LO+E")][:3] == ["depth", "depth", "colour"]
 
 
+@pytest.mark.slow
 def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     seq = tmp_path / "seq"
     shutil.copytree(SAMPLE, seq)
@@ -359,8 +362,16 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
     summary = track_sequences([seq], out, TrackOptions(cfg), progress=False)
     name = summary[0]["sequence"]
     folder = out / name
-    assert (folder / "motion" / "Model_Hand_R.MOTION").is_file()
-    assert (folder / "motion" / "Model_Object_Ball.MOTION").is_file()
+    from torchhand import load_model
+    from torchhand.io.thesis import read_motion
+
+    for file, model in (("Model_Hand_R", "hand_right"), ("Model_Object_Ball", "ball")):
+        motion = read_motion(folder / "motion" / f"{file}.MOTION")  # row 0: the rigging pose, row k+1: frame k
+        assert list(motion) == list(load_model(model).bone_names), file
+        for bone, M in motion.items():
+            assert M.shape == (5, 4, 4) and np.isfinite(M).all(), (file, bone)
+            np.testing.assert_allclose(M[:, :3, :3] @ M[:, :3, :3].transpose(0, 2, 1), np.broadcast_to(np.eye(3), (5, 3, 3)),
+                                       atol=1e-4)
     poses = read_poses(folder)
     assert poses.theta.shape == (4, 80) and np.isfinite(poses.theta).all()
     result = evaluate_sequence(folder, gt, with_penetration=False)
@@ -370,6 +381,7 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
 
 
 
+@pytest.mark.slow
 def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypatch):
     """With prediction p, frame f >= 2 starts from theta_{f-1} + p (theta_{f-1} - theta_{f-2}),
     clamped, while the previous pose stays the regularisation reference; p = 0 passes
@@ -476,6 +488,7 @@ def hand_and_rope(scene_at):
     return scene, theta, cam, depth
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("terms", ["default", "plain d2m"])
 def test_hand_and_rope_in_one_theta_converge_from_a_perturbed_pose(hand_and_rope, terms):
     """From eight random perturbations of the rope (its joints 9 mm off on average, its
@@ -594,8 +607,9 @@ def test_a_hand_near_the_image_border_is_tracked(hand_frame):
     assert err < 1.5, err
 
 
-@pytest.mark.parametrize("backend", ["open3d", pytest.param("warp-raycast", marks=pytest.mark.skipif(
-    __import__("importlib").util.find_spec("warp") is None, reason="NVIDIA Warp is not installed"))])
+@pytest.mark.parametrize("backend", [pytest.param("open3d", marks=pytest.mark.slow), pytest.param(
+    "warp-raycast", marks=[pytest.mark.slow, pytest.mark.skipif(
+        __import__("importlib").util.find_spec("warp") is None, reason="NVIDIA Warp is not installed")])])
 def test_other_backends_track_a_frame_too(hand_frame, backend):
     """open3d renders with scipy neighbour searches (the path without Warp) and Warp's BVH
     ray casting converge like the default."""
