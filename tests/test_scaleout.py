@@ -146,7 +146,7 @@ def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
 
 def test_one_sequence_in_this_process_writes_it_and_the_summary(sequences, tmp_path):
     """The default tier's run of track_many: one sequence, no worker processes."""
-    job = TrackJob(TrackerConfig(max_iterations=2, first_frame_iterations=2))
+    job = TrackJob(TrackOptions(TrackerConfig(max_iterations=2, first_frame_iterations=2)))
     events = []
     run = track_many(sequences[:1], tmp_path / "out", job, progress=False, on_event=events.append)
     assert run["failed"] == 0 and run["tasks"] == 1 and run["frames"] == FRAMES

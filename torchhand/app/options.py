@@ -10,6 +10,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Optional, Tuple
 
+from torchhand.core.check import check_choice, check_number
 from torchhand.tracking.initialization import InitConfig
 from torchhand.tracking.segmentation import SegmentConfig
 from torchhand.tracking.tracker import TrackerConfig
@@ -70,10 +71,12 @@ class TrackOptions:
     nails: str = "auto"
 
     def __post_init__(self) -> None:
+        if not isinstance(self.config, TrackerConfig):
+            raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
+        check_choice(self.nails, "nails", NAIL_SOURCES)
+        check_number(self.reinit_iou, "reinit_iou", low=0, inclusive=True, high=1)
         if self.models is not None:
             object.__setattr__(self, "models", tuple(str(m) for m in self.models))
-        if self.nails not in NAIL_SOURCES:
-            raise ValueError(f"nails must be one of {NAIL_SOURCES}, got {self.nails!r}")
 
     def settings(self) -> dict:
         """Everything of the run that changes its tracked poses, as JSON

@@ -47,6 +47,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 from tqdm import tqdm
 
+from torchhand.core.check import check_int
 from torchhand.app.options import TrackOptions
 from torchhand.core.errors import MissingExtra
 from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
@@ -68,6 +69,11 @@ class TrackJob:
 
     options: TrackOptions = field(default_factory=TrackOptions)
     threads: int = 1
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.options, TrackOptions):
+            raise TypeError(f"options must be a TrackOptions, got {type(self.options).__name__}")
+        check_int(self.threads, "threads", low=1)
 
 
 @dataclass(frozen=True)
