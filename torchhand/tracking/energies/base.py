@@ -46,7 +46,7 @@ from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
 __all__ = ["Residuals", "Counts", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm",
-           "RayRows", "RayPairs", "PixelRows", "PixelPairs", "Setup", "begin", "pixel_rows", "project_views",
+           "ModelRows", "RayRows", "PixelRows", "PixelPairs", "Setup", "begin", "pixel_rows", "project_views",
            "scatter_columns", "no_residuals", "bone_inliers", "counts", "stack_rows", "stride_subsample",
            "seen_vertices"]
 
@@ -276,6 +276,16 @@ def begin(state: "TrackState", term: EnergyTerm, build) -> Setup:
                  state.data_side(term, build), state.problem_index())
 
 
+@dataclass(frozen=True, eq=False)
+class ModelRows(Prepared):
+    """Prepared data of a term with a block of pairs per model: ``scene`` and ``rows``,
+    one NamedTuple of (B, n) tensors per model (:class:`RayRows` of a
+    :class:`VertexRayTerm`, :class:`PixelRows`, model-to-data's ``SurfaceRows``)."""
+
+    scene: Scene
+    rows: tuple
+
+
 class RayRows(NamedTuple):
     """One model's (vertex, ray) pairs: ids (B, n) int64 vertex ids local to the model,
     d (B, n, 3) and m (B, n, 3) the ray's Pluecker line (direction, moment), mask (B, n)
@@ -287,21 +297,13 @@ class RayRows(NamedTuple):
     mask: torch.Tensor
 
 
-@dataclass(frozen=True, eq=False)
-class RayPairs(Prepared):
-    """Prepared data of a :class:`VertexRayTerm`: ``scene`` and one :class:`RayRows`
-    per model (``rows``)."""
-
-    scene: Scene
-    rows: Tuple[RayRows, ...]
-
-
 class VertexRayTerm(EnergyTerm):
     """A term whose pairs are (model vertex, world ray): the residual ``V x d - m`` of
     the vertex V and the ray's Pluecker line (d, m), whose norm is V's distance to the
-    ray (data-to-model, Eq. 4.8). ``prepare`` returns :class:`RayPairs`."""
+    ray (data-to-model, Eq. 4.8). ``prepare`` returns :class:`ModelRows` of
+    :class:`RayRows`."""
 
-    def fold_row_weights(self, prepared: RayPairs, sqrt_w):
+    def fold_row_weights(self, prepared: ModelRows, sqrt_w):
         # V x d - m is linear in the line (d, m): scaling both by sqrt(w) weights the
         # pair's squared residual, and its Jacobian, by w
         rows, start = [], 0
@@ -311,7 +313,7 @@ class VertexRayTerm(EnergyTerm):
             start += ids.shape[1]
         return replace(prepared, rows=tuple(rows))
 
-    def residuals(self, theta, posed, prepared: RayPairs, jacobian=True):
+    def residuals(self, theta, posed, prepared: ModelRows, jacobian=True):
         B, D = theta.shape
         scene = prepared.scene
         parts = []
@@ -340,15 +342,13 @@ class PixelRows(NamedTuple):
 
 
 @dataclass(frozen=True, eq=False)
-class PixelPairs(Prepared):
-    """Prepared data of a :class:`VertexPixelTerm`: ``scene``, each problem's camera
-    (``K`` (B, 3, 3), ``T_cw`` (B, 4, 4)) and one :class:`PixelRows` per model
-    (``rows``, :func:`pixel_rows` builds them from pairs of any models)."""
+class PixelPairs(ModelRows):
+    """Prepared data of a :class:`VertexPixelTerm`: ``scene``, one :class:`PixelRows` per
+    model (``rows``, :func:`pixel_rows` builds them from pairs of any models) and each
+    problem's camera (``K`` (B, 3, 3), ``T_cw`` (B, 4, 4))."""
 
-    scene: Scene
     K: torch.Tensor
     T_cw: torch.Tensor
-    rows: Tuple[PixelRows, ...]
 
 
 class VertexPixelTerm(EnergyTerm):

@@ -26,7 +26,7 @@ from torchhand.geometry.camera import pixel_rays, unproject_pixels
 from torchhand.geometry.neighbors import nearest_marked_pixel
 from torchhand.geometry.render import window_map
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (RayPairs, RayRows, TrackState, VertexRayTerm, begin, bone_inliers,
+from torchhand.tracking.energies.base import (ModelRows, RayRows, TrackState, VertexRayTerm, begin, bone_inliers,
                                               counts, seen_vertices)
 
 __all__ = ["DataToModel", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
@@ -122,7 +122,7 @@ class DataToModel(VertexRayTerm):
         radius = torch.ceil(1.5 * f * self.max_distance / near).long().clamp(max=400) + 4
         return _Edges(rc, X, rays.direction.view(B, K, M, 3), rays.moment.view(B, K, M, 3), valid, radius)
 
-    def prepare(self, state: TrackState) -> RayPairs:
+    def prepare(self, state: TrackState) -> ModelRows:
         scene, B, dev, dt, data, p = begin(state, self, self._build)
         rc, X, d, m, valid, radius = (x[p] for x in data)
         K, M = valid.shape[1:]
@@ -159,5 +159,5 @@ class DataToModel(VertexRayTerm):
             rows = slice(k * M, (k + 1) * M)
             local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
             per_model.append(RayRows(local, df[:, rows], mf[:, rows], keep[:, rows].to(dt)))
-        return RayPairs(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
+        return ModelRows(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
                         tuple(per_model))

@@ -162,7 +162,7 @@ class Edges(VertexPixelTerm):
         unmatched = torch.where(ok & ~matched, cut, torch.zeros_like(cut)).sum(1).double()
         found = counts(B, device=dev, correspondences=valid.sum(1), candidates=torch.maximum(ok.sum(1), valid.sum(1)),
                        unmatched=unmatched, edges=ok.sum(1))
-        return PixelPairs(found, scene, K_b, T_b, rows)
+        return PixelPairs(found, scene=scene, rows=rows, K=K_b, T_cw=T_b)
 
     def __repr__(self) -> str:
         return f"Edges({self.config.kind}, max_points={self.max_points}, sigma={self.sigma})"

@@ -142,5 +142,5 @@ class FreeSpace(VertexPixelTerm):
             rows = slice(k * M, (k + 1) * M)
             local = torch.where(keep[:, rows], vid[:, rows] - scene.vertex_slices[name].start, 0)
             per_model.append(PixelRows(local, target[:, rows].flip(-1), scale[:, rows], keep[:, rows].to(dt)))
-        return PixelPairs(counts(B, device=dev, pixels=keep.sum(1), free=free.reshape(B, -1).sum(1)), scene, K_b, T_b,
-                          tuple(per_model))
+        found = counts(B, device=dev, pixels=keep.sum(1), free=free.reshape(B, -1).sum(1))
+        return PixelPairs(found, scene=scene, rows=tuple(per_model), K=K_b, T_cw=T_b)

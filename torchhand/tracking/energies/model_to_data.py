@@ -17,8 +17,7 @@ masked. Preparing an outer iteration makes no host synchronisation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import NamedTuple, Optional, Tuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -26,11 +25,10 @@ import torch
 from torchhand.core.check import check_choice, check_int, check_number
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.geometry.neighbors import PointIndex
-from torchhand.model.scene import Scene
-from torchhand.tracking.energies.base import (EnergyTerm, Prepared, Residuals, TrackState, begin, bone_inliers, counts,
+from torchhand.tracking.energies.base import (EnergyTerm, ModelRows, Residuals, TrackState, begin, bone_inliers, counts,
                                               scatter_columns, stack_rows, stride_subsample)
 
-__all__ = ["ModelToData", "SurfaceRows", "SurfacePairs"]
+__all__ = ["ModelToData", "SurfaceRows"]
 
 
 class SurfaceRows(NamedTuple):
@@ -44,13 +42,6 @@ class SurfaceRows(NamedTuple):
     mask: torch.Tensor
 
 
-@dataclass(frozen=True, eq=False)
-class SurfacePairs(Prepared):
-    """Prepared data of :class:`ModelToData`: ``scene`` and one :class:`SurfaceRows`
-    per model (``rows``)."""
-
-    scene: Scene
-    rows: Tuple[SurfaceRows, ...]
 
 
 class _Data(NamedTuple):
@@ -109,7 +100,7 @@ class ModelToData(EnergyTerm):
                                self.max_distance, self.backend)
         return _Data(points, normals, index)
 
-    def prepare(self, state: TrackState) -> SurfacePairs:
+    def prepare(self, state: TrackState) -> ModelRows:
         scene, B, dev, dt, data, problems = begin(state, self, self._build)
         visible = state.visible_vertices()
         V = state.posed.vertices
@@ -142,10 +133,10 @@ class ModelToData(EnergyTerm):
             # a candidate without a pair is charged min(distance, cut-off)^2
             unmatched += torch.where(slot & ~keep, d.clamp(max=cut) ** 2, torch.zeros_like(d)).sum(1).double()
             rows.append(SurfaceRows(local, X.to(dt), nV, keep.to(dt)))
-        return SurfacePairs(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
+        return ModelRows(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
                             tuple(rows))
 
-    def residuals(self, theta, posed, prepared: SurfacePairs, jacobian=True):
+    def residuals(self, theta, posed, prepared: ModelRows, jacobian=True):
         B, D = theta.shape
         dim = 3 if self.metric == "point-to-point" else 1
         parts = []

@@ -84,8 +84,9 @@ class Nails(VertexPixelTerm):
                 target[b, t] = torch.as_tensor(det[s], dtype=dt)
                 keep[b, t] = True
         keep = keep.to(dev)
-        return PixelPairs(counts(B, device=dev, correspondences=keep.sum(1), detections=detections.to(dev)), scene, K_b,
-                          T_b, pixel_rows(scene, vertex, target, z / K_b[:, 0, 0, None], keep))
+        found = counts(B, device=dev, correspondences=keep.sum(1), detections=detections.to(dev))
+        return PixelPairs(found, scene=scene, rows=pixel_rows(scene, vertex, target, z / K_b[:, 0, 0, None], keep), K=K_b,
+                          T_cw=T_b)
 
     def __repr__(self) -> str:
         return f"Nails(gate_px={self.gate_px:g})"

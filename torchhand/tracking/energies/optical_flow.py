@@ -138,8 +138,8 @@ class OpticalFlow(VertexPixelTerm):
             keep = keep & bone_inliers((uv - target).norm(dim=-1), scene.vertex_bone_id[vertex], keep, scene.num_bones,
                                        self.sigma)
         scale = z / K_b[:, 0, 0, None]
-        return PixelPairs(counts(B, device=dev, correspondences=keep.sum(1)), scene, K_b, T_b,
-                          pixel_rows(scene, vertex, target, scale, keep))
+        return PixelPairs(counts(B, device=dev, correspondences=keep.sum(1)), scene=scene,
+                          rows=pixel_rows(scene, vertex, target, scale, keep), K=K_b, T_cw=T_b)
 
     def __repr__(self) -> str:
         return f"OpticalFlow(max_points={self.max_points}, sigma={self.sigma}, preset={self.preset!r})"
