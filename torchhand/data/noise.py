@@ -25,8 +25,7 @@ from typing import Optional
 
 import torch
 
-# noise_model is imported from here by torchhand.data.synth
-from torchhand.data.noise_params import _MAX_ANGLE, KinectNoise, noise_model  # noqa: F401
+from torchhand.data.noise_params import _MAX_ANGLE, KinectNoise
 
 __all__ = ["apply_kinect_noise"]
 

@@ -28,7 +28,8 @@ from torchhand.model.scene import Scene
 from torchhand.io.output_dir import prepare_output_dir
 from torchhand.data.layout import (Poses, SequenceInfo, SequenceLayout, write_depth, write_poses, write_rgb,
                                    write_sequence_info)
-from torchhand.data.noise import apply_kinect_noise, noise_model
+from torchhand.data.noise import apply_kinect_noise
+from torchhand.data.noise_params import noise_model
 from torchhand.data.appearance import background_texture, face_albedo, model_albedo, shade
 from torchhand.data.ballan_protocol import protocol as noise_protocol, simulate_detections, structural_noise
 
@@ -137,12 +138,12 @@ def random_poses(models: Sequence[str], frames: int, seed: int = 0, distance=(40
 
 
 def with_camera_ring(frames: SyntheticFrames, views: int, scale: float = 1.0) -> SyntheticFrames:
-    """``frames`` seen by :func:`~torchhand.geometry.camera.camera_ring` of ``views``
+    """``frames`` seen by :func:`~torchhand.geometry.camera_rig.camera_ring` of ``views``
     cameras, centred at the depth of the scene's first frame on camera 0's axis (camera
     0 keeps its place, so world coordinates are unchanged). ``scale`` enlarges every
     camera's image (:meth:`~torchhand.geometry.camera.Camera.scaled`: the same field of
     view, ``scale`` times the pixels in each direction)."""
-    from torchhand.geometry.camera import camera_ring
+    from torchhand.geometry.camera_rig import camera_ring
 
     if isinstance(views, bool) or not isinstance(views, int) or views < 1:
         raise ValueError(f"--views must be a positive number of cameras, got {views!r}")

@@ -542,13 +542,3 @@ def kinect_camera(
     return Camera.from_intrinsics(
         525.0, 525.0, 319.5, 239.5, 640, 480, T_cw=T_cw, name="kinect", dtype=dtype, device=device
     )
-
-
-def __getattr__(name: str):
-    # camera_ring moved to camera_rig (which imports this module, hence the lazy lookup);
-    # torchhand.data.synth still imports it from here
-    if name == "camera_ring":
-        from torchhand.geometry.camera_rig import camera_ring
-
-        return camera_ring
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -54,7 +54,7 @@ from tqdm import tqdm
 from torchhand.geometry.camera import Camera, unproject_pixels
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.geometry.neighbors import PointIndex, nearest_marked_pixel
-from torchhand.geometry.render import Renderer, visible_vertices
+from torchhand.geometry.render import Renderer, RenderResult, visible_vertices
 from torchhand.reconstruction.registration import nearest_rotation
 from torchhand.tracking.preprocess import DepthFrame
 
@@ -276,15 +276,11 @@ def deform_frame(problem: _Problem, previous: torch.Tensor, frames: Sequence[Dep
     """One frame of Eq. 6.1 from the previous frame's vertices (V, 3) float64 world
     (``start``: where the correspondence search begins, default ``previous``).
     Returns (vertices (V, 3), model-to-data pairs, data-to-model pairs)."""
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
     cfg = problem.config
     V = previous.shape[0]
     faces = problem.faces
     prev = previous.numpy().reshape(-1)
     rhs_smooth = problem.LtL3 @ prev
-    cos_gate = math.cos(math.radians(cfg.max_normal_angle))
     current = (previous if start is None else start).clone()
     m2d = d2m = 0
     data = [_data_points(f, c.to(dtype=torch.float64)) for f, c in zip(frames, cameras)]
@@ -300,65 +296,95 @@ def deform_frame(problem: _Problem, previous: torch.Tensor, frames: Sequence[Dep
             vis = torch.nonzero(visible_vertices(rend, faces, V)[0])[:, 0]
             if len(vis) == 0:
                 continue
-            # model -> data (6.2): each visible vertex and its nearest data point
             if index is not None:
-                near = index.nearest(current[vis][None], torch.zeros(1, dtype=torch.int64),
-                                     torch.zeros(1, len(vis), dtype=torch.int64))[0]
-                ok = near >= 0
-                ok[ok.clone()] &= (normals[vis[ok]] * nrm[near[ok]]).sum(-1) > cos_gate
-                ids = vis[ok].numpy()
-                X = pts[near[ok]].numpy()
-                if cfg.point_to_plane:
-                    n = nrm[near[ok]].numpy()
-                    Hm = n[:, :, None] * n[:, None, :]
-                else:
-                    Hm = np.broadcast_to(np.eye(3), (len(ids), 3, 3))
-                mats.append(_pair_blocks(V, ids[:, None], np.ones((len(ids), 1)), Hm))
-                np.add.at(rhs, ids, (Hm @ X[..., None])[..., 0])
-                m2d += len(ids)
-            # data -> model (6.3): each depth discontinuity and the model's silhouette
-            # point nearest to it in the image (the hit point of that pixel, a barycentric
-            # combination of its face's vertices), |P x d - m|^2
+                m2d += _model_to_data(mats, rhs, current, normals, vis, pts, nrm, index, cfg)
             if len(frame.edges):
-                marks = torch.where(rend.silhouette_edges, 0, -1)
-                E = len(frame.edges)
-                px = nearest_marked_pixel(marks, frame.edges[None], torch.zeros(1, E, dtype=torch.int64),
-                                          torch.full((1, E), int(math.ceil(cfg.edge_radius_px)), dtype=torch.int64),
-                                          1)[0]
-                ok = px[:, 0] >= 0
-                if ok.any():
-                    px, edges = px[ok], frame.edges[ok]
-                    f_id = rend.face_id[0, px[:, 0], px[:, 1]]
-                    uv = rend.barycentric[0, px[:, 0], px[:, 1]].double()
-                    w = torch.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)
-                    corner = faces[f_id]
-                    P = (w[..., None] * current[corner]).sum(1)
-                    pix = edges.flip(-1).double()[None]  # (row, col) -> (u, v)
-                    z = frame.edge_depth[ok].double()[None]
-                    Xe = camd.T_wc[:3, :3] @ unproject_pixels(pix, z, camd.K)[0].T
-                    Xe = Xe.T + camd.T_wc[:3, 3]
-                    keep = ((P - Xe).norm(dim=-1) <= cfg.max_distance).numpy()
-                    rays = camd.rays(pix)
-                    d, m = rays.direction[0].numpy()[keep], rays.moment[0].numpy()[keep]
-                    ids, w = corner.numpy()[keep], w.numpy()[keep]
-                    Hd = np.eye(3) - d[:, :, None] * d[:, None, :]
-                    mats.append(_pair_blocks(V, ids, w, Hd))
-                    np.add.at(rhs, ids, w[..., None] * np.cross(d, m)[:, None])
-                    d2m += int(keep.sum())
-        g = cfg.gamma_def
-        e = cfg.eps * g
-        A = problem.LtL3 + sp.eye(3 * V) * e
-        for M in mats:
-            A = A + g * M
-        b = rhs_smooth + g * rhs.reshape(-1) + e * prev
-        if cfg.rigidity > 0:
-            A = A + cfg.rigidity * problem.K3
-            b = b + cfg.rigidity * _arap_rhs(problem, current).reshape(-1)
-        if cfg.stretch > 0:
-            A = A + cfg.stretch * problem.K3
-            b = b + cfg.stretch * _stretch_rhs(problem, current).reshape(-1)
-        current = torch.as_tensor(splu(A.tocsc(), permc_spec="COLAMD").solve(b).reshape(V, 3))
+                d2m += _data_to_model(mats, rhs, current, faces, frame, rend, camd, cfg)
+        current = _solve_frame(problem, mats, rhs, rhs_smooth, prev, current)
     return current, m2d, d2m
+
+
+def _model_to_data(mats: list, rhs: np.ndarray, current: torch.Tensor, normals: torch.Tensor, vis: torch.Tensor,
+                   pts: torch.Tensor, nrm: torch.Tensor, index: PointIndex, cfg: DeformConfig) -> int:
+    """Model to data (Eq. 6.2): each visible vertex ``vis`` and its nearest data point
+    (``pts``, ``nrm``: (N, 3) world, in ``index``), within the normal angle gate, added
+    to the normal equations (``mats``, ``rhs`` (V, 3)); returns the number of pairs."""
+    V = current.shape[0]
+    cos_gate = math.cos(math.radians(cfg.max_normal_angle))
+    near = index.nearest(current[vis][None], torch.zeros(1, dtype=torch.int64),
+                         torch.zeros(1, len(vis), dtype=torch.int64))[0]
+    ok = near >= 0
+    ok[ok.clone()] &= (normals[vis[ok]] * nrm[near[ok]]).sum(-1) > cos_gate
+    ids = vis[ok].numpy()
+    X = pts[near[ok]].numpy()
+    if cfg.point_to_plane:
+        n = nrm[near[ok]].numpy()
+        Hm = n[:, :, None] * n[:, None, :]
+    else:
+        Hm = np.broadcast_to(np.eye(3), (len(ids), 3, 3))
+    mats.append(_pair_blocks(V, ids[:, None], np.ones((len(ids), 1)), Hm))
+    np.add.at(rhs, ids, (Hm @ X[..., None])[..., 0])
+    return len(ids)
+
+
+def _data_to_model(mats: list, rhs: np.ndarray, current: torch.Tensor, faces: torch.Tensor, frame: DepthFrame,
+                   rend: RenderResult, camd: Camera, cfg: DeformConfig) -> int:
+    """Data to model (Eq. 6.3): each depth discontinuity of ``frame`` and the model's
+    silhouette point nearest to it in the image of ``rend`` (the hit point of that
+    pixel, a barycentric combination of its face's vertices), ``|P x d - m|^2``, added
+    to the normal equations (``mats``, ``rhs`` (V, 3)); returns the number of pairs."""
+    V = current.shape[0]
+    marks = torch.where(rend.silhouette_edges, 0, -1)
+    E = len(frame.edges)
+    px = nearest_marked_pixel(marks, frame.edges[None], torch.zeros(1, E, dtype=torch.int64),
+                              torch.full((1, E), int(math.ceil(cfg.edge_radius_px)), dtype=torch.int64),
+                              1)[0]
+    ok = px[:, 0] >= 0
+    if not ok.any():
+        return 0
+    px, edges = px[ok], frame.edges[ok]
+    f_id = rend.face_id[0, px[:, 0], px[:, 1]]
+    uv = rend.barycentric[0, px[:, 0], px[:, 1]].double()
+    w = torch.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)
+    corner = faces[f_id]
+    P = (w[..., None] * current[corner]).sum(1)
+    pix = edges.flip(-1).double()[None]  # (row, col) -> (u, v)
+    z = frame.edge_depth[ok].double()[None]
+    Xe = camd.T_wc[:3, :3] @ unproject_pixels(pix, z, camd.K)[0].T
+    Xe = Xe.T + camd.T_wc[:3, 3]
+    keep = ((P - Xe).norm(dim=-1) <= cfg.max_distance).numpy()
+    rays = camd.rays(pix)
+    d, m = rays.direction[0].numpy()[keep], rays.moment[0].numpy()[keep]
+    ids, w = corner.numpy()[keep], w.numpy()[keep]
+    Hd = np.eye(3) - d[:, :, None] * d[:, None, :]
+    mats.append(_pair_blocks(V, ids, w, Hd))
+    np.add.at(rhs, ids, w[..., None] * np.cross(d, m)[:, None])
+    return int(keep.sum())
+
+
+def _solve_frame(problem: _Problem, mats: list, rhs: np.ndarray, rhs_smooth: np.ndarray, prev: np.ndarray,
+                 current: torch.Tensor) -> torch.Tensor:
+    """The vertices (V, 3) minimising Eq. 6.1 for this iteration's pairs (``mats``,
+    ``rhs``): the Laplacian's smoothness about ``prev`` (3V,), the data terms, and the
+    as-rigid-as-possible and edge-length terms at ``current``; one sparse solve."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    cfg = problem.config
+    V = current.shape[0]
+    g = cfg.gamma_def
+    e = cfg.eps * g
+    A = problem.LtL3 + sp.eye(3 * V) * e
+    for M in mats:
+        A = A + g * M
+    b = rhs_smooth + g * rhs.reshape(-1) + e * prev
+    if cfg.rigidity > 0:
+        A = A + cfg.rigidity * problem.K3
+        b = b + cfg.rigidity * _arap_rhs(problem, current).reshape(-1)
+    if cfg.stretch > 0:
+        A = A + cfg.stretch * problem.K3
+        b = b + cfg.stretch * _stretch_rhs(problem, current).reshape(-1)
+    return torch.as_tensor(splu(A.tocsc(), permc_spec="COLAMD").solve(b).reshape(V, 3))
 
 
 def track_deformable(template: np.ndarray, faces: np.ndarray, frames: Iterable[Sequence[DepthFrame]],

@@ -145,6 +145,98 @@ def _contact_cost(X, contacts_now, contacts_model) -> float:
     return float((contacts_now @ X[:3, :3].T + X[:3, 3] - contacts_model).pow(2).sum(1).mean())
 
 
+def _next_hand(hands_it, f: int, bar) -> torch.Tensor:
+    """Frame ``f``'s hand vertices (V, 3) float64 on the CPU from ``hands_it``; an error
+    naming the frame (the progress ``bar`` closed) when they end or are not finite."""
+    hand = next(hands_it, None)
+    if hand is None:
+        bar.close()
+        raise ValueError(f"frame {f}: the hand vertices end before the depth frames")
+    hand = hand.detach().double().cpu()
+    if not torch.isfinite(hand).all():
+        bar.close()
+        raise ValueError(f"frame {f}: the hand vertices contain NaN or inf")
+    return hand
+
+
+def _subset(p: torch.Tensor, n: torch.Tensor, count: int, g: torch.Generator):
+    """At most ``count`` of the points ``p`` and normals ``n`` (N, 3), a random subset
+    (drawn from ``g``) when there are more."""
+    if len(p) > count:
+        pick = torch.randperm(len(p), generator=g)[:count]
+        return p[pick], n[pick]
+    return p, n
+
+
+def _check_lost(f: int, missing: int, started: bool, lost_frames: int, bar) -> None:
+    """:class:`ScanError` naming frame ``f`` (the progress ``bar`` closed) when the
+    object has been missing for ``lost_frames`` frames in a row, before the
+    reconstruction ``started`` or after."""
+    if not started and missing >= lost_frames:
+        bar.close()
+        raise ScanError(f"frame {f}: the object is not seen apart from the hand in the first {missing} "
+                        "frames (it never leaves the hand's silhouette, or the depth range cuts it)")
+    if missing >= lost_frames:
+        bar.close()
+        raise ScanError(f"frame {f}: the object has not been seen for {missing} frames in a row "
+                        "(it left the view or the hand covers it)")
+
+
+def _register_next(ps: torch.Tensor, hand, prev_hand, contacts: torch.Tensor, X: torch.Tensor, X_before,
+                   model_p: torch.Tensor, model_n: torch.Tensor, config: ScanConfig):
+    """The registration of a frame's points ``ps`` (n, 3) to the reconstruction
+    (``model_p``, ``model_n``) from three starts, the grasp's motion (the hand's
+    ``contacts`` from ``prev_hand`` to ``hand``), the previous pose ``X`` and constant
+    velocity (from ``X_before``): the one that fits best (Eq. 5.2)."""
+    start, ids = X, contacts[:0]
+    if hand is not None and prev_hand is not None:
+        # the contact vertices, or the whole hand's when none touches the data
+        # seen (the fingers hold the object where the camera does not see it)
+        ids = contacts if len(contacts) >= 3 else torch.arange(len(hand))
+        # x_prev = A x_now for those vertices: the grasp's motion
+        start = X @ kabsch(hand[ids], prev_hand[ids])
+    c_now = hand[ids] if len(ids) else ps[:0]
+    c_model = (prev_hand[ids] @ X[:3, :3].T + X[:3, 3]) if len(ids) else ps[:0]
+    index = PointIndex(model_p, torch.zeros(len(model_p), dtype=torch.int64),
+                       torch.zeros(len(model_p), dtype=torch.int64), 1, 1, config.registration.icp_distance)
+    starts = [start, X] if start is not X else [X]
+    if X_before is not None:  # constant velocity
+        starts.append(X @ torch.linalg.inv(X_before) @ X)
+    regs = [register_frame(ps, s0, index, model_p, model_n, c_now, c_model, config.registration)
+            for s0 in starts]
+    costs = [_fit_cost(ps, r.X, index, model_p, model_n, config.registration.icp_distance)
+             + config.registration.gamma_t * _contact_cost(r.X, c_now, c_model) for r in regs]
+    return regs[int(np.nanargmin(costs))] if np.isfinite(costs).any() else regs[0]
+
+
+def _grown(model_p: torch.Tensor, model_n: torch.Tensor, p: torch.Tensor, n: torch.Tensor, X: torch.Tensor,
+           voxel: float):
+    """The reconstruction's points and normals with a frame's ``p``, ``n`` (N, 3)
+    moved by its pose ``X`` (camera -> object) added, merged per voxel."""
+    R = X[:3, :3]
+    return _voxel_merge(torch.cat([model_p, p @ R.T + X[:3, 3]]), torch.cat([model_n, n @ R.T]), voxel)
+
+
+def _kept_frame(ps: torch.Tensor, depth: np.ndarray) -> tuple:
+    """What the refinement keeps of a fused frame: its point subset ``ps``, the flat
+    indices of its depth pixels and their depths."""
+    flat = np.flatnonzero(np.nan_to_num(np.asarray(depth, np.float32)) > 0)
+    return ps, flat, np.asarray(depth, np.float32).ravel()[flat]
+
+
+def _refine_passes(kept: dict, kept_normals: dict, Xs: dict, model_p, model_n, K, width: int, height: int,
+                   config: ScanConfig):
+    """``config.refine_passes`` passes of :func:`_refine`, each after the first aligning
+    to the reconstruction rebuilt from the refined poses. Returns the poses and the TSDF."""
+    for k in range(config.refine_passes):
+        if k:  # a further pass aligns to the reconstruction rebuilt from the refined poses
+            model_p, model_n = _voxel_merge(torch.cat([ps @ Xs[f][:3, :3].T + Xs[f][:3, 3] for f, (ps, _, _) in kept.items()]),
+                                            torch.cat([ns @ Xs[f][:3, :3].T for f, ns in kept_normals.items()]),
+                                            config.model_voxel)
+        Xs, tsdf = _refine(kept, Xs, model_p, model_n, K, width, height, config)
+    return Xs, tsdf
+
+
 def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Optional[Iterable[torch.Tensor]] = None,
          effectors: Optional[List[torch.Tensor]] = None, config: ScanConfig = ScanConfig(), frames: Optional[int] = None,
          seed: int = 0, progress: bool = True, desc: str = "scan") -> ScanResult:
@@ -166,31 +258,16 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
     tsdf = TSDF(K.numpy(), width, height, config.fusion)
     hands_it = iter(hands) if hands is not None else None
     poses, fused, n_contacts, n_pairs, secs = [], [], [], [], []
-    X = None  # camera -> object of the last registered frame
-    X_before = None  # and of the one before it
-    model_p = model_n = None
-    prev_hand = None
+    X = X_before = None  # camera -> object of the last registered frame, and of the one before it
+    model_p = model_n = prev_hand = None
     missing = 0
     kept, Xs, kept_normals = {}, {}, {}  # per fused frame: (points, depth pixels, depth values); its pose
     bar = tqdm(total=frames, desc=desc, unit="frame", disable=not progress)
     for f, depth in enumerate(depths):
         t0 = time.perf_counter()
-        hand = None
-        if hands_it is not None:
-            hand = next(hands_it, None)
-            if hand is None:
-                bar.close()
-                raise ValueError(f"frame {f}: the hand vertices end before the depth frames")
-            hand = hand.detach().double().cpu()
-            if not torch.isfinite(hand).all():
-                bar.close()
-                raise ValueError(f"frame {f}: the hand vertices contain NaN or inf")
+        hand = _next_hand(hands_it, f, bar) if hands_it is not None else None
         p, n = _points(depth, K)
-        if len(p) > config.points:
-            pick = torch.randperm(len(p), generator=g)[: config.points]
-            ps, ns = p[pick], n[pick]
-        else:
-            ps, ns = p, n
+        ps, ns = _subset(p, n, config.points, g)
         ok = len(p) >= config.min_points
         contacts = torch.zeros(0, dtype=torch.int64)
         if ok and hand is not None and effectors is not None:
@@ -198,14 +275,7 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
         pairs = 0
         if not ok:
             missing += 1
-            if X is None and missing >= config.lost_frames:
-                bar.close()
-                raise ScanError(f"frame {f}: the object is not seen apart from the hand in the first {missing} "
-                                "frames (it never leaves the hand's silhouette, or the depth range cuts it)")
-            if missing >= config.lost_frames:
-                bar.close()
-                raise ScanError(f"frame {f}: the object has not been seen for {missing} frames in a row "
-                                "(it left the view or the hand covers it)")
+            _check_lost(f, missing, X is not None, config.lost_frames, bar)
             if X is not None and hand is not None and prev_hand is not None:
                 # unseen (the hand covers it): the object moves with the whole hand
                 X_before, X = X, X @ kabsch(hand, prev_hand)
@@ -215,36 +285,13 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
             model_p, model_n = _voxel_merge(p + X[:3, 3], n, config.model_voxel)
             missing = 0
         else:
-            start, ids = X, contacts[:0]
-            if hand is not None and prev_hand is not None:
-                # the contact vertices, or the whole hand's when none touches the data
-                # seen (the fingers hold the object where the camera does not see it)
-                ids = contacts if len(contacts) >= 3 else torch.arange(len(hand))
-                # x_prev = A x_now for those vertices: the grasp's motion
-                start = X @ kabsch(hand[ids], prev_hand[ids])
-            c_now = hand[ids] if len(ids) else p[:0]
-            c_model = (prev_hand[ids] @ X[:3, :3].T + X[:3, 3]) if len(ids) else p[:0]
-            index = PointIndex(model_p, torch.zeros(len(model_p), dtype=torch.int64),
-                               torch.zeros(len(model_p), dtype=torch.int64), 1, 1, config.registration.icp_distance)
-            starts = [start, X] if start is not X else [X]
-            if X_before is not None:  # constant velocity
-                starts.append(X @ torch.linalg.inv(X_before) @ X)
-            regs = [register_frame(ps, s0, index, model_p, model_n, c_now, c_model, config.registration)
-                    for s0 in starts]
-            costs = [_fit_cost(ps, r.X, index, model_p, model_n, config.registration.icp_distance)
-                     + config.registration.gamma_t * _contact_cost(r.X, c_now, c_model) for r in regs]
-            reg = regs[int(np.nanargmin(costs))] if np.isfinite(costs).any() else regs[0]
-            X_before = X
-            X, pairs = reg.X, reg.icp_pairs
-            R = X[:3, :3]
-            model_p, model_n = _voxel_merge(torch.cat([model_p, p @ R.T + X[:3, 3]]),
-                                            torch.cat([model_n, n @ R.T]), config.model_voxel)
+            reg = _register_next(ps, hand, prev_hand, contacts, X, X_before, model_p, model_n, config)
+            X_before, X, pairs = X, reg.X, reg.icp_pairs
+            model_p, model_n = _grown(model_p, model_n, p, n, X, config.model_voxel)
             missing = 0
         if ok and X is not None:
             if config.refine_passes:  # kept for the refinement: the subset and the depth's pixels
-                flat = np.flatnonzero(np.nan_to_num(np.asarray(depth, np.float32)) > 0)
-                kept[f] = (ps, flat, np.asarray(depth, np.float32).ravel()[flat])
-                kept_normals[f] = ns
+                kept[f], kept_normals[f] = _kept_frame(ps, depth), ns
             else:
                 tsdf.integrate(depth, torch.linalg.inv(X).numpy())
             Xs[f] = X
@@ -260,13 +307,8 @@ def scan(depths: Iterable[np.ndarray], K, width: int, height: int, hands: Option
     if X is None:
         raise ScanError("no frame shows the object apart from the hand")
     t0 = time.perf_counter()
-    for k in range(config.refine_passes):
-        if k:  # a further pass aligns to the reconstruction rebuilt from the refined poses
-            model_p, model_n = _voxel_merge(torch.cat([ps @ Xs[f][:3, :3].T + Xs[f][:3, 3] for f, (ps, _, _) in kept.items()]),
-                                            torch.cat([ns @ Xs[f][:3, :3].T for f, ns in kept_normals.items()]),
-                                            config.model_voxel)
-        Xs, tsdf = _refine(kept, Xs, model_p, model_n, K, width, height, config)
     if config.refine_passes:
+        Xs, tsdf = _refine_passes(kept, kept_normals, Xs, model_p, model_n, K, width, height, config)
         for f, X_f in Xs.items():
             poses[f] = torch.linalg.inv(X_f).numpy()
     mesh = tsdf.surface()

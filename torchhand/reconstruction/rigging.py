@@ -249,24 +249,11 @@ def skin_weights(vertices: np.ndarray, faces: np.ndarray, bone_of_vertex: np.nda
     return idx.astype(np.int64), w
 
 
-def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray, parts: np.ndarray, name: str,
-              config: RigConfig = RigConfig(), source: str = "", skeleton: Optional[Skeleton] = None) -> Rig:
-    """The rigged model of the template (module docstring). ``trajectories``: (T, V, 3)
-    the tracked vertices; ``parts``: (V,) the motion segmentation."""
-    template = np.asarray(template, np.float64)
-    faces = np.asarray(faces, np.int64)
-    parts = np.asarray(parts, np.int64)
-    P = int(parts.max()) + 1
-    skeleton = curve_skeleton(template, faces) if skeleton is None else skeleton
-    deg = skeleton.degree()
-    ends, branches = skeleton.nodes[deg == 1], skeleton.nodes[deg >= 3]
-    notes: List[str] = []
-    if P == 1:
-        notes.append("one part: the object did not bend in the sequence; the model is rigid")
-        assets = rigid_assets(name, template, faces, source=source)
-        return Rig(assets, parts, np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), ends, branches,
-                   skeleton, notes)
-
+def _part_tree(faces: np.ndarray, parts: np.ndarray, P: int) -> tuple:
+    """The mesh's edges ``e`` (E, 2), the parts ``la``, ``lb`` (E,) of their ends, and
+    the tree of the P parts (``order``, ``parent`` of :func:`_tree`, over the parts'
+    adjacency: the number of edges between them); an error when the parts are not
+    connected."""
     e = mesh_edges(faces)
     la, lb = parts[e[:, 0]], parts[e[:, 1]]
     cross = la != lb
@@ -278,12 +265,17 @@ def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray,
     if len(order) < P:
         raise ValueError(f"the mesh's parts are not connected: parts {sorted(set(range(P)) - set(order))} share no "
                          "edge with the others (a template of one closed surface is needed)")
-    bone_of_part = np.empty(P, np.int64)
-    bone_of_part[order] = np.arange(P)
+    return e, la, lb, order, parent
 
-    # joints: boundary centroids snapped to the skeleton, then moved along it to where
-    # the parent's and the child's motions move the joint alike
-    R, tr = part_transforms(trajectories, template, parts)
+
+def _joints(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray, parts: np.ndarray,
+            skeleton: Skeleton, edges: tuple, order: list, parent: dict, R: np.ndarray, tr: np.ndarray,
+            config: RigConfig, notes: List[str]) -> Dict[int, np.ndarray]:
+    """Each non-root part's joint to its parent (3,): the boundary centroid snapped to
+    the skeleton, then moved along it to where the parent's and the child's motions
+    (``R``, ``tr`` of :func:`part_transforms`) move the joint alike; a note per joint.
+    ``edges``: the mesh's edges and their ends' parts (:func:`_part_tree`)."""
+    e, la, lb = edges
     graph = mesh_graph(template, faces) if config.joint_search > 0 and config.joint_core > 0 else None
     joint_of: Dict[int, np.ndarray] = {}
     for p in order[1:]:
@@ -305,9 +297,15 @@ def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray,
             moved = np.linalg.norm(joint_of[p] - snapped)
             notes.append(f"joint of part {p}: {moved:.1f} mm from the boundary centroid (motion mismatch "
                          f"{cost.min():.2f} mm there, {at_centroid:.2f} mm at the centroid)")
+    return joint_of
 
-    # bone frames: origin at the joint to the parent (the root: its skeleton end farthest
-    # from its children's joints), x towards the part's farthest skeleton point
+
+def _bone_frames(template: np.ndarray, parts: np.ndarray, skeleton: Skeleton, order: list, parent: dict,
+                 joint_of: Dict[int, np.ndarray]) -> tuple:
+    """Per part its bone frame (P, 4, 4) and length (P,): origin at the joint to the
+    parent (the root: its skeleton end farthest from its children's joints), x towards
+    the part's farthest skeleton point."""
+    P = len(order)
     node_part = np.zeros(len(skeleton.nodes), np.int64)
     for n in range(len(skeleton.nodes)):
         mine = parts[skeleton.vertex_node == n]
@@ -332,8 +330,15 @@ def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray,
         rest[p, :3, :3] = _frame(axis)
         rest[p, :3, 3] = origin
         lengths[p] = float(np.linalg.norm(target - origin))
+    return rest, lengths
 
-    # axes and limits from the parts' relative rotations
+
+def _joint_slots(R: np.ndarray, rest: np.ndarray, order: list, parent: dict, bone_of_part: np.ndarray,
+                 config: RigConfig, notes: List[str]) -> tuple:
+    """Axes (P, 3, 3), used slots (P, 3) and limits (P, 3, 2) of each bone's joint from
+    the parts' relative rotations (``R`` of :func:`part_transforms`): the principal
+    directions of the rotation vectors; a note per joint."""
+    P = len(order)
     slot_axes = np.zeros((P, 3, 3))
     slot_used = np.zeros((P, 3), bool)
     slot_limits = np.zeros((P, 3, 2))
@@ -356,6 +361,35 @@ def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray,
             slot_limits[b, k] = [max(lo - margin, -np.pi), min(hi + margin, np.pi)]
         rms = np.round(np.rad2deg(s / np.sqrt(len(w))), 1).tolist()
         notes.append(f"joint {bone_of_part[q]}->{b}: {used} DoF (RMS angles {rms} deg)")
+    return slot_axes, slot_used, slot_limits
+
+
+def build_rig(template: np.ndarray, faces: np.ndarray, trajectories: np.ndarray, parts: np.ndarray, name: str,
+              config: RigConfig = RigConfig(), source: str = "", skeleton: Optional[Skeleton] = None) -> Rig:
+    """The rigged model of the template (module docstring). ``trajectories``: (T, V, 3)
+    the tracked vertices; ``parts``: (V,) the motion segmentation."""
+    template = np.asarray(template, np.float64)
+    faces = np.asarray(faces, np.int64)
+    parts = np.asarray(parts, np.int64)
+    P = int(parts.max()) + 1
+    skeleton = curve_skeleton(template, faces) if skeleton is None else skeleton
+    deg = skeleton.degree()
+    ends, branches = skeleton.nodes[deg == 1], skeleton.nodes[deg >= 3]
+    notes: List[str] = []
+    if P == 1:
+        notes.append("one part: the object did not bend in the sequence; the model is rigid")
+        assets = rigid_assets(name, template, faces, source=source)
+        return Rig(assets, parts, np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), ends, branches,
+                   skeleton, notes)
+
+    e, la, lb, order, parent = _part_tree(faces, parts, P)
+    bone_of_part = np.empty(P, np.int64)
+    bone_of_part[order] = np.arange(P)
+    R, tr = part_transforms(trajectories, template, parts)
+    joint_of = _joints(template, faces, trajectories, parts, skeleton, (e, la, lb), order, parent, R, tr, config,
+                       notes)
+    rest, lengths = _bone_frames(template, parts, skeleton, order, parent, joint_of)
+    slot_axes, slot_used, slot_limits = _joint_slots(R, rest, order, parent, bone_of_part, config, notes)
 
     skin_index, skin_weight = skin_weights(template, faces, bone_of_part[parts], P, config.skin_width,
                                            config.skin_bones)

@@ -181,6 +181,51 @@ class Initializer:
                 out.append(((u - camera.cx) * zm / camera.fx, (v - camera.cy) * zm / camera.fy, zm))
         return np.asarray(out, np.float64).reshape(-1, 3)
 
+    def _seed_poses(self, model, k: int, segmentation: Segmentation, data_full: np.ndarray,
+                    camera: Camera) -> list:
+        """The seed hypotheses (D_m,) float64 of one hand ``model`` from its blob ``k``:
+        the palm at the blob's palm point, the hand's length along the blob's main axis
+        (pointing away from the forearm, or towards the fingertips seen, else both ways)
+        and the palm's normal along the blob's least axis (both ways)."""
+        config = self.config
+        v, u = np.nonzero(segmentation.blobs[k])
+        z = data_full[v, u]
+        pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], 1)
+        palm = segmentation.palms[k] + 12.0 * segmentation.palms[k] / np.linalg.norm(segmentation.palms[k])
+        c = pts - pts.mean(0)
+        _, _, vt = np.linalg.svd(c, full_matrices=False)
+        a1, a3 = vt[0], vt[2]
+        arm = segmentation.forearm[k]
+        signs_axis = [1.0, -1.0]
+        if np.any(arm):
+            signs_axis = [-1.0 if a1 @ arm > 0 else 1.0]
+        elif config.fingertips:
+            along = (self.fingertips(data_full, segmentation.blobs[k], camera) - pts.mean(0)) @ a1
+            pos, neg = int((along >= 20.0).sum()), int((along <= -20.0).sum())
+            if max(pos, neg) >= 2 and max(pos, neg) >= 3 * min(pos, neg):  # the thumb may lie aside
+                signs_axis = [1.0 if pos > neg else -1.0]
+        centre, axis, normal = (x.numpy() for x in _hand_frame(model))
+        T_wc = camera.T_wc.double().cpu().numpy()
+        palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
+        rc = model.rest_transforms[0][:3, 3].double().cpu()
+        options = []
+        for sa in signs_axis:
+            for sn in (1.0, -1.0):
+                A = sa * (T_wc[:3, :3] @ a1)
+                N = sn * (T_wc[:3, :3] @ a3)
+                N = N - (N @ A) * A
+                N /= np.linalg.norm(N)
+                tgt = np.stack([A, N, np.cross(A, N)], 1)
+                src = np.stack([axis, normal, np.cross(axis, normal)], 1)
+                R = tgt @ src.T
+                rot = so3_log(torch.as_tensor(R, dtype=torch.float64)[None])[0]
+                Rt = torch.as_tensor(R)
+                t = torch.as_tensor(palm_w) - rc - Rt @ (torch.as_tensor(centre) - rc)
+                th = torch.zeros(model.num_dofs, dtype=torch.float64)
+                th[:3], th[3:6] = t, rot
+                options.append(th)
+        return options
+
     def __call__(self, depth: np.ndarray, camera: Camera, segmentation: Segmentation,
                  around: Optional[torch.Tensor] = None) -> InitResult:
         """Find the pose of the scene's hands in one segmented depth frame.
@@ -202,46 +247,8 @@ class Initializer:
         P, D = config.particles, scene.num_dofs
         # the two hands: the right hand is on the image's left for a camera facing the person
         order = np.argsort([0 if m.side == "right" else 1 for m in scene.models], kind="stable")
-        hyp = []
-        for mi, (name, model) in enumerate(zip(scene.names, scene.models)):
-            k = int(np.where(order == mi)[0][0])  # the blob of this hand
-            v, u = np.nonzero(segmentation.blobs[k])
-            z = data_full[v, u]
-            pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], 1)
-            palm = segmentation.palms[k] + 12.0 * segmentation.palms[k] / np.linalg.norm(segmentation.palms[k])
-            c = pts - pts.mean(0)
-            _, _, vt = np.linalg.svd(c, full_matrices=False)
-            a1, a3 = vt[0], vt[2]
-            arm = segmentation.forearm[k]
-            signs_axis = [1.0, -1.0]
-            if np.any(arm):
-                signs_axis = [-1.0 if a1 @ arm > 0 else 1.0]
-            elif config.fingertips:
-                along = (self.fingertips(data_full, segmentation.blobs[k], camera) - pts.mean(0)) @ a1
-                pos, neg = int((along >= 20.0).sum()), int((along <= -20.0).sum())
-                if max(pos, neg) >= 2 and max(pos, neg) >= 3 * min(pos, neg):  # the thumb may lie aside
-                    signs_axis = [1.0 if pos > neg else -1.0]
-            centre, axis, normal = (x.numpy() for x in _hand_frame(model))
-            T_wc = camera.T_wc.double().cpu().numpy()
-            palm_w = T_wc[:3, :3] @ palm + T_wc[:3, 3]
-            rc = model.rest_transforms[0][:3, 3].double().cpu()
-            options = []
-            for sa in signs_axis:
-                for sn in (1.0, -1.0):
-                    A = sa * (T_wc[:3, :3] @ a1)
-                    N = sn * (T_wc[:3, :3] @ a3)
-                    N = N - (N @ A) * A
-                    N /= np.linalg.norm(N)
-                    tgt = np.stack([A, N, np.cross(A, N)], 1)
-                    src = np.stack([axis, normal, np.cross(axis, normal)], 1)
-                    R = tgt @ src.T
-                    rot = so3_log(torch.as_tensor(R, dtype=torch.float64)[None])[0]
-                    Rt = torch.as_tensor(R)
-                    t = torch.as_tensor(palm_w) - rc - Rt @ (torch.as_tensor(centre) - rc)
-                    th = torch.zeros(model.num_dofs, dtype=torch.float64)
-                    th[:3], th[3:6] = t, rot
-                    options.append(th)
-            hyp.append(options)
+        hyp = [self._seed_poses(model, int(np.where(order == mi)[0][0]), segmentation, data_full, camera)
+               for mi, model in enumerate(scene.models)]
         # particles: spread around every combination of the hands' seed hypotheses
         combos = [[]]
         for options in hyp:
@@ -250,21 +257,8 @@ class Initializer:
         if around is not None:
             bases.append(around.detach().double().cpu())
         lo, hi = scene.lower.double().cpu(), scene.upper.double().cpu()
-        spread = torch.full((D,), config.finger_spread, dtype=torch.float64)
-        for sl in scene.slices.values():
-            spread[sl.start : sl.start + 3] = config.translation_spread
-            spread[sl.start + 3 : sl.start + 6] = config.rotation_spread
-        # one independent swarm per seed hypothesis (a shared best would pull every
-        # particle into the first basin found: a hand flipped about its length axis has
-        # a similar silhouette), unless there are too many for a useful swarm each
-        S = len(bases) if len(bases) * 8 <= P else 1
-        n = P // S
-        x = torch.zeros(S, n, D, dtype=torch.float64)
-        for k in range(S * n):
-            sw, p = (k % S, k // S) if S > 1 else (0, k)
-            base = bases[sw] if S > 1 else bases[k % len(bases)]
-            first = p == 0 if S > 1 else k < len(bases)
-            x[sw, p] = base + (0 if first else torch.randn(D, generator=gen, dtype=torch.float64) * spread)
+        spread = _spread(scene, config)
+        x = _particles(bases, P, spread, gen)
         x = torch.maximum(torch.minimum(x, hi), lo)
         small, rr, cc = crop_camera(camera, search_box(segmentation.mask), config.resolution)
         data_small = torch.as_tensor(data_full[np.ix_(rr, cc)], device=dev)
@@ -280,13 +274,8 @@ class Initializer:
         vmax = spread * 0.5
         res = particle_swarm(cost, x, lo, hi, config.generations, velocity_scale=vmax, generator=gen)
         # refine the best of every swarm, then the best distinct particles, with the tracker's objective
-        own, oc = res.particles.reshape(-1, D), res.particle_cost.reshape(-1)
-        pick = [int(torch.argmin(res.particle_cost[sw])) + sw * n for sw in range(S)][: max(config.refine, S)]
-        for i in torch.argsort(oc).tolist():
-            if len(pick) >= config.refine:
-                break
-            if all(torch.linalg.norm(own[i, :3] - own[j, :3]) > 5 or (own[i] - own[j]).abs().max() > 0.3 for j in pick):
-                pick.append(i)
+        own = res.particles.reshape(-1, D)
+        pick = _refine_picks(res, config.refine)
         starts = scene.clamp(own[pick].to(dev, dt))
         frame = preprocess_depth(data_full, camera, tracker.config.preprocess, device=dev, dtype=dt)
         refined = tracker.solve(starts, starts, [frame] * len(pick), [camera] * len(pick), config.refine_iterations,
@@ -295,6 +284,49 @@ class Initializer:
                      tracker.renderer)[0]
         k = int(torch.argmin(final))
         return InitResult(refined[k].detach(), float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
+
+
+def _spread(scene, config: InitConfig) -> torch.Tensor:
+    """(D,) float64 the particles' spread: ``config.translation_spread`` and
+    ``rotation_spread`` on each model's global DoF, ``finger_spread`` elsewhere."""
+    spread = torch.full((scene.num_dofs,), config.finger_spread, dtype=torch.float64)
+    for sl in scene.slices.values():
+        spread[sl.start : sl.start + 3] = config.translation_spread
+        spread[sl.start + 3 : sl.start + 6] = config.rotation_spread
+    return spread
+
+
+def _particles(bases: list, P: int, spread: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """(S, n, D) float64 start particles around the seed poses ``bases`` (D,) each:
+    one independent swarm per seed hypothesis (a shared best would pull every particle
+    into the first basin found: a hand flipped about its length axis has a similar
+    silhouette), unless there are too many for a useful swarm each (S = 1); every
+    seed itself, the others drawn about it with ``spread`` (D,) from ``gen``."""
+    D = spread.shape[0]
+    S = len(bases) if len(bases) * 8 <= P else 1
+    n = P // S
+    x = torch.zeros(S, n, D, dtype=torch.float64)
+    for k in range(S * n):
+        sw, p = (k % S, k // S) if S > 1 else (0, k)
+        base = bases[sw] if S > 1 else bases[k % len(bases)]
+        first = p == 0 if S > 1 else k < len(bases)
+        x[sw, p] = base + (0 if first else torch.randn(D, generator=gen, dtype=torch.float64) * spread)
+    return x
+
+
+def _refine_picks(res, refine: int) -> list:
+    """The particles of the swarms ``res`` (S swarms of n) that the tracker refines:
+    the best of every swarm, then the best particles distinct from those picked
+    (5 mm apart, or 0.3 rad in a DoF), ``refine`` in all (at least S); flat indices."""
+    S, n, D = res.particles.shape
+    own, oc = res.particles.reshape(-1, D), res.particle_cost.reshape(-1)
+    pick = [int(torch.argmin(res.particle_cost[sw])) + sw * n for sw in range(S)][: max(refine, S)]
+    for i in torch.argsort(oc).tolist():
+        if len(pick) >= refine:
+            break
+        if all(torch.linalg.norm(own[i, :3] - own[j, :3]) > 5 or (own[i] - own[j]).abs().max() > 0.3 for j in pick):
+            pick.append(i)
+    return pick
 
 
 def initialize_hands(tracker, depth: np.ndarray, camera: Camera, segmentation: Segmentation,

@@ -210,7 +210,7 @@ def simulated_detector(lookup: Callable[[torch.Tensor], Optional[np.ndarray]]):
     """A detector for experiments whose detections come from ``lookup(depth)``,
     which returns (N, 3) rows of (u, v, score) for a frame (e.g. perturbed ground
     truth, Ballan's protocol) or None."""
-    from torchhand.salient.detector import Detections
+    from torchhand.salient.hough import Detections
 
     class _Simulated:
         def detect(self, depth):
