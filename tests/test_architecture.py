@@ -158,3 +158,24 @@ def test_the_equation_table_names_existing_code():
     assert covered == set(range(1, 20)), f"thesis equations missing from the table: {set(range(1, 20)) - covered}"
     ballan = {int(n) for n in re.findall(r"Ballan (\d)\b", table)}
     assert ballan == {1, 2, 3}, ballan
+
+
+#: module and function sizes (lines, docstrings included) past which a unit is split by
+#: concept; the exempt functions are generated kernel sources and argument parsers
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 600, 80
+EXEMPT_FUNCTIONS = {("torchhand/geometry/warp_kernels.py", "_kernels"), ("torchhand/app/cli.py", "build_parser")}
+
+
+def test_modules_and_functions_stay_small():
+    too_long = []
+    for path in _library_files():
+        rel = path.relative_to(REPO).as_posix()
+        source = path.read_text()
+        if source.count("\n") > MAX_MODULE_LINES:
+            too_long.append(f"{rel}: {source.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and (rel, node.name) not in EXEMPT_FUNCTIONS:
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    too_long.append(f"{rel}:{node.lineno} {node.name}: {n} lines")
+    assert not too_long, "split these by concept:\n" + "\n".join(too_long)
