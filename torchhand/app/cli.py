@@ -105,7 +105,7 @@ def _backend_option(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="torchhand", description="Capture the 3D motion of hands in action.",
                                  formatter_class=_Formatter)
-    ap.add_argument("--threads", type=int, default=1,
+    ap.add_argument("--threads", type=_positive_int, default=1,
                     help="torch CPU threads per process (1: the per-frame work is many small operations, which "
                          "lose far more to thread contention than they gain; see docs/benchmarks.md)")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -323,7 +323,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     try:
         device = getattr(args, "device", "cpu")
         if str(device).startswith("cuda") and not torch.cuda.is_available():
