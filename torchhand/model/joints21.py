@@ -29,8 +29,10 @@ import torch
 
 from torchhand.io.assets import FINGER_NAMES
 from torchhand.model.articulated import ArticulatedModel, ModelOutput
+from torchhand.model.scene import Scene, SceneOutput
 
-__all__ = ["STANDARD_JOINT_NAMES", "JointSources", "joint_sources", "standard_joints"]
+__all__ = ["STANDARD_JOINT_NAMES", "JointSources", "joint_sources", "standard_joints", "is_hand", "scene_joint_names",
+           "scene_standard_joints"]
 
 _FINGER_JOINTS = {"thumb": ("cmc", "mcp", "ip", "tip")}
 _DEFAULT_JOINTS = ("mcp", "pip", "dip", "tip")
@@ -109,3 +111,20 @@ def standard_joints(posed: ModelOutput, model: ArticulatedModel, sources: JointS
     B = origins.shape[0]
     fingers = torch.cat([origins[:, 1:].reshape(B, 5, 3, 3), tips[:, :, None]], dim=2)  # (B, 5, 4, 3)
     return torch.cat([origins[:, :1], fingers.reshape(B, 20, 3)], dim=1)
+
+
+def is_hand(model: ArticulatedModel) -> bool:
+    """The model has the five ``<finger>_tip`` vertex groups the 21 joints are placed with."""
+    return all(f"{f}_tip" in model.assets.groups for f in FINGER_NAMES)
+
+
+def scene_joint_names(scene: Scene) -> list:
+    """``"<model>/<joint>"`` of :func:`scene_standard_joints`, 21 per hand in scene order."""
+    return [f"{n}/{j}" for n, m in zip(scene.names, scene.models) if is_hand(m) for j in STANDARD_JOINT_NAMES]
+
+
+def scene_standard_joints(scene: Scene, posed: SceneOutput) -> torch.Tensor:
+    """(B, 21 x hands, 3) the 21 joints of each hand of ``scene`` (objects have none), in
+    scene order; (B, 0, 3) for a scene without hands."""
+    joints = [standard_joints(out, m) for m, out in zip(scene.models, posed.models) if is_hand(m)]
+    return torch.cat(joints, 1) if joints else posed.vertices.new_zeros(posed.vertices.shape[0], 0, 3)
