@@ -57,9 +57,10 @@ def test_bone_lengths_fix_the_order(name, model64):
     src = joint_sources(model)
     fingers = joints[:, 1:].reshape(-1, 5, 4, 3)
     steps = (fingers[:, :, 1:] - fingers[:, :, :-1]).norm(dim=-1)  # (B, 5, 3)
-    torch.testing.assert_close(steps[:, :, :2], model.bone_lengths[src.bones[1:].reshape(5, 3)[:, :2]].expand(4, 5, 2),
-                               atol=1e-3, rtol=0)
-    torch.testing.assert_close(steps, steps[:1].expand_as(steps), atol=0.1, rtol=0)  # rigid bones; the tip ~ distal bone
+    lengths = model.bone_lengths[src.bones[1:].reshape(5, 3)[:, :2]]  # (5, 2) the bones between the joints
+    torch.testing.assert_close(steps[:, :, :2], lengths.expand(4, 5, 2), atol=1e-3, rtol=0)
+    # rigid bones; the tip vertex is skinned almost only to the distal bone
+    torch.testing.assert_close(steps, steps[:1].expand_as(steps), atol=0.1, rtol=0)
     rest = fingers[0]
     from_wrist = (rest - joints[0, 0]).norm(dim=-1)
     assert bool((from_wrist[:, 1:] > from_wrist[:, :-1]).all())
