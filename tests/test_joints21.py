@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
-from torchhand.model.joints21 import STANDARD_JOINT_NAMES, joint_sources, standard_joints
+from torchhand.model.joints21 import (STANDARD_JOINT_NAMES, joint_sources, scene_joint_names, scene_standard_joints,
+                                      standard_joints)
+from torchhand.model.scene import Scene
 
 HANDS = ("hand_right", "hand_left")
 FINGERS = ("thumb", "index", "middle", "ring", "little")
@@ -115,3 +119,29 @@ def test_float32_and_sources_reused():
 def test_a_model_without_fingertips_is_refused(model64):
     with pytest.raises(ValueError, match="thumb_tip"):
         joint_sources(model64("ball"))
+
+
+def test_on_the_device_as_on_the_cpu(device, model64):
+    """The sources and joints follow the model to any device."""
+    cpu = model64("hand_right")
+    theta = poses(cpu)
+    expected = standard_joints(cpu(theta), cpu)
+    model = copy.deepcopy(cpu).to(device)
+    src = joint_sources(model)
+    assert src.bones.device == src.tip_vertices.device == model.vertices_rest.device
+    got = standard_joints(model(theta.to(device)), model, src)
+    assert got.device.type == torch.device(device).type
+    torch.testing.assert_close(got.cpu(), expected, atol=1e-6, rtol=0)
+
+
+def test_scene_joints_skip_objects(model64):
+    scene = Scene.from_names(["hand_right", "ball", "hand_left"], dtype=torch.float64)
+    theta = scene.zero_pose(2)
+    posed = scene(theta)
+    joints = scene_standard_joints(scene, posed)
+    names = scene_joint_names(scene)
+    assert joints.shape == (2, 42, 3) and len(names) == 42
+    assert names[0] == "hand_right/wrist" and names[21] == "hand_left/wrist" and names[-1] == "hand_left/little_tip"
+    torch.testing.assert_close(joints[:, 21:], standard_joints(posed.models[2], scene.models[2]))
+    ball = Scene.from_names(["ball"], dtype=torch.float64)
+    assert scene_standard_joints(ball, ball(torch.zeros(1, ball.num_dofs, dtype=torch.float64))).shape == (1, 0, 3)
