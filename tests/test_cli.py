@@ -123,10 +123,14 @@ def test_eval_ground_truth_against_itself(synth_out, tmp_path, capsys):
     assert r["frames"] == 2
     assert r["mean_px"] == 0 and r["median_px"] == 0 and r["mean_mm"] == 0 and r["median_mm"] == 0
     assert r["auc_0_50mm"] == 1.0
+    joints = r["joints21"]  # synthesis writes the standard 21 joints too
+    assert {k: joints[k] for k in ("mpjpe_mm", "pa_mpjpe_mm", "rr_mpjpe_mm", "mean_px")} == pytest.approx(
+        {"mpjpe_mm": 0.0, "pa_mpjpe_mm": 0.0, "rr_mpjpe_mm": 0.0, "mean_px": 0.0}, abs=1e-6)
+    assert joints["auc_0_50"] == 1.0
     img = cv2.imread(str(plot))
     assert img is not None and img.ndim == 3
     out = capsys.readouterr().out
-    assert "2 frames" in out and str(j) in out
+    assert "2 frames" in out and str(j) in out and "standard 21 joints: MPJPE 0.00 mm" in out
 
 
 def test_eval_needs_one_gt_per_prediction(synth_out, capsys):

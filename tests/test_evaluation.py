@@ -339,3 +339,77 @@ def test_a_symmetric_pose_costs_nothing_under_add_s(tmp_path):
                                           gt.keypoint_names))
     m = evaluate_sequence(tmp_path / "pred", tmp_path / "gt", with_penetration=False)["models"]["cube"]
     assert m["mean_mm"] < 1.0 and m["add_mean_mm"] > 10.0, m
+
+
+# ------------------------------------------------------------------ the standard 21 joints
+def _joints21(N=4, hands=1, seed=0):
+    rng = np.random.default_rng(seed)
+    j3 = rng.normal(0.0, 40.0, (N, 1, 21 * hands, 3)) + np.array([0.0, 0.0, 600.0])
+    return j3, _project(j3)
+
+
+def test_joints21_block_for_a_known_shift(gt1, gt_dir, tmp_path):
+    from torchhand.data.layout import write_joints21
+
+    j3, j2 = _joints21(N=len(gt1.theta))
+    write_joints21(gt_dir, j3, j2)
+    pred_dir = tmp_path / "pred"
+    write_poses(pred_dir, gt1)
+    shifted = j3 + np.array([3.0, 4.0, 0.0])
+    write_joints21(pred_dir, shifted, _project(shifted))
+    r = evaluate_sequence(pred_dir, gt_dir, with_penetration=False)
+    same = evaluate_sequence(gt_dir, gt_dir, with_penetration=False)
+    assert {k: r[k] for k in ("mean_px", "mean_mm")} == {k: same[k] for k in ("mean_px", "mean_mm")}  # own keys kept
+    b = r["joints21"]
+    assert b["mpjpe_mm"] == pytest.approx(5.0)
+    assert b["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-6) and b["rr_mpjpe_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert b["auc_0_50"] == pytest.approx(auc(PCK_THRESHOLDS_MM, pck_curve(np.full(10, 5.0))), abs=0.02)  # at 5 mm
+    assert b["mean_px"] == pytest.approx(np.linalg.norm(_project(shifted) - j2, axis=-1).mean())
+    assert set(b["per_joint"]) >= {"wrist", "thumb_tip", "little_tip"} and b["scored_joints"] == 21 * len(gt1.theta)
+    for key in ("mpjpe_mm", "pa_mpjpe_mm", "rr_mpjpe_mm", "mean_px"):
+        assert same["joints21"][key] == pytest.approx(0.0, abs=1e-6), key
+    assert same["joints21"]["auc_0_50"] == 1.0
+
+
+def test_joints21_a_dataset_lacks_are_left_out(gt1, gt_dir, tmp_path):
+    from torchhand.data.layout import write_joints21
+
+    j3, j2 = _joints21(N=len(gt1.theta))
+    pred3 = j3.copy()
+    pred3[0, 0, 5] += 100.0  # a joint the dataset lacks (all -1) ...
+    pred3[1, 0, 6] += 100.0  # ... or has as NaN: the prediction there does not count
+    gt3, gt2 = j3.copy(), j2.copy()
+    gt3[0, 0, 5], gt2[0, 0, 5] = -1.0, -1.0
+    gt3[1, 0, 6], gt2[1, 0, 6] = np.nan, np.nan
+    write_joints21(gt_dir, gt3, gt2)
+    pred_dir = tmp_path / "pred"
+    write_poses(pred_dir, gt1)
+    write_joints21(pred_dir, pred3, _project(pred3))
+    b = evaluate_sequence(pred_dir, gt_dir, with_penetration=False)["joints21"]
+    assert b["mpjpe_mm"] == 0.0 and b["mean_px"] == 0.0 and b["scored_joints"] == 21 * len(gt1.theta) - 2
+
+
+def test_joints21_absent_on_one_side_adds_no_block(gt1, gt_dir, tmp_path):
+    from torchhand.data.layout import write_joints21
+
+    write_joints21(gt_dir, *_joints21(N=len(gt1.theta)))
+    pred_dir = tmp_path / "pred"
+    write_poses(pred_dir, gt1)  # an older output: no 21 joints
+    assert "joints21" not in evaluate_sequence(pred_dir, gt_dir, with_penetration=False)
+
+
+def test_joints21_pooled_over_sequences(gt1, tmp_path):
+    from torchhand.data.layout import write_joints21
+
+    pairs = []
+    for k, (frames, mm) in enumerate(((3, 5.0), (3, 10.0))):
+        gt_dir, pred_dir = tmp_path / f"s{k}" / "gt", tmp_path / f"p{k}"
+        write_poses(gt_dir, gt1)
+        write_poses(pred_dir, gt1)
+        j3, j2 = _joints21(N=len(gt1.theta), hands=1, seed=k)
+        write_joints21(gt_dir, j3, j2)
+        write_joints21(pred_dir, j3 + np.array([mm, 0.0, 0.0]), _project(j3 + np.array([mm, 0.0, 0.0])))
+        pairs.append((pred_dir, gt_dir))
+    pooled = evaluate_many(pairs, with_penetration=False, progress=False)
+    assert pooled["joints21"]["mpjpe_mm"] == pytest.approx(7.5)
+    assert pooled["joints21"]["scored_joints"] == 2 * 21 * len(gt1.theta)

@@ -75,7 +75,7 @@ def test_random_poses_vertex_centroid_within_distance_range():
 def test_folder_has_the_documented_files(seq):
     names = {str(p.relative_to(seq)) for p in seq.rglob("*") if p.is_file()}
     expected = {"sequence.json", "init_pose.json", "gt/meta.json", "gt/theta.npy", "gt/keypoints_3d.npy",
-                "gt/keypoints_2d.npy"}
+                "gt/keypoints_2d.npy", "gt/keypoints21_3d.npy", "gt/keypoints21_2d.npy"}
     for k in range(N):
         expected |= {f"depth/{frame_name(k)}", f"rgb/{frame_name(k)}", f"gt/ids/{frame_name(k)}"}
     assert names == expected
@@ -137,6 +137,28 @@ def test_keypoints_2d_are_the_projection_of_keypoints_3d(seq, fresh):
     # identity extrinsics: camera-frame keypoints are the posed (world) keypoints
     _, _, posed, _ = fresh
     np.testing.assert_allclose(X, posed.keypoints.numpy(), atol=1e-9)
+
+
+def test_standard_joints_are_written_beside_the_keypoints(seq, fresh):
+    from torchhand.data.layout import read_joints21
+    from torchhand.model.joints21 import scene_standard_joints
+    from torchhand.scoring.sequences import evaluate_sequence
+
+    scene, cam, posed, _ = fresh
+    j3, j2 = read_joints21(seq / "gt")
+    assert j3.shape == (N, 1, 21, 3) and j2.shape == (N, 1, 21, 2)
+    expected = cam.to_camera(scene_standard_joints(scene, posed)).numpy()
+    np.testing.assert_allclose(j3[:, 0], expected, atol=1e-3)
+    np.testing.assert_allclose(j2[:, 0], cam.project(torch.as_tensor(j3[:, 0])).numpy(), atol=1e-3)
+    # the 21 joints share the model's joint centres (knuckles) with its own keypoints
+    gt = read_poses(seq / "gt")
+    knuckles = [i for i in range(1, 21) if i % 4]
+    np.testing.assert_allclose(j3[:, :, knuckles], gt.keypoints_3d[:, :, knuckles], atol=1e-3)
+    scores = evaluate_sequence(seq / "gt", seq / "gt", with_penetration=False)["joints21"]
+    for key in ("mpjpe_mm", "pa_mpjpe_mm", "rr_mpjpe_mm", "mean_px"):
+        assert scores[key] == pytest.approx(0.0, abs=1e-6), key
+    assert scores["auc_0_50"] == 1.0 and scores["per_camera_px"] == [0.0]
+    assert list(scores["per_joint"])[:2] == ["wrist", "thumb_cmc"]
 
 
 def test_kinect_noise_is_seeded(frames, seq, tmp_path):

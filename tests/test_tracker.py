@@ -374,6 +374,12 @@ def test_track_sequences_without_gt_writes_scoreable_output(tmp_path):
                                        atol=1e-4)
     poses = read_poses(folder)
     assert poses.theta.shape == (4, 80) and np.isfinite(poses.theta).all()
+    from torchhand.data.layout import read_joints21
+
+    joints3, joints2 = read_joints21(folder)  # the hand's standard 21 joints, beside its keypoints
+    assert joints3.shape == (4, 1, 42, 3) and joints2.shape == (4, 1, 42, 2) and np.isfinite(joints3).all()
+    knuckles = [h + k for h in (0, 21) for k in range(1, 21) if k % 4]  # two hands
+    np.testing.assert_allclose(joints3[:, :, knuckles], poses.keypoints_3d[:, :, knuckles], atol=1e-3)
     result = evaluate_sequence(folder, gt, with_penetration=False)
     assert result["frames"] == 4 and result["mean_mm"] < 6.0
     with pytest.raises(FileExistsError):

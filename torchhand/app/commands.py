@@ -164,6 +164,10 @@ def evaluate(args) -> int:
         print("models: " + ", ".join(f"{n} {m['mean_mm']:.1f} mm" for n, m in models.items())
               + f"; worst model {name} ({worst['metric']}, {worst['mean_mm']:.1f} mm mean, worst frame "
               f"{worst['worst_frame_mm']:.1f} mm); {result['lost_frames']} lost frames (a model above 20 mm)")
+    if "joints21" in result:
+        j = result["joints21"]
+        print(f"standard 21 joints: MPJPE {j['mpjpe_mm']:.2f} mm, PA-MPJPE {j['pa_mpjpe_mm']:.2f} mm, root-relative "
+              f"{j['rr_mpjpe_mm']:.2f} mm, AUC 0-50 mm {j['auc_0_50']:.3f}, 2D {j['mean_px']:.2f} px")
     if "penetration" in result:
         p = result["penetration"]
         print(f"penetration: {p['pairs_per_frame']:.1f} intersecting triangle pairs per frame, "

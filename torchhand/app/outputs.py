@@ -1,7 +1,7 @@
 """What the runner writes for a tracked sequence (:class:`~torchhand.data.layout.OutputLayout`):
-theta and keypoints in the ``gt/`` layout, the thesis' MOTION files, ``track_log.json``,
-and on request renders, vertices and overlays for a person; into a hidden partial
-folder renamed when complete (:mod:`torchhand.io.output_dir`)."""
+theta, keypoints and the hands' standard 21 joints in the ``gt/`` layout, the thesis'
+MOTION files, ``track_log.json``, and on request renders, vertices and overlays for a
+person; into a hidden partial folder renamed when complete (:mod:`torchhand.io.output_dir`)."""
 
 from __future__ import annotations
 
@@ -19,10 +19,11 @@ from torchhand.app.drawing import (GT_COLOR, OBJECT_COLOR, depth_range, depth_to
                                    draw_mask_outline, draw_models, mosaic, write_video)
 from torchhand.app.options import TrackOptions
 from torchhand.data.layout import (OutputLayout, Poses, SequenceError, SequenceInfo, SequenceLayout, read_depth,
-                                   read_poses, read_rgb, write_depth, write_poses)
+                                   read_poses, read_rgb, write_depth, write_joints21, write_poses)
 from torchhand.io.assets import THESIS_MODEL_NAMES
 from torchhand.io.output_dir import commit_dir, partial_dir
 from torchhand.io.thesis import write_motion
+from torchhand.model.joints21 import scene_standard_joints
 from torchhand.model.motion import theta_to_motion
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.tracker import FrameResult
@@ -74,12 +75,14 @@ def write_sequence(final: Path, *, seq: TrackedSequence, scene: Scene, renderer,
     with torch.no_grad():
         th = torch.as_tensor(TH, device=cam.device)
         posed = scene(th)
-        kp3 = np.stack([c.to_camera(posed.keypoints).cpu().numpy() for c in seq.rig], 1)
-        kp2 = np.stack([c.project(posed.keypoints).cpu().numpy() for c in seq.rig], 1)
+        kp3, kp2 = _in_cameras(posed.keypoints, seq.rig)
+        joints21 = _in_cameras(scene_standard_joints(scene, posed), seq.rig)
     out = OutputLayout(partial_dir(final))
     try:
         write_poses(out, Poses(TH.astype(np.float64), kp3, kp2, list(scene.names), scene.dof_names,
                                scene.keypoint_names, valid))
+        if joints21[0].shape[2]:
+            write_joints21(out, *joints21)
         _write_motion(out, scene, th)
         if options.write_render:
             _write_renders(out, posed, cam, renderer, N)
@@ -95,6 +98,12 @@ def write_sequence(final: Path, *, seq: TrackedSequence, scene: Scene, renderer,
         raise
     commit_dir(out.root, final, force)
     return _summary(seq, valid, str(final))
+
+
+def _in_cameras(points: torch.Tensor, rig: list) -> tuple:
+    """World points (N, P, 3) -> ((N, C, P, 3) mm in each camera's frame, (N, C, P, 2) px)."""
+    return (np.stack([c.to_camera(points).cpu().numpy() for c in rig], 1),
+            np.stack([c.project(points).cpu().numpy() for c in rig], 1))
 
 
 def _summary(seq: TrackedSequence, valid: np.ndarray, out: str) -> dict:

@@ -17,6 +17,11 @@
         theta.npy              (N, D) float64 poses
         keypoints_3d.npy       (N, C, P, 3) float64 mm, in each camera's frame
         keypoints_2d.npy       (N, C, P, 2) float64 px
+        keypoints21_3d.npy     optional, (N, C, 21 x hands, 3) float64 mm: the standard 21
+                               joints of each hand (docs/model.md), in each camera's frame;
+                               NaN or all -1 where a dataset lacks a joint
+        keypoints21_2d.npy     optional, (N, C, 21 x hands, 2) float64 px; NaN or -1 where
+                               a joint is not seen
         ids/000000.png         8-bit per-pixel model id of camera 0: 0 background, k+1 model k
         salient_2d.npy         (N, C, P, 2) float64 px: the nail centres in each camera
         salient_visible.npy    (N, C, P) bool: the nail centre is seen (colour renders)
@@ -59,6 +64,8 @@ __all__ = [
     "write_poses",
     "read_poses",
     "Poses",
+    "write_joints21",
+    "read_joints21",
     "SequenceLayout",
     "PosesLayout",
     "GroundTruthLayout",
@@ -156,6 +163,9 @@ class PosesLayout(_Folder):
     theta = _Entry("theta.npy", "(N, D) float64 poses")
     keypoints_3d = _Entry("keypoints_3d.npy", "(N, C, P, 3) float64 mm, in each camera's frame")
     keypoints_2d = _Entry("keypoints_2d.npy", "(N, C, P, 2) float64 px")
+    keypoints21_3d = _Entry("keypoints21_3d.npy", "(N, C, 21 x hands, 3) float64 mm: the standard 21 joints of "
+                            "each hand, in each camera's frame")
+    keypoints21_2d = _Entry("keypoints21_2d.npy", "(N, C, 21 x hands, 2) float64 px: the standard 21 joints")
 
     @property
     def arrays(self) -> List[Path]:
@@ -408,3 +418,30 @@ def read_poses(folder) -> Poses:
         raise SequenceError(f"{folder.meta}: missing key {err}") from None
     except ValueError as err:
         raise SequenceError(f"{folder.root}: {err}") from None
+
+
+def write_joints21(folder, joints_3d: np.ndarray, joints_2d: np.ndarray) -> None:
+    """``folder`` (a path or a :class:`PosesLayout`, already holding the poses) receives the
+    standard 21 joints of its hands: joints_3d (N, C, 21 x hands, 3) mm, joints_2d
+    (N, C, 21 x hands, 2) px."""
+    out = PosesLayout(Path(folder))
+    if joints_3d.shape[:3] != joints_2d.shape[:3] or joints_3d.shape[2] % 21:
+        raise ValueError(f"21-joint arrays {joints_3d.shape} and {joints_2d.shape} do not match (N, C, 21 x hands)")
+    np.save(out.keypoints21_3d, np.asarray(joints_3d, np.float64))
+    np.save(out.keypoints21_2d, np.asarray(joints_2d, np.float64))
+
+
+def read_joints21(folder) -> Optional[tuple]:
+    """(joints_3d, joints_2d) of :func:`write_joints21` in ``folder``, or None where the
+    folder has none."""
+    folder = PosesLayout(Path(folder))
+    if not (folder.keypoints21_3d.is_file() and folder.keypoints21_2d.is_file()):
+        return None
+    try:
+        j3, j2 = np.load(folder.keypoints21_3d, allow_pickle=False), np.load(folder.keypoints21_2d, allow_pickle=False)
+    except ValueError as err:
+        raise SequenceError(f"{folder.root}: unreadable 21-joint arrays ({err})") from None
+    if j3.ndim != 4 or j2.ndim != 4 or j3.shape[:3] != j2.shape[:3] or j3.shape[2] % 21 or j3.shape[3] != 3:
+        raise SequenceError(f"{folder.root}: 21-joint arrays {j3.shape} and {j2.shape}, expected (N, C, 21 x hands, 3) "
+                            "and (N, C, 21 x hands, 2)")
+    return j3, j2

@@ -24,10 +24,11 @@ from torchhand.io.thesis import FormatError, read_calibration, read_thesis_model
 from torchhand.model.kinematics import so3_exp, so3_log
 from torchhand.model.motion import motion_to_theta
 from torchhand.geometry.render import Renderer, RenderResult
+from torchhand.model.joints21 import scene_joint_names, scene_standard_joints
 from torchhand.model.scene import Scene
 from torchhand.io.output_dir import prepare_output_dir
-from torchhand.data.layout import (Poses, SequenceInfo, SequenceLayout, write_depth, write_poses, write_rgb,
-                                   write_sequence_info)
+from torchhand.data.layout import (Poses, SequenceInfo, SequenceLayout, write_depth, write_joints21, write_poses,
+                                   write_rgb, write_sequence_info)
 from torchhand.data.noise import apply_kinect_noise
 from torchhand.data.noise_params import noise_model
 from torchhand.data.appearance import background_texture, face_albedo, model_albedo, shade
@@ -246,8 +247,9 @@ def write_synthetic_sequence(
         th = theta[s : s + batch_size].to(scene.lower.dtype)
         with torch.no_grad():
             posed = scene(th)
+            joints21 = scene_standard_joints(scene, posed)
         for c, cam in enumerate(cams):
-            _write_view(seq, renderer, posed, cam, c, s, looks, acc, g, rng)
+            _write_view(seq, renderer, (posed, joints21), cam, c, s, looks, acc, g, rng)
         bar.update(len(th))
     bar.close()
     source = {**frames.source, "noise": noise if depth else None, "seed": seed}
@@ -273,7 +275,8 @@ class _Looks(NamedTuple):
 class _Accumulated(NamedTuple):
     """What the frames give the ground truth: keypoints (N, C, P, 3) mm and (N, C, P, 2)
     px; with shading the nail vertices, their centres (N, C, T, 2) and visibility, and
-    each camera's simulated detections."""
+    each camera's simulated detections; the standard 21 joints of every hand (N, C, 21 x
+    hands, 3) mm and (N, C, 21 x hands, 2) px."""
 
     kp3d: np.ndarray
     kp2d: np.ndarray
@@ -281,6 +284,8 @@ class _Accumulated(NamedTuple):
     sal2d: Optional[np.ndarray]
     sal_vis: Optional[np.ndarray]
     detections: list
+    joints21_3d: np.ndarray
+    joints21_2d: np.ndarray
 
     @classmethod
     def empty(cls, N: int, C: int, scene, shaded: bool) -> "_Accumulated":
@@ -291,7 +296,9 @@ class _Accumulated(NamedTuple):
 
             nails = nail_vertices(scene)  # empty without hands
             sal2d, sal_vis = np.zeros((N, C, len(nails), 2)), np.zeros((N, C, len(nails)), bool)
-        return cls(np.zeros((N, C, P, 3)), np.zeros((N, C, P, 2)), nails, sal2d, sal_vis, [[] for _ in range(C)])
+        H = len(scene_joint_names(scene))
+        return cls(np.zeros((N, C, P, 3)), np.zeros((N, C, P, 2)), nails, sal2d, sal_vis, [[] for _ in range(C)],
+                   np.zeros((N, C, H, 3)), np.zeros((N, C, H, 2)))
 
 
 def _checked_settings(noise: str, protocol: Optional[str], colour: str, depth: bool, rgb: bool) -> tuple:
@@ -309,10 +316,12 @@ def _checked_settings(noise: str, protocol: Optional[str], colour: str, depth: b
     return params, proto
 
 
-def _write_view(seq: SequenceLayout, renderer: Renderer, posed, cam, c: int, s: int, looks: _Looks,
+def _write_view(seq: SequenceLayout, renderer: Renderer, posed_joints, cam, c: int, s: int, looks: _Looks,
                 acc: _Accumulated, g: torch.Generator, rng: np.random.Generator) -> None:
-    """Camera ``c``'s frames s, s + 1, ... of the posed batch: depth, colour, occluders
-    and ids written, keypoints and nails into ``acc``."""
+    """Camera ``c``'s frames s, s + 1, ... of the posed batch (the scene's output and its
+    hands' 21 joints): depth, colour, occluders and ids written, keypoints, joints and
+    nails into ``acc``."""
+    posed, joints21 = posed_joints
     n = posed.vertices.shape[0]
     camd = cam.to(dtype=posed.vertices.dtype)
     res = renderer(posed.vertices, camd)
@@ -321,6 +330,8 @@ def _write_view(seq: SequenceLayout, renderer: Renderer, posed, cam, c: int, s: 
         dmap = apply_kinect_noise(dmap, res.normals, camd.K.float(), looks.params, generator=g)
     acc.kp3d[s : s + n, c] = camd.to_camera(posed.keypoints).cpu().numpy()
     acc.kp2d[s : s + n, c] = camd.project(posed.keypoints).cpu().numpy()
+    acc.joints21_3d[s : s + n, c] = camd.to_camera(joints21).cpu().numpy()
+    acc.joints21_2d[s : s + n, c] = camd.project(joints21).cpu().numpy()
     if looks.shaded:
         image = shade(res, posed.vertices, renderer.faces, looks.albedo, camd, looks.backgrounds[c])
         acc.sal2d[s : s + n, c], acc.sal_vis[s : s + n, c] = _salient_in_view(posed.vertices[:, acc.nails], camd,
@@ -368,3 +379,6 @@ def _write_ground_truth(out, seq: SequenceLayout, frames: SyntheticFrames, acc: 
     write_sequence_info(out, info, init_theta=th[0])
     write_poses(seq.gt, Poses(th, acc.kp3d[:, :, kps], acc.kp2d[:, :, kps], listed,
                               [scene.dof_names[d] for d in dofs], [scene.keypoint_names[k] for k in kps]))
+    joints = [k for k, n in enumerate(scene_joint_names(scene)) if n.rsplit("/", 1)[0] in listed]
+    if joints:
+        write_joints21(seq.gt, acc.joints21_3d[:, :, joints], acc.joints21_2d[:, :, joints])

@@ -1,9 +1,15 @@
-"""Error measures: keypoint errors in px and mm, PCK curves and their AUC, and
-interpenetration of posed meshes.
+"""Error measures: keypoint errors in px and mm, PCK curves and their AUC, the joint
+errors of the hand pose literature (MPJPE, PA-MPJPE, root-relative MPJPE) with validity
+masks, and interpenetration of posed meshes.
 
 The 2D measure is the thesis' (Table 4.6): the mean Euclidean distance in pixels
 between projected keypoints and ground truth. The 3D measure is the same in mm in
 the camera frame. The curve is the fraction of keypoints within a 3D threshold.
+
+Joint errors take ground truth that may lack joints: a joint is absent when any of its
+coordinates is NaN, when all of them are -1 (how several datasets mark a missing joint)
+or when the caller's mask says so. Absent joints are left out of every mean, never
+scored as zero; a mean over no joints is NaN.
 """
 
 from __future__ import annotations
@@ -13,7 +19,8 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 __all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "max_depth", "model_pair_counts",
-           "PCK_THRESHOLDS_MM", "fit_quality"]
+           "PCK_THRESHOLDS_MM", "fit_quality", "valid_joints", "joint_errors", "similarity_align", "mpjpe",
+           "pa_mpjpe", "rr_mpjpe", "JointScores", "joint_scores", "mean_px", "per_joint_mean"]
 
 #: thresholds of the PCK curve, 0..50 mm in 1 mm steps
 PCK_THRESHOLDS_MM = np.arange(0.0, 50.0 + 1e-9, 1.0)
@@ -130,3 +137,125 @@ def model_pair_counts(vertices, faces, face_model, chunk: int = 16) -> np.ndarra
     counts = [detect_collisions(vertices[i : i + chunk], mesh).counts(len(vertices[i : i + chunk]))
               for i in range(0, len(vertices), chunk)]
     return torch.cat(counts).cpu().numpy()
+
+
+def valid_joints(gt: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """(..., P) bool: the joints of ``gt`` (..., P, d) that are present (module docstring),
+    and'ed with ``valid`` (..., P) when given."""
+    gt = np.asarray(gt, np.float64)
+    ok = np.isfinite(gt).all(-1) & ~(gt == -1).all(-1)
+    if valid is not None:
+        ok &= np.broadcast_to(np.asarray(valid, bool), ok.shape)
+    return ok
+
+
+def joint_errors(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """(..., P) Euclidean distances of pred, gt (..., P, d), NaN where the joint is absent.
+    Raises ValueError where a present joint has no finite prediction."""
+    ok = valid_joints(gt, valid)
+    pred = np.asarray(pred, np.float64)
+    if not np.isfinite(pred[ok]).all():
+        raise ValueError("pred: a joint present in the ground truth has a non-finite prediction")
+    e = np.linalg.norm(pred - np.where(ok[..., None], np.asarray(gt, np.float64), 0.0), axis=-1)
+    return np.where(ok, e, np.nan)
+
+
+def _mean(e: np.ndarray) -> float:
+    e = e[~np.isnan(e)]
+    return float(e.mean()) if e.size else float("nan")
+
+
+def per_joint_mean(errors: np.ndarray) -> np.ndarray:
+    """(P,) mean of errors (..., P) over everything but the joint axis, absent (NaN) left
+    out; NaN for a joint never present."""
+    e = np.asarray(errors, np.float64).reshape(-1, np.shape(errors)[-1])
+    n = (~np.isnan(e)).sum(0)
+    return np.where(n > 0, np.nansum(e, 0) / np.maximum(n, 1), np.nan)
+
+
+def similarity_align(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """pred (N, P, 3) moved by the similarity (scale, rotation without reflection,
+    translation) that best fits its present joints to gt's, per frame (Umeyama 1991).
+
+    Returns (N, P, 3); frames with fewer than 3 present joints are all NaN.
+    """
+    ok = valid_joints(gt, valid)
+    w = ok[..., None].astype(np.float64)  # (N, P, 1)
+    x = np.where(ok[..., None], np.asarray(pred, np.float64), 0.0)
+    y = np.where(ok[..., None], np.asarray(gt, np.float64), 0.0)
+    n = np.maximum(w.sum(1, keepdims=True), 1.0)  # (N, 1, 1)
+    mx, my = x.sum(1, keepdims=True) / n, y.sum(1, keepdims=True) / n
+    xc, yc = (x - mx) * w, (y - my) * w
+    U, S, Vt = np.linalg.svd(np.einsum("npi,npj->nij", yc, xc) / n)  # cov(y, x) = U S Vt
+    d = np.ones_like(S)
+    d[:, -1] = np.sign(np.linalg.det(U) * np.linalg.det(Vt))  # no reflection
+    R = U @ (d[..., None] * Vt)
+    var_x = (xc ** 2).sum((1, 2)) / n[:, 0, 0]
+    s = (S * d).sum(-1) / np.maximum(var_x, 1e-300)
+    aligned = s[:, None, None] * np.einsum("nij,npj->npi", R, np.asarray(pred, np.float64) - mx) + my
+    aligned[ok.sum(-1) < 3] = np.nan
+    return aligned
+
+
+def mpjpe(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """Mean per-joint position error (units of the input) over the present joints of
+    pred, gt (..., P, d)."""
+    return _mean(joint_errors(pred, gt, valid))
+
+
+def pa_mpjpe(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """MPJPE after :func:`similarity_align` per frame; pred, gt (N, P, 3)."""
+    return _mean(joint_errors(similarity_align(pred, gt, valid), gt, _aligned(gt, valid)))
+
+
+def _aligned(gt, valid):
+    """Present joints of frames with at least 3 of them (the ones Procrustes can fit)."""
+    ok = valid_joints(gt, valid)
+    return ok & (ok.sum(-1, keepdims=True) >= 3)
+
+
+def _root_relative(pred, gt, valid, root: int):
+    ok = valid_joints(gt, valid)
+    ok = ok & ok[..., root : root + 1]  # a frame without its root is left out
+    pred = np.asarray(pred, np.float64)
+    gt = np.where(ok[..., None], np.asarray(gt, np.float64), 0.0)
+    return pred - pred[..., root : root + 1, :], gt - gt[..., root : root + 1, :], ok
+
+
+def rr_mpjpe(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, root: int = 0) -> float:
+    """MPJPE after moving both root joints (the wrist, joint 0) to the origin; frames whose
+    root is absent are left out."""
+    return _mean(joint_errors(*_root_relative(pred, gt, valid, root)))
+
+
+class JointScores(NamedTuple):
+    """The 3D joint scores of a set of frames (mm). ``*_mm``: means over present joints;
+    ``per_joint_*``: (P,) the same per joint; ``pck``: (T,) the fraction of present joints
+    within each of ``thresholds`` (T,) (no alignment); ``auc_0_50``: its area."""
+
+    mpjpe_mm: float
+    pa_mpjpe_mm: float
+    rr_mpjpe_mm: float
+    auc_0_50: float
+    thresholds: np.ndarray
+    pck: np.ndarray
+    per_joint_mm: np.ndarray
+    per_joint_pa_mm: np.ndarray
+    per_joint_rr_mm: np.ndarray
+
+
+def joint_scores(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, root: int = 0,
+                 thresholds: np.ndarray = PCK_THRESHOLDS_MM) -> JointScores:
+    """All 3D joint scores of pred, gt (N, P, 3) mm with ``valid`` (N, P) (module docstring)."""
+    e = joint_errors(pred, gt, valid)
+    pa = joint_errors(similarity_align(pred, gt, valid), gt, _aligned(gt, valid))
+    rr = joint_errors(*_root_relative(pred, gt, valid, root))
+    curve = pck_curve(e[~np.isnan(e)], thresholds)
+    return JointScores(_mean(e), _mean(pa), _mean(rr), auc(thresholds, curve) if (~np.isnan(e)).any() else float("nan"),
+                       thresholds, curve, per_joint_mean(e), per_joint_mean(pa), per_joint_mean(rr))
+
+
+def mean_px(pred: np.ndarray, gt: np.ndarray, visible: np.ndarray | None = None) -> float:
+    """Mean 2D distance (px) of pred, gt (..., P, 2) over the joints present in gt and
+    ``visible`` (..., P) (e.g. (N, C, P): per camera; not occluded, inside the image)."""
+    return mpjpe(pred, gt, visible)

@@ -16,6 +16,15 @@ Every model is scored per frame (``models`` in the result), in mm in the world f
   vertex error beside it.
 
 A frame is *lost* when any model's error exceeds :data:`LOST_MM`.
+
+When both sides hold the standard 21 joints of their hands (``keypoints21_3d.npy``,
+``keypoints21_2d.npy``; docs/model.md), the result adds ``joints21``: ``mpjpe_mm``,
+``pa_mpjpe_mm`` (after a similarity Procrustes per hand and frame), ``rr_mpjpe_mm``
+(wrist-relative), ``auc_0_50`` (PCK over 0-50 mm), ``mean_px`` (2D, over the joints
+the ground truth has in each camera), ``per_camera_px``, ``per_joint`` and ``pck``.
+Joints absent from the ground truth (NaN or all -1) are left out. 3D errors are taken
+in camera 0's frame (distances do not depend on the camera). They are a block of their
+own so that the thesis keypoints' figures (``mean_px``, ``mean_mm``, ...) keep their keys.
 """
 
 from __future__ import annotations
@@ -26,8 +35,12 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from torchhand.data.layout import OutputLayout, Poses, PosesLayout, SequenceError, SequenceLayout, read_poses
-from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, max_depth, model_pair_counts, pck_curve
+from torchhand.data.layout import (OutputLayout, Poses, PosesLayout, SequenceError, SequenceLayout, read_joints21,
+                                   read_poses)
+from torchhand.model.joints21 import STANDARD_JOINT_NAMES
+from torchhand.scoring.metrics import (PCK_THRESHOLDS_MM, auc, joint_errors, joint_scores, keypoint_errors, max_depth,
+                                       mean_px, model_pair_counts, pck_curve, per_joint_mean,
+                                       valid_joints)
 
 __all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize", "model_errors", "fit_report",
            "LOST_MM", "GOOD_IOU"]
@@ -107,7 +120,36 @@ def evaluate_sequence(pred_dir, gt_dir, with_penetration: bool = True) -> Dict:
     result["lost_frame_ids"] = np.nonzero(lost)[0].tolist()
     if with_penetration and len(gt.models) > 1:
         result["penetration"] = _penetration(pred)
+    joints21 = _joints21(pred_dir, gt_dir)
+    if joints21 is not None:
+        result["joints21"] = joints21
     return result
+
+
+def _joints21(pred_dir: Path, gt_dir: Path):
+    """The ``joints21`` block of the module docstring, or None when a side has no 21 joints."""
+    try:
+        pred, gt = read_joints21(pred_dir), read_joints21(gt_dir)
+    except SequenceError as err:
+        raise EvaluationError(str(err)) from None
+    if pred is None or gt is None:
+        return None
+    if pred[0].shape != gt[0].shape or pred[1].shape != gt[1].shape:
+        raise EvaluationError(f"21-joint arrays of {pred_dir} {pred[0].shape} do not match {gt_dir} {gt[0].shape}")
+    N, C, P, _ = gt[0].shape
+    hands = lambda a: a[:, 0].reshape(N * (P // 21), 21, 3)  # noqa: E731  camera 0, one row per hand and frame
+    try:
+        s = joint_scores(hands(pred[0]), hands(gt[0]))
+        e2 = joint_errors(pred[1], gt[1])  # (N, C, P) px, NaN where the ground truth has no joint
+    except ValueError as err:
+        raise EvaluationError(f"{pred_dir}: 21 joints: {err}") from None
+    per_joint = zip(STANDARD_JOINT_NAMES, s.per_joint_mm, s.per_joint_pa_mm, s.per_joint_rr_mm)
+    return {"mpjpe_mm": s.mpjpe_mm, "pa_mpjpe_mm": s.pa_mpjpe_mm, "rr_mpjpe_mm": s.rr_mpjpe_mm,
+            "auc_0_50": s.auc_0_50, "mean_px": mean_px(pred[1], gt[1]),
+            "scored_joints": int(valid_joints(gt[0][:, 0]).sum()),
+            "per_camera_px": per_joint_mean(np.moveaxis(e2, 1, -1)).tolist(),
+            "per_joint": {n: {"mm": float(a), "pa_mm": float(b), "rr_mm": float(c)} for n, a, b, c in per_joint},
+            "pck": {"thresholds_mm": s.thresholds.tolist(), "fraction": s.pck.tolist()}}
 
 
 def _frame_means(e: np.ndarray) -> list:
@@ -254,8 +296,21 @@ def summarize(results: List[Dict]) -> Dict:
                                   "frames": int(len(e))}
     if len(results) == 1:
         return results[0]
+    if all("joints21" in r for r in results):
+        pooled["joints21"] = _pool_joints21([r["joints21"] for r in results])
     pooled["note"] = "median_px/median_mm pooled over per-frame mean errors of all sequences"
     pooled["sequences"] = results
+    return pooled
+
+
+def _pool_joints21(blocks: List[Dict]) -> Dict:
+    """The five 21-joint means of several sequences, weighted by their scored joints."""
+    w = np.array([b["scored_joints"] for b in blocks], float)
+    pooled = {"scored_joints": int(w.sum())}
+    for key in ("mpjpe_mm", "pa_mpjpe_mm", "rr_mpjpe_mm", "auc_0_50", "mean_px"):
+        v = np.array([b[key] for b in blocks], float)
+        ok = np.isfinite(v) & (w > 0)
+        pooled[key] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
     return pooled
 
 
