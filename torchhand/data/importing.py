@@ -19,7 +19,7 @@ import json
 import re
 import shutil
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -29,7 +29,7 @@ from torchhand.geometry.camera import Camera
 from torchhand.io.assets import find_model
 from torchhand.io.output_dir import prepare_output_dir
 
-__all__ = ["Intrinsics", "read_intrinsics", "natural_key", "import_depth_folder"]
+__all__ = ["Intrinsics", "read_intrinsics", "natural_key", "check_intrinsics", "check_depth_pngs", "import_depth_folder"]
 
 
 class Intrinsics(dict):
@@ -60,7 +60,9 @@ def natural_key(name: str) -> List:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
-def _check_intrinsics(k: Dict, width: int, height: int, where: str) -> None:
+def check_intrinsics(k: Dict, width: int, height: int, where: str) -> None:
+    """Raise ValueError (naming ``where``) unless fx, fy, cx, cy are plausible pixels for a
+    ``width`` x ``height`` image (and ``k``'s optional width and height match it)."""
     for name in ("fx", "fy", "cx", "cy"):
         v = k.get(name)
         if v is None or not isinstance(v, (int, float)) or not np.isfinite(v):
@@ -76,6 +78,26 @@ def _check_intrinsics(k: Dict, width: int, height: int, where: str) -> None:
     for name, size in (("width", width), ("height", height)):
         if name in k and int(k[name]) != size:
             raise ValueError(f"{where}: the intrinsics are for {name} {k[name]}, the images have {size}")
+
+
+def check_depth_pngs(files: Sequence[Path], hint: str = "") -> Tuple[int, int]:
+    """(H, W) of the depth frames ``files``; a SequenceError naming the file unless every
+    one is a readable single-channel 16-bit PNG of one size (``hint``: said after a wrong kind)."""
+    size = None
+    for p in files:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise SequenceError(f"{p}: unreadable PNG")
+        if img.ndim != 2 or img.dtype != np.uint16:
+            kind = "colour" if img.ndim == 3 else f"{img.dtype}"
+            raise SequenceError(f"{p}: a depth frame must be a single-channel 16-bit PNG, got a {kind} image "
+                                f"of shape {img.shape}" + (f" ({hint})" if hint else ""))
+        if size is None:
+            size, first = img.shape, p
+        elif img.shape != size:
+            raise SequenceError(f"{p}: {img.shape[1]}x{img.shape[0]} pixels, but {first.name} is "
+                                f"{size[1]}x{size[0]}: all frames of a sequence must have one size")
+    return size
 
 
 def _depth_files(src: Path) -> List[Path]:
@@ -111,22 +133,8 @@ def import_depth_folder(src, out, intrinsics: Dict, depth_unit_mm: float, models
         raise ValueError(f"--depth-unit-mm must be a positive number of millimetres, got {depth_unit_mm!r}")
     for m in models:
         find_model(m)
-    size = None
-    for p in files:
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise SequenceError(f"{p}: unreadable PNG")
-        if img.ndim != 2 or img.dtype != np.uint16:
-            kind = "colour" if img.ndim == 3 else f"{img.dtype}"
-            raise SequenceError(f"{p}: a depth frame must be a single-channel 16-bit PNG, got a {kind} image "
-                                f"of shape {img.shape} (8-bit or colour images are not depth; pass colour with --rgb)")
-        if size is None:
-            size, first = img.shape, p
-        elif img.shape != size:
-            raise SequenceError(f"{p}: {img.shape[1]}x{img.shape[0]} pixels, but {first.name} is "
-                                f"{size[1]}x{size[0]}: all frames of a sequence must have one size")
-    H, W = size
-    _check_intrinsics(intrinsics, W, H, str(src))
+    H, W = check_depth_pngs(files, "8-bit or colour images are not depth; pass colour with --rgb")
+    check_intrinsics(intrinsics, W, H, str(src))
     rgb_files: List[Path] = []
     if rgb:
         rgb_files = sorted((Path(p) for p in glob.glob(rgb)), key=lambda p: natural_key(p.name))
