@@ -25,6 +25,10 @@ _PACKAGE = Path(__file__).resolve().parents[1]
 
 _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
+#: ``torchhand import --format`` choices: the names of ``torchhand.data.datasets.FORMATS``,
+#: spelled out so that parsing does not load the readers (tests/test_fpha.py compares them).
+DATASET_FORMATS = ("fpha",)
+
 
 def _frames_slice(text: str | None) -> slice | None:
     if not text:
@@ -302,8 +306,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("import", help="turn a folder of 16-bit depth PNGs (a user's recording) into a sequence folder",
                        formatter_class=_Formatter)
-    p.add_argument("src", type=Path, help="folder of single-channel 16-bit depth PNGs (natural file-name order)")
+    p.add_argument("src", type=Path, help="folder of single-channel 16-bit depth PNGs (natural file-name order); "
+                                          "with --format, one sequence folder of that dataset")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write (must be new or empty)")
+    p.add_argument("--format", choices=DATASET_FORMATS,
+                   help="read SRC as a published dataset's sequence (fpha: <root>/Video_files/<subject>/<action>/"
+                        "<seq>, its skeleton.txt as ground truth), with the dataset's own intrinsics and units; "
+                        "default: a folder of depth PNGs")
     p.add_argument("--fx", type=float, help="focal length x, px")
     p.add_argument("--fy", type=float, help="focal length y, px")
     p.add_argument("--cx", type=float, help="principal point x, px (pixel centres at integers)")

@@ -234,9 +234,33 @@ def segment_config(args, default_mode: str):
                          remove_plane=args.remove_plane)
 
 
+def import_dataset(args) -> int:
+    """``torchhand import --format NAME``: a published dataset's sequence, with its own
+    camera, units and ground truth (:mod:`torchhand.data.datasets`)."""
+    from torchhand.data.datasets import FORMATS
+
+    unused = [flag for flag, v in (("--fx", args.fx), ("--fy", args.fy), ("--cx", args.cx), ("--cy", args.cy),
+                                   ("--intrinsics", args.intrinsics), ("--depth-unit-mm", args.depth_unit_mm),
+                                   ("--rgb", args.rgb)) if v is not None]
+    if args.models != "hand_right":
+        unused.append("--models")
+    if unused:
+        raise ValueError(f"--format {args.format} reads the dataset's own camera, units and hand; "
+                         f"{', '.join(unused)} cannot be given with it")
+    seg = segment_config(args, "auto")
+    info = FORMATS[args.format](args.src, args.out, force=args.force,
+                                segmentation=None if seg.mode == "none" else seg.to_dict())
+    missing = len(info.source.get("frames_without_pose", []))
+    print(f"imported {info.frames} frames of {args.format} sequence {args.src} to {args.out} "
+          f"({info.frames - missing} with a hand pose; segmentation: {seg.mode})")
+    return 0
+
+
 def import_folder(args) -> int:
     from torchhand.data.importing import import_depth_folder, read_intrinsics
 
+    if args.format is not None:
+        return import_dataset(args)
     given = [args.fx, args.fy, args.cx, args.cy]
     if args.intrinsics is not None:
         if any(v is not None for v in given):
