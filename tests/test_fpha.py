@@ -21,6 +21,8 @@ from torchhand.model.joints21 import STANDARD_JOINT_NAMES, scene_standard_joints
 from torchhand.model.scene import Scene
 
 FRAMES = 3
+#: the parent of each standard joint but the wrist: each finger's base hangs off the wrist
+PARENTS = [0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19]
 
 
 class Sample:
@@ -88,8 +90,7 @@ def test_import_reads_joints_in_mm_in_the_depth_camera(sample, tmp_path):
     j3, j2 = read_joints21(seq.gt)
     assert j3.shape == (FRAMES, 1, 21, 3) and j2.shape == (FRAMES, 1, 21, 2)
     np.testing.assert_allclose(j3[:, 0], sample.joints, atol=1e-3, rtol=0)  # units (mm) and the joint order
-    bones = lambda j: np.linalg.norm(j[:, 1:] - j[:, [0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18,  # noqa: E731
-                                                           19]], axis=-1)
+    bones = lambda j: np.linalg.norm(j[:, 1:] - j[:, PARENTS], axis=-1)  # noqa: E731
     np.testing.assert_allclose(bones(j3[:, 0]), bones(sample.joints), atol=1e-3)
     chirality = lambda j: np.sign(np.einsum("ni,ni->n", np.cross(j[:, 5] - j[:, 0], j[:, 17] - j[:, 0]),  # noqa: E731
                                             j[:, 2] - j[:, 0]))
