@@ -27,7 +27,7 @@ _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
 #: ``torchhand import --format`` choices: the names of ``torchhand.data.datasets.FORMATS``,
 #: spelled out so that parsing does not load the readers (tests/test_fpha.py compares them).
-DATASET_FORMATS = ("fpha",)
+DATASET_FORMATS = ("fpha", "nyu")
 
 
 def _frames_slice(text: str | None) -> slice | None:
@@ -311,8 +311,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write (must be new or empty)")
     p.add_argument("--format", choices=DATASET_FORMATS,
                    help="read SRC as a published dataset's sequence (fpha: <root>/Video_files/<subject>/<action>/"
-                        "<seq>, its skeleton.txt as ground truth), with the dataset's own intrinsics and units; "
-                        "default: a folder of depth PNGs")
+                        "<seq>, its skeleton.txt as ground truth; nyu: a split folder, train/ or test/, with its "
+                        "joint_data.mat), with the dataset's own intrinsics and units; default: a folder of depth "
+                        "PNGs")
+    p.add_argument("--camera", type=_positive_int, default=None,
+                   help="with --format nyu: which of the split's three Kinects (1-3; default 1)")
     p.add_argument("--fx", type=float, help="focal length x, px")
     p.add_argument("--fy", type=float, help="focal length y, px")
     p.add_argument("--cx", type=float, help="principal point x, px (pixel centres at integers)")

@@ -244,12 +244,15 @@ def import_dataset(args) -> int:
                                    ("--rgb", args.rgb)) if v is not None]
     if args.models != "hand_right":
         unused.append("--models")
+    if args.camera is not None and args.format != "nyu":
+        unused.append("--camera")
     if unused:
         raise ValueError(f"--format {args.format} reads the dataset's own camera, units and hand; "
                          f"{', '.join(unused)} cannot be given with it")
     seg = segment_config(args, "auto")
+    options = {"camera": args.camera or 1} if args.format == "nyu" else {}
     info = FORMATS[args.format](args.src, args.out, force=args.force,
-                                segmentation=None if seg.mode == "none" else seg.to_dict())
+                                segmentation=None if seg.mode == "none" else seg.to_dict(), **options)
     missing = len(info.source.get("frames_without_pose", []))
     print(f"imported {info.frames} frames of {args.format} sequence {args.src} to {args.out} "
           f"({info.frames - missing} with a hand pose; segmentation: {seg.mode})")

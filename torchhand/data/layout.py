@@ -25,6 +25,10 @@
         ids/000000.png         8-bit per-pixel model id of camera 0: 0 background, k+1 model k
         salient_2d.npy         (N, C, P, 2) float64 px: the nail centres in each camera
         salient_visible.npy    (N, C, P) bool: the nail centre is seen (colour renders)
+        joints_dataset_3d.npy  (imported public datasets) (N, C, J, 3) float64 mm: the
+                               dataset's own J joints, in each camera's frame
+        joints_dataset_2d.npy  (N, C, J, 2) float64 px: their projections
+        joints_dataset.json    their names and standard-21 counterparts
 
 A tracker's output folder uses the ``gt/`` layout (without ``ids/``), so ground
 truth scored against itself gives 0, and adds its own files (:class:`OutputLayout`).
@@ -184,6 +188,10 @@ class GroundTruthLayout(PosesLayout):
     object_pose = _Entry("object_pose.npy", "(N, 4, 4) poses of the scanned object, mesh -> camera, mm")
     object_mesh = _Entry("object.ply", "the scanned object's mesh")
     object_meta = _Entry("object.json", "the scanned object's mesh file and the grasp")
+    joints_dataset_3d = _Entry("joints_dataset_3d.npy", "(N, C, J, 3) float64 mm: a public dataset's own joints "
+                               "(not the standard 21), in each camera's frame")
+    joints_dataset_2d = _Entry("joints_dataset_2d.npy", "(N, C, J, 2) float64 px: a public dataset's own joints")
+    joints_dataset_meta = _Entry("joints_dataset.json", "the dataset's joint names and their standard-21 counterparts")
 
     def ids(self, frame: int) -> Path:
         """8-bit per-pixel model id of camera 0 (0 background, k+1 model k)."""

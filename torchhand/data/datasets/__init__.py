@@ -2,15 +2,18 @@
 sequence folder (datasets/README.md) from one of the dataset's sequences, as published.
 
 ``FORMATS`` names them for ``torchhand import --format NAME SRC --out SEQ``; every reader
-is called as ``reader(src, out, force=False, segmentation=None)`` and returns the written
+is called as ``reader(src, out, force=False, segmentation=None, **options)`` (``options``:
+the dataset's own, e.g. NYU's ``camera``) and returns the written
 :class:`~torchhand.data.layout.SequenceInfo`.
 """
 
 from __future__ import annotations
 
 from torchhand.data.datasets.fpha import import_fpha
+from torchhand.data.datasets.nyu import import_nyu
 
-__all__ = ["FORMATS", "import_fpha"]
+__all__ = ["FORMATS", "import_fpha", "import_nyu"]
 
-#: ``--format`` name -> reader: First-Person Hand Action (Garcia-Hernando et al., CVPR 2018).
-FORMATS = {"fpha": import_fpha}
+#: ``--format`` name -> reader: First-Person Hand Action (Garcia-Hernando et al., CVPR 2018);
+#: the NYU hand pose dataset (Tompson et al., 2014).
+FORMATS = {"fpha": import_fpha, "nyu": import_nyu}
