@@ -42,7 +42,7 @@ import re
 import shutil
 import warnings
 from pathlib import Path
-from typing import Dict, List, NamedTuple, Optional, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
@@ -54,7 +54,7 @@ from torchhand.io.output_dir import commit_dir, partial_dir
 from torchhand.model.joints21 import STANDARD_JOINT_NAMES
 
 __all__ = ["FPHA_INTRINSICS", "FPHA_JOINT_NAMES", "STANDARD_FROM_FPHA", "FPHA_TO_STANDARD", "Skeleton",
-           "fpha_camera", "fpha_files", "read_skeleton", "import_fpha"]
+           "fpha_camera", "fpha_files", "read_skeleton", "import_fpha", "write_imported"]
 
 VIDEO_DIR, POSE_DIR, SKELETON_FILE = "Video_files", "Hand_pose_annotation_v1", "skeleton.txt"
 WIDTH, HEIGHT, FPS = 640, 480, 30.0
@@ -213,12 +213,25 @@ def import_fpha(src, out, force: bool = False, segmentation: Optional[Dict] = No
               "files": [p.name for p in files[:n]],
               "frames_without_pose": np.nonzero(~skeleton.valid[:n])[0].tolist()}
     info = SequenceInfo(out.name, [camera], ["hand_right"], n, FPS, 1.0, False, source, segmentation)
-    partial = partial_dir(out.absolute())
-    try:
-        seq = SequenceLayout(partial)
+
+    def copy_depth(seq: SequenceLayout) -> None:
         seq.depth_dir().mkdir()
         for k in range(n):
             shutil.copyfile(files[k], seq.depth(k))
+
+    write_imported(out, info, force, copy_depth, joints, pixels)
+    return info
+
+
+def write_imported(out: Path, info: SequenceInfo, force: bool, write_frames: Callable[[SequenceLayout], None],
+                   joints: np.ndarray, pixels: np.ndarray) -> None:
+    """Write a dataset's sequence folder ``out`` atomically: ``write_frames`` fills a hidden
+    folder beside it, then the standard 21 joints (N, 21, 3) mm and (N, 21, 2) px of camera 0
+    and ``info`` are written and the folder is renamed to ``out``; a failure removes it."""
+    partial = partial_dir(out.absolute())
+    try:
+        seq = SequenceLayout(partial)
+        write_frames(seq)
         seq.gt.root.mkdir()
         write_joints21(seq.gt, joints[:, None], pixels[:, None])
         write_sequence_info(partial, info)
@@ -226,4 +239,3 @@ def import_fpha(src, out, force: bool = False, segmentation: Optional[Dict] = No
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
-    return info

@@ -51,7 +51,7 @@ from torchhand.geometry.camera import Camera
 from torchhand.io.output_dir import commit_dir, partial_dir
 
 __all__ = ["NYU_INTRINSICS", "NYU_JOINT_NAMES", "NYU_EVAL_JOINTS", "NYU_EVAL_NAMES", "NYU_TO_STANDARD21",
-           "NYUJoints", "read_nyu_depth", "read_nyu_joints", "nyu_to_camera_frame", "nyu_camera", "import_nyu"]
+           "NYUJoints", "read_packed_png", "read_nyu_depth", "read_nyu_joints", "nyu_to_camera_frame", "nyu_camera", "import_nyu"]
 
 #: fx, fy, cx, cy (px) of ``convert_xyz_to_uvd.m``, for 640x480 frames.
 NYU_INTRINSICS = {"fx": 588.036865, "fy": 587.075073, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
@@ -97,6 +97,20 @@ class NYUJoints(NamedTuple):
     names: List[str]
 
 
+def read_packed_png(path: Path, what: str, packing: str) -> np.ndarray:
+    """The (H, W, 3) uint8 BGR image of a depth frame packed into colour channels; one that
+    is missing, unreadable or not 8-bit with three channels is refused naming the file
+    (``what``: the frame's kind, ``packing``: where its depth lies, for the message)."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SequenceError(f"{path}: depth frame not found or unreadable")
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        channels = 1 if img.ndim == 2 else img.shape[2]
+        raise SequenceError(f"{path}: {what} is an 8-bit PNG with 3 channels ({packing}), "
+                            f"got {img.dtype} with {channels} channel(s)")
+    return img
+
+
 def read_nyu_depth(path) -> np.ndarray:
     """An NYU depth frame -> (H, W) uint16 depth in mm, ``(G << 8) + B``.
 
@@ -104,13 +118,7 @@ def read_nyu_depth(path) -> np.ndarray:
     three channels (a grey or 16-bit PNG), or with a non-zero R channel (a colour frame).
     """
     path = Path(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise SequenceError(f"{path}: depth frame not found or unreadable")
-    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
-        channels = 1 if img.ndim == 2 else img.shape[2]
-        raise SequenceError(f"{path}: an NYU depth frame is an 8-bit PNG with 3 channels (depth in G and B), "
-                            f"got {img.dtype} with {channels} channel(s)")
+    img = read_packed_png(path, "an NYU depth frame", "depth in G and B")
     # OpenCV reads BGR. The format packs depth into G and B only; R = 0 is what a frame
     # packed that way holds, and a non-zero R marks a colour frame (rgb_<k>_...) given instead.
     b, g, r = img[..., 0], img[..., 1], img[..., 2]
