@@ -27,7 +27,7 @@ _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
 #: ``torchhand import --format`` choices: the names of ``torchhand.data.datasets.FORMATS``,
 #: spelled out so that parsing does not load the readers (tests/test_fpha.py compares them).
-DATASET_FORMATS = ("fpha", "nyu")
+DATASET_FORMATS = ("fpha", "nyu", "ho3d")
 
 
 def _frames_slice(text: str | None) -> slice | None:
@@ -312,7 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=DATASET_FORMATS,
                    help="read SRC as a published dataset's sequence (fpha: <root>/Video_files/<subject>/<action>/"
                         "<seq>, its skeleton.txt as ground truth; nyu: a split folder, train/ or test/, with its "
-                        "joint_data.mat), with the dataset's own intrinsics and units; default: a folder of depth "
+                        "joint_data.mat; ho3d: one sequence folder <root>/<split>/<SEQ> with depth/, meta/ and rgb/), "
+                        "with the dataset's own intrinsics and units; default: a folder of depth "
                         "PNGs")
     p.add_argument("--camera", type=_positive_int, default=None,
                    help="with --format nyu: which of the split's three Kinects (1-3; default 1)")

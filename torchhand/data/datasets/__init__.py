@@ -10,10 +10,11 @@ the dataset's own, e.g. NYU's ``camera``) and returns the written
 from __future__ import annotations
 
 from torchhand.data.datasets.fpha import import_fpha
+from torchhand.data.datasets.ho3d import import_ho3d
 from torchhand.data.datasets.nyu import import_nyu
 
-__all__ = ["FORMATS", "import_fpha", "import_nyu"]
+__all__ = ["FORMATS", "import_fpha", "import_ho3d", "import_nyu"]
 
 #: ``--format`` name -> reader: First-Person Hand Action (Garcia-Hernando et al., CVPR 2018);
-#: the NYU hand pose dataset (Tompson et al., 2014).
-FORMATS = {"fpha": import_fpha, "nyu": import_nyu}
+#: the NYU hand pose dataset (Tompson et al., 2014); HO-3D (Hampali et al., CVPR 2020).
+FORMATS = {"fpha": import_fpha, "nyu": import_nyu, "ho3d": import_ho3d}
