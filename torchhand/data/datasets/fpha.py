@@ -54,7 +54,7 @@ from torchhand.io.output_dir import commit_dir, partial_dir
 from torchhand.model.joints21 import STANDARD_JOINT_NAMES
 
 __all__ = ["FPHA_INTRINSICS", "FPHA_JOINT_NAMES", "STANDARD_FROM_FPHA", "FPHA_TO_STANDARD", "Skeleton",
-           "fpha_camera", "fpha_files", "read_skeleton", "import_fpha", "write_imported"]
+           "fpha_camera", "fpha_files", "read_skeleton", "import_fpha", "write_imported", "check_out_folder"]
 
 VIDEO_DIR, POSE_DIR, SKELETON_FILE = "Video_files", "Hand_pose_annotation_v1", "skeleton.txt"
 WIDTH, HEIGHT, FPS = 640, 480, 30.0
@@ -172,7 +172,9 @@ def _common_frames(files: List[Path], skeleton: Skeleton, path: Path) -> int:
     return n
 
 
-def _check_out(out: Path, force: bool) -> None:
+def check_out_folder(out: Path, force: bool) -> None:
+    """A clear error, before anything is read or written, when ``out`` is a file or a
+    non-empty folder and not ``force``."""
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not force:
@@ -198,7 +200,7 @@ def import_fpha(src, out, force: bool = False, segmentation: Optional[Dict] = No
     """
     out = Path(out)
     files, skeleton_path = fpha_files(src)
-    _check_out(out, force)
+    check_out_folder(out, force)
     H, W = check_depth_pngs(files, "FPHA's depth frames are 16-bit millimetres")
     check_intrinsics({**FPHA_INTRINSICS, "width": WIDTH, "height": HEIGHT}, W, H, str(files[0].parent))
     skeleton = read_skeleton(skeleton_path)

@@ -35,7 +35,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from torchhand.data.datasets.fpha import _check_out, write_imported
+from torchhand.data.datasets.fpha import check_out_folder, write_imported
 from torchhand.data.datasets.nyu import read_packed_png
 from torchhand.data.importing import check_intrinsics
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_rgb, write_depth, write_rgb
@@ -132,7 +132,7 @@ def import_ho3d(src, out, force: bool = False, segmentation: Optional[Dict] = No
     """
     src, out = Path(src), Path(out)
     depth_files, meta_files, rgb_files = ho3d_files(src)
-    _check_out(out, force)
+    check_out_folder(out, force)
     K, joints, root_only = _read_metas(meta_files)
     check_intrinsics({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}, WIDTH, HEIGHT,
                      str(meta_files[0]))
