@@ -2,6 +2,7 @@
 docs/architecture.md ("A new term, from the interface alone") is run as written, its
 Jacobian checked against finite differences, and it is tracked with."""
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -46,7 +47,7 @@ def test_the_documented_term_has_an_exact_jacobian_and_frozen_data(example, hand
     state = tracker.states(theta, [None], [kinect_camera(dtype=F64)]).pose
     prepared = term.prepare(state)
     assert int(prepared.counts.correspondences[0]) == 3
-    with pytest.raises(Exception):  # frozen: a wrapper cannot change a term's data in place
+    with pytest.raises(dataclasses.FrozenInstanceError):  # a wrapper cannot change a term's data in place
         prepared.ids = ids
     res = term.residuals(theta, scene(theta), prepared)
     torch.testing.assert_close(res.r.view(3, 3), -torch.tensor([3.0, -2.0, 1.0], dtype=F64).expand(3, 3))
