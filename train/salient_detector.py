@@ -37,15 +37,10 @@ same world size.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import hashlib
 import json
 import math
-import os
-import shutil
 import sys
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import List, Optional
@@ -61,9 +56,9 @@ from torchhand.salient.training_data import (SalientFrames, concat_frames, load_
 from torchhand.salient.detector import SalientConfig, SalientNet, export_onnx
 from torchhand.salient.hough import DEFAULT_MAX_DETECTIONS, DEFAULT_THRESHOLD, STRIDE, detect_peaks
 from torchhand.salient.precision_recall import average_precision
+from train import trainer
+from train.trainer import RunConfig
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_HIA_ROOT = REPO.parent / "shared" / "data" / "hands_in_action"
 FOCAL_PX = 525.0  # the thesis camera; positive radius in px = radius_mm * f / z
 
 
@@ -76,10 +71,11 @@ WEIGHT_NAMES = {"depth": "salient_fingertips", "colour": "salient_nails_rgb"}
 
 
 @dataclass
-class TrainConfig:
-    """Everything that determines a training run (``--config`` JSON overrides fields)."""
+class TrainConfig(RunConfig):
+    """Everything that determines a training run (``--config`` JSON overrides fields):
+    the fields of every run (:class:`train.trainer.RunConfig`: seed, steps, batch_size,
+    lr, weight_decay, checkpoint_every, threads, init_weights) and these."""
 
-    seed: int = 0
     modality: str = "depth"  # "depth" (fingertips) or "colour" (nails); sets the network's too
     # --- data (a change re-renders; cached under a hash of these fields)
     train_sequences: List[str] = field(default_factory=lambda: [
@@ -100,13 +96,9 @@ class TrainConfig:
     # --- network
     network: dict = field(default_factory=dict)  # SalientConfig fields
     # --- optimisation
-    steps: int = 2500
-    batch_size: int = 16
     crop: int = 160
     scale_range: List[float] = field(default_factory=lambda: [0.8, 1.25])
     p_crop_on_tip: float = 0.8
-    lr: float = 4e-3
-    weight_decay: float = 1e-4
     positive_radius_mm: float = 8.0
     positive_depth_mm: float = 30.0
     focal_alpha: float = 0.25
@@ -114,10 +106,6 @@ class TrainConfig:
     offset_weight: float = 0.1
     colour_jitter: float = 0.25  # colour: brightness/contrast range (+-), a fifth of it per channel
     pixel_noise: float = 6.0  # colour: at most this std of Gaussian pixel noise (0..255)
-    checkpoint_every: int = 250
-    threads: int = 2
-    # --- fine-tuning: start from these weights (a SalientNet.save file) instead of random
-    init_weights: str = ""
 
     def data_key(self) -> str:
         d = {"version": DATA_VERSION}
@@ -131,30 +119,9 @@ class TrainConfig:
 
 
 def load_config(path: Optional[Path]) -> TrainConfig:
-    """Defaults overridden by the JSON object in ``path``; unknown fields are an error."""
-    cfg = TrainConfig()
-    if path is None:
-        return cfg
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise SystemExit(f"{path}: cannot read the config ({e})")
-    if not isinstance(data, dict):
-        raise SystemExit(f"{path}: the config must be a JSON object of TrainConfig fields")
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise SystemExit(f"{path}: unknown config field(s) {unknown}; known fields: {sorted(known)}")
-    cfg = dataclasses.replace(cfg, **data)
-    if cfg.modality not in WEIGHT_NAMES:
-        raise SystemExit(f"{path}: field 'modality' must be one of {sorted(WEIGHT_NAMES)}, got {cfg.modality!r}")
-    if cfg.network.get("modality", cfg.modality) != cfg.modality:
-        raise SystemExit(f"{path}: network.modality {cfg.network['modality']!r} differs from modality {cfg.modality!r}")
-    try:
-        net_config(cfg)
-    except (TypeError, ValueError) as e:
-        raise SystemExit(f"{path}: field 'network': {e}")
-    return cfg
+    """Defaults overridden by the JSON object in ``path``; unknown fields are an error,
+    and so are a modality or network the detector does not have."""
+    return trainer.checked_config(SalientTask, path)
 
 
 def net_config(cfg: TrainConfig) -> SalientConfig:
@@ -366,199 +333,67 @@ def evaluate_ap(net: SalientNet, data: SalientFrames, threshold: float = DEFAULT
 # ------------------------------------------------------------------------ the run
 
 
-def _rng_state(g: torch.Generator) -> dict:
-    return {"sampler": g.get_state(), "torch": torch.get_rng_state(), "numpy": np.random.get_state()[1]}
+class SalientTask(trainer.Task):
+    """The salient point detector as a task of the training loop (:mod:`train.trainer`)."""
 
+    name = "salient"
+    config_type = TrainConfig
+    sample = "crops"
 
-def world() -> tuple:
-    """(rank, world size, device) of this process: a torchrun rank joins the process
-    group here (gloo on CPU, nccl on CUDA: one GPU per local rank); a plain run is
-    (0, 1, cpu)."""
-    size = int(os.environ.get("WORLD_SIZE", "1"))
-    if size <= 1:
-        return 0, 1, torch.device("cpu")
-    cuda = torch.cuda.is_available()
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if cuda else "gloo")
-    device = torch.device("cpu")
-    if cuda:
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        torch.cuda.set_device(device)
-    return dist.get_rank(), dist.get_world_size(), device
+    def check_config(self, cfg: TrainConfig) -> None:
+        if cfg.modality not in WEIGHT_NAMES:
+            raise ValueError(f"field 'modality' must be one of {sorted(WEIGHT_NAMES)}, got {cfg.modality!r}")
+        if cfg.network.get("modality", cfg.modality) != cfg.modality:
+            raise ValueError(f"network.modality {cfg.network['modality']!r} differs from modality {cfg.modality!r}")
+        try:
+            net_config(cfg)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"field 'network': {e}")
 
+    def build_net(self) -> SalientNet:
+        return SalientNet(net_config(self.cfg))
 
-def _barrier(size: int) -> None:
-    if size > 1:
-        dist.barrier()
+    def datasets(self, hia_root: Path, cache: Path) -> tuple:
+        return build_datasets(self.cfg, hia_root, cache)
+
+    def batch(self, data: SalientFrames, g: torch.Generator, part: tuple) -> tuple:
+        """(image (B, 1|3, C, C), positive (B, h, w), weight (B, h, w), offset (B, 2, h, w)):
+        :func:`sample_batch` and its :func:`targets`."""
+        image, tips, visible, ignore = sample_batch(data, self.cfg, g, part)
+        return (image, *targets(image, tips, visible, ignore, self.cfg))
+
+    def loss(self, model, batch: tuple, device: torch.device, size: int) -> tuple:
+        image, positive, weight, offset = (x.to(device) for x in batch)
+        npos = positive.float().sum()
+        if size > 1:  # normalised by the positives of the whole batch
+            dist.all_reduce(npos)
+        loss, cls, reg = loss_fn(model(image), positive, weight, offset, self.cfg, npos)
+        return loss, {"loss": loss.detach(), "cls": cls, "offset": reg}
+
+    def validate(self, net: SalientNet, val: SalientFrames) -> dict:
+        return {"val_ap": evaluate_ap(net, val)}
+
+    def finish(self, net: SalientNet, out: Path, val: SalientFrames) -> dict:
+        name = WEIGHT_NAMES[self.cfg.modality]
+        net.save(out / f"{name}.pt")
+        export_onnx(net, out / f"{name}.onnx")
+        return {"val_ap": evaluate_ap(net, val)}
+
+    def describe_data(self, train: SalientFrames, val: SalientFrames) -> str:
+        return f"frames: {len(train.image)} train, {len(val.image)} val"
+
+    def data_fields(self, train: SalientFrames, val: SalientFrames) -> dict:
+        return {"train_frames": int(len(train.image)), "val_frames": int(len(val.image))}
 
 
 def train(cfg: TrainConfig, out: Path, train_data: SalientFrames, val_data: SalientFrames,
           resume: bool, progress: bool = True, stop_at: Optional[int] = None) -> SalientNet:
-    """Train (or continue from ``out/checkpoint.pt`` if ``resume``) up to ``cfg.steps``,
-    on every rank of a torchrun job (see the module).
-
-    ``stop_at`` ends the call after that step, once its checkpoint is written (an
-    interruption: a job's time limit, or the resume test).
-    """
-    rank, size, device = world()
-    if cfg.batch_size % size:
-        raise SystemExit(f"batch_size {cfg.batch_size} is not a multiple of the {size} ranks")
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    g = torch.Generator().manual_seed(cfg.seed)
-    net = SalientNet(net_config(cfg))
-    if cfg.init_weights:
-        start = SalientNet.load(cfg.init_weights)
-        if start.config != net.config:
-            raise SystemExit(f"{cfg.init_weights}: network {start.config} differs from the config's {net.config}")
-        net.load_state_dict(start.state_dict())
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.1)
-    step = 0
-    ckpt = out / "checkpoint.pt"
-    if resume and ckpt.is_file():
-        state = torch.load(ckpt, weights_only=False, map_location="cpu")
-        net.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        g.set_state(state["rng"]["sampler"])
-        torch.set_rng_state(state["rng"]["torch"])
-        np.random.set_state(("MT19937", state["rng"]["numpy"], 624, 0, 0.0))
-        step = state["step"]
-        was = state.get("world_size", 1)
-        if rank == 0:
-            print(f"resuming {out} at step {step}" + ("" if was == size else
-                  f" (checkpointed by {was} ranks, resumed by {size}: not an exact continuation)"))
-    net.to(device)
-    model = net
-    if size > 1:
-        from torch.nn.parallel import DistributedDataParallel
-
-        if device.type == "cuda":
-            net = torch.nn.SyncBatchNorm.convert_sync_batchnorm(net)
-        model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
-    model.train()
-    log = (out / "log.jsonl").open("a") if rank == 0 else None
-    bar = tqdm(total=cfg.steps, initial=step, desc="train salient", unit="step", disable=not progress or rank != 0)
-    t0 = time.perf_counter()
-    while step < cfg.steps:
-        image, tips, visible, ignore = sample_batch(train_data, cfg, g, (rank, size))
-        positive, weight, offset = targets(image, tips, visible, ignore, cfg)
-        positive, weight, offset, image = (x.to(device) for x in (positive, weight, offset, image))
-        npos = positive.float().sum()
-        if size > 1:  # normalised by the whole batch; DDP averages the ranks' gradients, hence x size
-            dist.all_reduce(npos)
-        loss, cls, reg = loss_fn(model(image), positive, weight, offset, cfg, npos)
-        opt.zero_grad(set_to_none=True)
-        (loss * size).backward()
-        opt.step()
-        sched.step()
-        step += 1
-        parts = torch.stack([loss.detach(), cls, reg])
-        if size > 1:  # the whole batch's loss: the sum of the ranks' shares
-            dist.all_reduce(parts)
-        loss_v, cls_v, reg_v = parts.tolist()
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss_v:.3f}", cls=f"{cls_v:.3f}", off=f"{reg_v:.2f}")
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps or step == stop_at:
-            if rank == 0:
-                rec = {"step": step, "loss": loss_v, "cls": cls_v, "offset": reg_v, "lr": sched.get_last_lr()[0],
-                       "seconds": time.perf_counter() - t0, "world_size": size}
-                if step % (4 * cfg.checkpoint_every) == 0 or step == cfg.steps:
-                    rec["val_ap"] = evaluate_ap(net, val_data)
-                log.write(json.dumps(rec) + "\n")
-                log.flush()
-                tmp = out / "checkpoint.tmp.pt"
-                torch.save({"model": {k: v.cpu() for k, v in net.state_dict().items()},
-                            "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": _rng_state(g),
-                            "step": step, "config": asdict(cfg), "world_size": size}, tmp)
-                tmp.replace(ckpt)  # atomic
-            _barrier(size)
-        if stop_at is not None and step >= stop_at:
-            break
-    bar.close()
-    if log is not None:
-        log.close()
-    plain = SalientNet(net_config(cfg))
-    plain.load_state_dict({k: v.cpu() for k, v in net.state_dict().items()})  # SyncBatchNorm: same keys
-    return plain.eval()
+    """:func:`train.trainer.train` of the salient task with config ``cfg``."""
+    return trainer.train(SalientTask(cfg), out, train_data, val_data, resume, progress=progress, stop_at=stop_at)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="run folder")
-    ap.add_argument("--config", type=Path, help="JSON object overriding TrainConfig fields")
-    ap.add_argument("--cache", type=Path, help="rendered-frame cache (default: RUN/cache)")
-    ap.add_argument("--hia-root", type=Path, default=DEFAULT_HIA_ROOT, help="thesis data root")
-    ap.add_argument("--force", action="store_true", help="replace an existing run")
-    ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    ap.add_argument("--stop-at", type=int, help="end after this step, checkpointed (a job's time limit); "
-                    "--resume continues")
-    ap.add_argument("--no-progress", action="store_true")
-    args = ap.parse_args(argv)
-    cfg = load_config(args.config)
-    out: Path = args.out
-    cfg_file = out / "config.json"
-    # every rank checks alike (so all stop on the same error); only rank 0 writes
-    if args.resume and args.force:
-        raise SystemExit("--resume and --force exclude each other")
-    if args.resume:
-        if not cfg_file.is_file():
-            raise SystemExit(f"{out}: nothing to resume ({cfg_file} not found)")
-        saved = json.loads(cfg_file.read_text())
-        mine = json.loads(json.dumps(asdict(cfg)))
-        diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
-        if diff:
-            src = args.config if args.config is not None else "the defaults (no --config)"
-            raise SystemExit(f"cannot resume {out}: config field(s) {diff} of {src} differ from {cfg_file} "
-                             f"(e.g. {diff[0]}: {mine.get(diff[0])!r} vs {saved.get(diff[0])!r}); "
-                             "pass the run's config or start a new run")
-        if (out / "done.json").is_file():
-            print(f"{out} is already finished; nothing to do")
-            return 0
-    elif out.exists() and any(out.iterdir()) and not args.force:
-        what = "a finished run" if (out / "done.json").is_file() else "not empty"
-        raise SystemExit(f"{out} is {what}; pass --force to replace it or --resume to continue it")
-    rank, size, _ = world()
-    if rank == 0:
-        if not args.resume and out.exists() and any(out.iterdir()):
-            keep_cache = args.cache is None and (out / "cache").is_dir()
-            for p in out.iterdir():  # keep the render cache, it does not depend on the run
-                if keep_cache and p.name == "cache":
-                    continue
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
-        out.mkdir(parents=True, exist_ok=True)
-        if not args.resume:
-            cfg_file.write_text(json.dumps(asdict(cfg), indent=2))
-    torch.set_num_threads(cfg.threads)
-    t_start = time.perf_counter()
-    if rank == 0:  # rank 0 renders (or finds) the frames, the others read its cache
-        train_data, val_data = build_datasets(cfg, args.hia_root, args.cache or out / "cache")
-    _barrier(size)
-    if rank != 0:
-        train_data, val_data = build_datasets(cfg, args.hia_root, args.cache or out / "cache")
-    t_data = time.perf_counter() - t_start
-    if rank == 0:
-        print(f"frames: {len(train_data.image)} train, {len(val_data.image)} val ({t_data:.0f} s)"
-              + (f"; {size} ranks of {cfg.batch_size // size} crops each" if size > 1 else ""))
-    net = train(cfg, out, train_data, val_data, args.resume, progress=not args.no_progress, stop_at=args.stop_at)
-    if args.stop_at is not None and args.stop_at < cfg.steps:
-        if rank == 0:
-            print(f"stopped after step {args.stop_at} of {cfg.steps}; --resume continues")
-        return 0
-    t_total = time.perf_counter() - t_start
-    if rank == 0:
-        name = WEIGHT_NAMES[cfg.modality]
-        net.save(out / f"{name}.pt")
-        export_onnx(net, out / f"{name}.onnx")
-        val_ap = evaluate_ap(net, val_data)
-        done = {"steps": cfg.steps, "val_ap": val_ap, "seconds_data": t_data, "seconds_total": t_total,
-                "train_frames": int(len(train_data.image)), "val_frames": int(len(val_data.image)),
-                "world_size": size}
-        (out / "done.json").write_text(json.dumps(done, indent=2))
-        print(json.dumps(done, indent=2))
-    _barrier(size)
-    return 0
+    return trainer.main(SalientTask, argv, __doc__)
 
 
 if __name__ == "__main__":
