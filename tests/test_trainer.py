@@ -33,7 +33,7 @@ class _Linear(torch.nn.Linear):
 
 @dataclass
 class _ToyConfig(RunConfig):
-    noise: float = 0.1  # input noise: draws of torch's and numpy's global generators
+    noise: float = 0.1  # input noise: draws of torch's and numpy's global generators, whose states resume
 
 
 class _Toy(Task):
@@ -59,7 +59,7 @@ class _Toy(Task):
 
     def loss(self, model, batch, device, size):
         x, y = (t.to(device) for t in batch)
-        x = x + self.cfg.noise * torch.randn(x.shape)
+        x = x + self.cfg.noise * float(np.random.randn()) * torch.randn(x.shape)
         mse = ((model(x) - y) ** 2).sum() / self.cfg.batch_size
         return mse, {"mse": mse.detach()}
 

@@ -158,7 +158,11 @@ def checked_config(task_type: type, path: Optional[Path]) -> RunConfig:
 
 
 def _rng_state(g: torch.Generator) -> dict:
-    return {"sampler": g.get_state(), "torch": torch.get_rng_state(), "numpy": np.random.get_state()[1]}
+    """The generators of a run: the sampler's, torch's and numpy's global ones (numpy's
+    key and, under ``numpy_pos``, its position and cached Gaussian)."""
+    _, keys, pos, has_gauss, gauss = np.random.get_state()
+    return {"sampler": g.get_state(), "torch": torch.get_rng_state(), "numpy": keys,
+            "numpy_pos": (pos, has_gauss, gauss)}
 
 
 def world() -> tuple:
@@ -208,7 +212,9 @@ def _start(task: Task, out: Path, resume: bool, rank: int, size: int) -> tuple:
         sched.load_state_dict(state["scheduler"])
         g.set_state(state["rng"]["sampler"])
         torch.set_rng_state(state["rng"]["torch"])
-        np.random.set_state(("MT19937", state["rng"]["numpy"], 624, 0, 0.0))
+        # checkpoints without numpy_pos were written by tasks that never drew from numpy's
+        # global generator after seeding it: its position was 624
+        np.random.set_state(("MT19937", state["rng"]["numpy"], *state["rng"].get("numpy_pos", (624, 0, 0.0))))
         step = state["step"]
         was = state.get("world_size", 1)
         if rank == 0:
