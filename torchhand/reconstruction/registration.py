@@ -15,6 +15,7 @@ from typing import List, NamedTuple, Optional
 import torch
 
 from torchhand.geometry.neighbors import PointIndex
+from torchhand.geometry.rigid import kabsch, kabsch_batch, nearest_rotation  # noqa: F401 (re-exported)
 from torchhand.model.kinematics import so3_exp
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 
@@ -68,34 +69,6 @@ def contact_vertices(hand_vertices: torch.Tensor, effector_vertices: List[torch.
     if len(bones) == 0:
         return empty
     return torch.cat([effector_vertices[int(b)] for b in bones])
-
-
-def nearest_rotation(H: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) covariances sum source target^T -> (..., 3, 3) the rotations R that
-    maximise trace(R H) (Kabsch's SVD with the reflection removed), batched."""
-    U, _, Vt = torch.linalg.svd(H)
-    d = torch.sign(torch.linalg.det(Vt.transpose(-1, -2) @ U.transpose(-1, -2)))
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
-    return Vt.transpose(-1, -2) @ D @ U.transpose(-1, -2)
-
-
-def kabsch_batch(source: torch.Tensor, targets: torch.Tensor) -> tuple:
-    """(n, 3) source, (T, n, 3) targets -> R (T, 3, 3), t (T, 3) minimising
-    sum |R source + t - target|^2 per target."""
-    ms, mt = source.mean(0), targets.mean(1)
-    R = nearest_rotation((source - ms).T[None] @ (targets - mt[:, None]))
-    return R, mt - (R @ ms[:, None])[..., 0]
-
-
-def kabsch(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(n, 3), (n, 3) -> (4, 4) the rigid transform minimising sum |T source - target|^2
-    (Umeyama without scale); the identity for fewer than 3 points."""
-    T = torch.eye(4, dtype=source.dtype)
-    if len(source) < 3:
-        return T
-    R, t = kabsch_batch(source, target[None])
-    T[:3, :3], T[:3, 3] = R[0], t[0]
-    return T
 
 
 @dataclass(frozen=True)
