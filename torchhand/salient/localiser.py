@@ -1,0 +1,408 @@
+"""The hand localiser: which depth pixels are a left hand, a right hand or the arm and
+body, and where the 21 standard joints of each hand are.
+
+One small fully-convolutional network (:class:`LocaliserNet`) is applied twice per
+frame by :class:`HandLocaliser`:
+
+1. **the frame**: the depth map reduced so its long side is ``frame_size`` px (160):
+   per-pixel classes (:data:`~torchhand.salient.localiser_data.CLASSES`), from which
+   each hand's pixels and box are found;
+2. **each hand's box**, widened by half and resized to ``input_size`` (128 px): the
+   classes again at a finer scale, and the joints: per joint and hand a heat map (the
+   joint's cell), a sub-cell offset and the joint's depth relative to the crop's
+   reference depth.
+
+The network sees depth (mm; 0 = no measurement) as two channels: absolute
+(``depth / depth_scale_mm``) and relative to a reference depth of the window
+(``(depth - reference) / relative_scale_mm``, clipped; the frame's median depth for
+the frame pass, the hand's median for the crop pass), so one network serves both
+passes, at any distance. Its outputs are at stride 2 of its input.
+
+Handedness is read from the classes: a hand's pixels vote left or right with their
+class probabilities; the share of the winning side is its confidence. Joints are
+lifted to 3D with the sensor depth where it agrees with the predicted depth (the joint
+lies ``JOINT_INSIDE_MM`` behind the skin) and with the prediction where it does not
+(an occluded joint).
+
+Trained on renders only (``python -m train.hand_localiser``, docs/localiser.md);
+ships as ``models/hand_localiser.pt`` and its ONNX export, run with ONNX Runtime by
+default (:meth:`HandLocaliser.load`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import List, NamedTuple, Optional
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from torchhand.io.assets import model_dirs
+from torchhand.salient.localiser_data import CLASSES, HANDS
+
+__all__ = ["LocaliserConfig", "LocaliserOutput", "LocaliserNet", "HandLocaliser", "Localisation", "LocatedHand",
+           "export_localiser_onnx", "DEFAULT_LOCALISER", "DEFAULT_LOCALISER_ONNX", "LOCALISER_FORMAT",
+           "JOINT_INSIDE_MM", "normalise_input"]
+
+#: Tag stored in weight files written by :meth:`LocaliserNet.save`.
+LOCALISER_FORMAT = "torchhand.salient.LocaliserNet/1"
+#: How far a joint centre lies behind the skin the sensor sees (mm).
+JOINT_INSIDE_MM = 8.0
+#: Output stride of the network (input px per output cell).
+STRIDE = 2
+
+
+def _shipped(name: str) -> Path:
+    for d in model_dirs():
+        if (d / name).is_file():
+            return d / name
+    return Path(__file__).resolve().parents[2] / "models" / name
+
+
+DEFAULT_LOCALISER = _shipped("hand_localiser.pt")
+DEFAULT_LOCALISER_ONNX = _shipped("hand_localiser.onnx")
+
+
+@dataclass(frozen=True)
+class LocaliserConfig:
+    """Architecture and input scaling of :class:`LocaliserNet` (stored with the weights).
+
+    Attributes:
+        channels: encoder widths at strides 2, 4 and 8.
+        decoder: decoder widths at strides 4 and 2.
+        dilations: the dilated 3x3 convolutions at stride 8 (the receptive field that
+            sees a whole hand in a crop).
+        input_size: side of the crop pass's input (px).
+        frame_size: long side of the frame pass's input (px).
+        depth_scale_mm, relative_scale_mm, relative_clip: the two input channels.
+    """
+
+    channels: tuple = (16, 32, 64)
+    decoder: tuple = (32, 24)
+    dilations: tuple = (1, 2, 4)
+    input_size: int = 128
+    frame_size: int = 160
+    depth_scale_mm: float = 1000.0
+    relative_scale_mm: float = 200.0
+    relative_clip: float = 4.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "channels", tuple(int(c) for c in self.channels))
+        object.__setattr__(self, "decoder", tuple(int(c) for c in self.decoder))
+        object.__setattr__(self, "dilations", tuple(int(d) for d in self.dilations))
+        if len(self.channels) != 3 or len(self.decoder) != 2:
+            raise ValueError(f"LocaliserConfig needs 3 encoder and 2 decoder widths, got {self.channels}, {self.decoder}")
+
+
+class LocaliserOutput(NamedTuple):
+    """Network outputs at stride 2: classes (B, 4, h, w) logits; heat (B, 42, h, w)
+    logits (hand-major: left 0..20, right 21..41); offset (B, 84, h, w) sub-cell (du, dv)
+    per joint in cells; depth (B, 42, h, w) joint depth minus the reference, in units of
+    ``relative_scale_mm``."""
+
+    classes: torch.Tensor
+    heat: torch.Tensor
+    offset: torch.Tensor
+    depth: torch.Tensor
+
+
+def normalise_input(depth: torch.Tensor, reference: torch.Tensor, config: LocaliserConfig) -> torch.Tensor:
+    """(B, 1, H, W) depth mm and (B,) reference mm -> the network's (B, 2, H, W) input."""
+    valid = (depth > 0).to(depth.dtype)
+    absolute = depth / config.depth_scale_mm
+    rel = ((depth - reference.reshape(-1, 1, 1, 1)) / config.relative_scale_mm).clamp(-config.relative_clip,
+                                                                                      config.relative_clip)
+    return torch.cat([absolute, rel * valid], 1)
+
+
+def _conv(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+class LocaliserNet(nn.Module):
+    """A small U-Net: encoder to stride 8 with dilated convolutions, decoder back to
+    stride 2 with skips, four 1x1 heads (:class:`LocaliserOutput`)."""
+
+    JOINTS = 21
+
+    def __init__(self, config: Optional[LocaliserConfig] = None):
+        super().__init__()
+        self.config = config or LocaliserConfig()
+        c1, c2, c3 = self.config.channels
+        d2, d1 = self.config.decoder
+        self.enc1 = nn.Sequential(_conv(2, c1, 2), _conv(c1, c1))
+        self.enc2 = nn.Sequential(_conv(c1, c2, 2), _conv(c2, c2))
+        self.enc3 = nn.Sequential(_conv(c2, c3, 2), *[_conv(c3, c3, dilation=d) for d in self.config.dilations])
+        self.dec2 = _conv(c3 + c2, d2)
+        self.dec1 = _conv(d2 + c1, d1)
+        J = 2 * self.JOINTS
+        self.head = nn.Conv2d(d1, len(CLASSES) + J + 2 * J + J, 1)
+        with torch.no_grad():  # heat starts rare (focal-loss prior)
+            self.head.bias[len(CLASSES):len(CLASSES) + J] = -4.0
+
+    def forward(self, depth: torch.Tensor, reference: torch.Tensor) -> LocaliserOutput:
+        x = normalise_input(depth, reference, self.config)
+        e1 = self.enc1(x)
+        e2 = self.enc2(e1)
+        e3 = self.enc3(e2)
+        u2 = self.dec2(torch.cat([F.interpolate(e3, size=e2.shape[-2:], mode="nearest"), e2], 1))
+        u1 = self.dec1(torch.cat([F.interpolate(u2, size=e1.shape[-2:], mode="nearest"), e1], 1))
+        out = self.head(u1)
+        C, J = len(CLASSES), 2 * self.JOINTS
+        return LocaliserOutput(out[:, :C], out[:, C:C + J], out[:, C + J:C + 3 * J], out[:, C + 3 * J:])
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        torch.save({"format": LOCALISER_FORMAT, "config": asdict(self.config),
+                    "state_dict": {k: v.cpu() for k, v in self.state_dict().items()}}, path)
+        return path
+
+    @classmethod
+    def load(cls, path, map_location="cpu") -> "LocaliserNet":
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no localiser weights here (train with python -m train.hand_localiser)")
+        d = torch.load(path, map_location=map_location, weights_only=False)
+        if not isinstance(d, dict) or d.get("format") != LOCALISER_FORMAT:
+            raise ValueError(f"{path}: not a {LOCALISER_FORMAT} weights file")
+        net = cls(LocaliserConfig(**d["config"]))
+        net.load_state_dict(d["state_dict"])
+        return net.eval()
+
+
+def export_localiser_onnx(net: LocaliserNet, path, size: int = 128, opset: int = 17) -> Path:
+    """ONNX export with dynamic batch, height and width (inputs ``depth``, ``reference``)."""
+    path = Path(path)
+    net = net.eval()
+    x = torch.zeros(1, 1, size, size)
+    ref = torch.full((1,), 500.0)
+    names = list(LocaliserOutput._fields)
+    torch.onnx.export(net, (x, ref), str(path), input_names=["depth", "reference"], output_names=names,
+                      dynamic_axes={"depth": {0: "b", 2: "h", 3: "w"}, "reference": {0: "b"},
+                                    **{n: {0: "b", 2: "oh", 3: "ow"} for n in names}},
+                      opset_version=opset, dynamo=False)
+    return path
+
+
+class LocatedHand(NamedTuple):
+    """One hand found in a frame.
+
+    Attributes:
+        side: ``"left"`` or ``"right"``; ``handedness``: the share of its pixels' class
+            probability on that side (0.5 .. 1).
+        score: mean hand probability of its pixels in the crop pass (0 .. 1).
+        mask: (H, W) bool, its pixels at the frame's resolution.
+        box: (r0, r1, c0, c1) the window of the crop pass.
+        uv: (21, 2) image positions (px) of the standard joints; z: (21,) their depth
+            (mm); confidence: (21,) the heat-map peak of each (0 .. 1).
+    """
+
+    side: str
+    handedness: float
+    score: float
+    mask: np.ndarray
+    box: tuple
+    uv: np.ndarray
+    z: np.ndarray
+    confidence: np.ndarray
+
+    @property
+    def model(self) -> str:
+        """The shipped model of this side (``hand_left`` / ``hand_right``)."""
+        return HANDS[0] if self.side == "left" else HANDS[1]
+
+
+class Localisation(NamedTuple):
+    """The localiser's reading of a frame: ``labels`` (H, W) uint8 class per pixel
+    (:data:`CLASSES`; pixels without depth are background) and the hands found, most
+    confident first."""
+
+    labels: np.ndarray
+    hands: List[LocatedHand]
+
+    def hand(self, side: str) -> Optional[LocatedHand]:
+        """The most confident hand of ``side``, or None."""
+        return next((h for h in self.hands if h.side == side), None)
+
+
+def _softmax(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    e = np.exp(x - x.max(axis=axis, keepdims=True))
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def _resize_nearest(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    return cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST)
+
+
+class HandLocaliser:
+    """Runs :class:`LocaliserNet` on depth frames (module docstring).
+
+    Args:
+        forward: ``(depth (B, 1, H, W) float32 mm, reference (B,) float32) -> the four
+            outputs as numpy arrays`` (torch or ONNX Runtime; :meth:`load`).
+        config: the network's :class:`LocaliserConfig`.
+        min_hand_px: a hand needs at least this many pixels at the frame's resolution.
+        max_hands: at most this many hands are reported.
+    """
+
+    def __init__(self, forward, config: LocaliserConfig, min_hand_px: int = 150, max_hands: int = 2):
+        self._forward = forward
+        self.config = config
+        self.min_hand_px = int(min_hand_px)
+        self.max_hands = int(max_hands)
+
+    @classmethod
+    def load(cls, path=None, onnx: bool = True, threads: int = 2, **kwargs) -> "HandLocaliser":
+        """The shipped localiser (or ``path``): ONNX Runtime by default, torch with
+        ``onnx=False``. The ``.pt`` file beside an ``.onnx`` gives the config."""
+        if onnx:
+            import onnxruntime as ort
+
+            onnx_path = Path(path) if path is not None else DEFAULT_LOCALISER_ONNX
+            if onnx_path.suffix != ".onnx":
+                onnx_path = onnx_path.with_suffix(".onnx")
+            config = LocaliserNet.load(onnx_path.with_suffix(".pt")).config
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = int(threads)
+            opts.inter_op_num_threads = 1
+            if not onnx_path.is_file():
+                raise FileNotFoundError(f"{onnx_path}: no localiser ONNX file here")
+            session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
+
+            def forward(depth, reference):
+                return tuple(session.run(None, {"depth": depth, "reference": reference}))
+
+            return cls(forward, config, **kwargs)
+        net = LocaliserNet.load(path if path is not None else DEFAULT_LOCALISER)
+        return cls.from_net(net, **kwargs)
+
+    @classmethod
+    def from_net(cls, net: LocaliserNet, **kwargs) -> "HandLocaliser":
+        net = net.eval()
+        device = next(net.parameters()).device
+
+        def forward(depth, reference):
+            with torch.no_grad():
+                out = net(torch.from_numpy(depth).to(device), torch.from_numpy(reference).to(device))
+            return tuple(o.cpu().numpy() for o in out)
+
+        return cls(forward, net.config, **kwargs)
+
+    def locate(self, depth: np.ndarray) -> Localisation:
+        """Classes and hands of one (H, W) depth frame in mm (0 = no measurement)."""
+        depth = np.asarray(depth)
+        if depth.ndim != 2:
+            raise ValueError(f"depth must be one (H, W) frame, got shape {depth.shape}")
+        d = depth.astype(np.float32)
+        H, W = d.shape
+        probs = self._frame_pass(d)
+        labels = np.where(d > 0, probs.argmax(0), 0).astype(np.uint8)
+        hands = []
+        for comp in self._components(labels, probs):
+            hand = self._crop_pass(d, comp, labels)
+            if hand is not None:
+                hands.append(hand)
+        hands.sort(key=lambda h: -h.score * h.mask.sum() ** 0.25)
+        return Localisation(labels, hands[: self.max_hands])
+
+    def _frame_pass(self, d: np.ndarray) -> np.ndarray:
+        """(4, H, W) class probabilities of the frame from the reduced frame."""
+        H, W = d.shape
+        s = self.config.frame_size / max(H, W)
+        h, w = int(round(H * s / 8)) * 8, int(round(W * s / 8)) * 8
+        small = _resize_nearest(d, h, w)
+        valid = small[small > 0]
+        ref = np.float32(np.median(valid) if len(valid) else 1000.0)
+        out = self._forward(small[None, None], np.array([ref], np.float32))
+        p = _softmax(out[0][0])
+        return np.stack([cv2.resize(c, (W, H), interpolation=cv2.INTER_LINEAR) for c in p])
+
+    def _components(self, labels: np.ndarray, probs: np.ndarray) -> List[np.ndarray]:
+        """Hand blobs of the frame pass (left or right class), largest first."""
+        hand = ((labels == 1) | (labels == 2)).astype(np.uint8)
+        n, comp, stats, _ = cv2.connectedComponentsWithStats(hand, connectivity=8)
+        order = np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1
+        return [comp == k for k in order[: 2 * self.max_hands] if stats[k, cv2.CC_STAT_AREA] >= self.min_hand_px]
+
+    def _crop_pass(self, d: np.ndarray, comp: np.ndarray, frame_labels: np.ndarray) -> Optional[LocatedHand]:
+        H, W = d.shape
+        S = self.config.input_size
+        rows, cols = np.nonzero(comp)
+        side = int(max(np.ptp(rows), np.ptp(cols)) * 1.5) + 24
+        rc, cc = (rows.min() + rows.max()) / 2, (cols.min() + cols.max()) / 2
+        r0, c0 = int(round(rc - side / 2)), int(round(cc - side / 2))
+        crop = np.zeros((side, side), np.float32)
+        sr, sc = slice(max(r0, 0), min(r0 + side, H)), slice(max(c0, 0), min(c0 + side, W))
+        crop[sr.start - r0:sr.stop - r0, sc.start - c0:sc.stop - c0] = d[sr, sc]
+        x = _resize_nearest(crop, S, S)
+        zs = d[comp & (d > 0)]
+        ref = np.float32(np.median(zs) if len(zs) else np.median(x[x > 0]) if (x > 0).any() else 600.0)
+        classes, heat, offset, dz = (o[0] for o in self._forward(x[None, None], np.array([ref], np.float32)))
+        p = _softmax(classes)
+        p_full = np.stack([cv2.resize(c, (side, side), interpolation=cv2.INTER_LINEAR) for c in p])
+        win = p_full[:, sr.start - r0:sr.stop - r0, sc.start - c0:sc.stop - c0]
+        vote_l, vote_r = float((win[1] * comp[sr, sc]).sum()), float((win[2] * comp[sr, sc]).sum())
+        k = 1 if vote_r >= vote_l else 0
+        handedness = max(vote_l, vote_r) / max(vote_l + vote_r, 1e-9)
+        hand_p = win[1] + win[2]
+        mask = np.zeros((H, W), bool)
+        mask[sr, sc] = (hand_p > 0.5) & (d[sr, sc] > 0)
+        uv, z, conf = self._joints(heat, offset, dz, k, ref, side, r0, c0)
+        mask &= self._depth_gate(d, z, conf)
+        # the blob the hand was found from: keep the part connected to it
+        n, lab = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+        keep = np.unique(lab[mask & comp])
+        mask &= np.isin(lab, keep[keep > 0])
+        if mask.sum() < self.min_hand_px:
+            return None
+        uv, z = uv.astype(np.float32), self._lift(d, mask, uv, z).astype(np.float32)
+        score = float(hand_p[mask[sr, sc]].mean())
+        frame_labels[mask] = 1 + k
+        return LocatedHand(("left", "right")[k], handedness, score, mask, (r0, r0 + side, c0, c0 + side), uv, z,
+                           conf.astype(np.float32))
+
+    def _joints(self, heat, offset, dz, k: int, ref: float, side: int, r0: int, c0: int) -> tuple:
+        """Joints of hand side ``k`` from the crop pass's maps, in frame pixels."""
+        J = LocaliserNet.JOINTS
+        hm = heat[k * J:(k + 1) * J]
+        h, w = hm.shape[1:]
+        flat = hm.reshape(J, -1).argmax(1)
+        cy, cx = flat // w, flat % w
+        j = np.arange(J) + k * J
+        du, dv = offset[2 * j, cy, cx], offset[2 * j + 1, cy, cx]
+        u_in = (cx + 0.5 + du) * STRIDE - 0.5  # cell centre (in input px) + offset
+        v_in = (cy + 0.5 + dv) * STRIDE - 0.5
+        s = side / self.config.input_size
+        uv = np.stack([c0 + (u_in + 0.5) * s - 0.5, r0 + (v_in + 0.5) * s - 0.5], 1)
+        z = ref + dz[j, cy, cx] * self.config.relative_scale_mm
+        conf = 1.0 / (1.0 + np.exp(-hm[np.arange(J), cy, cx]))
+        return uv, z, conf
+
+    @staticmethod
+    def _depth_gate(d: np.ndarray, z: np.ndarray, conf: np.ndarray) -> np.ndarray:
+        """Pixels within the depth span of the confident joints (+-60 mm)."""
+        good = z[conf >= 0.2] if (conf >= 0.2).sum() >= 3 else z
+        lo, hi = float(np.min(good)) - 60.0, float(np.max(good)) + 60.0
+        return (d >= lo) & (d <= hi)
+
+    @staticmethod
+    def _lift(d: np.ndarray, mask: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Joint depths: the sensor's (hand pixels within 2 px) + JOINT_INSIDE_MM where it
+        agrees with the prediction within 25 mm, else the prediction."""
+        H, W = d.shape
+        out = z.copy()
+        for i, (u, v) in enumerate(uv):
+            r, c = int(round(v)), int(round(u))
+            if not (0 <= r < H and 0 <= c < W):
+                continue
+            win = d[max(r - 2, 0):r + 3, max(c - 2, 0):c + 3][mask[max(r - 2, 0):r + 3, max(c - 2, 0):c + 3]]
+            if len(win):
+                seen = float(np.median(win)) + JOINT_INSIDE_MM
+                if abs(seen - z[i]) < 25.0:
+                    out[i] = seen
+        return out
