@@ -27,7 +27,7 @@ _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
 #: ``torchhand import --format`` choices: the names of ``torchhand.data.datasets.FORMATS``,
 #: spelled out so that parsing does not load the readers (tests/test_fpha.py compares them).
-DATASET_FORMATS = ("fpha", "nyu", "ho3d")
+DATASET_FORMATS = ("fpha", "nyu", "ho3d", "dexycb")
 
 
 def _frames_slice(text: str | None) -> slice | None:
@@ -312,11 +312,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=DATASET_FORMATS,
                    help="read SRC as a published dataset's sequence (fpha: <root>/Video_files/<subject>/<action>/"
                         "<seq>, its skeleton.txt as ground truth; nyu: a split folder, train/ or test/, with its "
-                        "joint_data.mat; ho3d: one sequence folder <root>/<split>/<SEQ> with depth/, meta/ and rgb/), "
+                        "joint_data.mat; ho3d: one sequence folder <root>/<split>/<SEQ> with depth/, meta/ and rgb/; "
+                        "dexycb: one sequence folder <root>/<subject>/<YYYYMMDD_HHMMSS>, all its cameras as one rig), "
                         "with the dataset's own intrinsics and units; default: a folder of depth "
                         "PNGs")
     p.add_argument("--camera", type=_positive_int, default=None,
                    help="with --format nyu: which of the split's three Kinects (1-3; default 1)")
+    p.add_argument("--cameras", default=None, metavar="SERIAL,...",
+                   help="with --format dexycb: the camera serials to import (default: all of meta.yml; camera 0 is "
+                        "the master when selected)")
     p.add_argument("--fx", type=float, help="focal length x, px")
     p.add_argument("--fy", type=float, help="focal length y, px")
     p.add_argument("--cx", type=float, help="principal point x, px (pixel centres at integers)")

@@ -246,11 +246,15 @@ def import_dataset(args) -> int:
         unused.append("--models")
     if args.camera is not None and args.format != "nyu":
         unused.append("--camera")
+    if args.cameras is not None and args.format != "dexycb":
+        unused.append("--cameras")
     if unused:
         raise ValueError(f"--format {args.format} reads the dataset's own camera, units and hand; "
                          f"{', '.join(unused)} cannot be given with it")
     seg = segment_config(args, "auto")
     options = {"camera": args.camera or 1} if args.format == "nyu" else {}
+    if args.format == "dexycb" and args.cameras is not None:
+        options = {"cameras": [c for c in args.cameras.split(",") if c.strip()]}
     info = FORMATS[args.format](args.src, args.out, force=args.force,
                                 segmentation=None if seg.mode == "none" else seg.to_dict(), **options)
     missing = len(info.source.get("frames_without_pose", []))
@@ -264,6 +268,8 @@ def import_folder(args) -> int:
 
     if args.format is not None:
         return import_dataset(args)
+    if args.cameras is not None:
+        raise ValueError("--cameras selects the cameras of a dataset with several (--format dexycb)")
     given = [args.fx, args.fy, args.cx, args.cy]
     if args.intrinsics is not None:
         if any(v is not None for v in given):
