@@ -287,3 +287,24 @@ def test_labels_that_disagree_with_the_calibration_are_warned_about(sample, tmp_
     with pytest.warns(UserWarning, match=rf"{SERIALS[2]}/labels_000001.npz: its joints, moved to camera 0 by the "
                                          rf"extrinsics, lie up to 34.6 mm from those of .*{MASTER}/labels_000001.npz"):
         import_dexycb(s.src, tmp_path / "seq")
+
+
+def test_eval_scores_a_prediction_against_the_imported_joints(sample, tmp_path, capsys):
+    from torchhand.data.layout import write_joints21
+
+    assert main(["import", "--format", "dexycb", str(sample.src), "--out", str(tmp_path / "seq")]) == 0
+    info = read_sequence_info(tmp_path / "seq")
+    j3, j2 = read_joints21(SequenceLayout(tmp_path / "seq").gt)
+    pred = np.nan_to_num(j3[:, :1], nan=0.0) + np.array([3.0, 4.0, 0.0])  # camera 0, 5 mm off
+    world = torch.from_numpy(pred[:, 0])
+    pred3 = np.stack([(world @ c.T_cw.double()[:3, :3].T + c.T_cw.double()[:3, 3]).numpy() for c in info.cameras], 1)
+    pred2 = np.stack([c.to(dtype=torch.float64).project(world).numpy() for c in info.cameras], 1)
+    (tmp_path / "out").mkdir()
+    write_joints21(tmp_path / "out", pred3, pred2)
+    scores = tmp_path / "scores.json"
+    assert main(["eval", str(tmp_path / "out"), "--gt", str(tmp_path / "seq"), "--json", str(scores)]) == 0
+    r = json.loads(scores.read_text())
+    assert r["mpjpe_mm"] == pytest.approx(5.0) and r["joints21"]["scored_joints"] == 21 * (FRAMES - 1)
+    assert 0 < r["mean_px"] < 10 and r["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-6) and r["lost_frames"] == 0
+    assert len(r["joints21"]["per_camera_px"]) == 3
+    assert "standard 21 joints: MPJPE 5.00 mm" in capsys.readouterr().out

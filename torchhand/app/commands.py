@@ -154,10 +154,11 @@ def evaluate(args) -> int:
     for f in result["failed"]:
         print(f"torchhand eval: error: {f['prediction']}: {f['error']}", file=sys.stderr)
     flagged = sum(r["flagged_frames"] for r in result.get("sequences", [result]))
-    print(f"{result['frames']} frames ({flagged} flagged by the tracker): "
-          f"2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
-          f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
-          f"AUC 0-50 mm {result['auc_0_50mm']:.3f}")
+    print(f"{result['frames']} frames ({flagged} flagged by the tracker)" + (
+        f": thesis keypoints 2D error mean {result['thesis_mean_px']:.2f} px (median {result['median_px']:.2f}), "
+        f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
+        f"AUC 0-50 mm {result['auc_0_50mm']:.3f}" if "thesis_mean_px" in result else
+        f", ground truth of the standard 21 joints only; {result['lost_frames']} lost frames (above 20 mm)"))
     models = result.get("models", {})
     if models:
         name, worst = max(models.items(), key=lambda kv: kv[1]["mean_mm"])
@@ -180,7 +181,8 @@ def evaluate(args) -> int:
         from torchhand.app.drawing import plot_curves
 
         seqs = result.get("sequences", [result])
-        curves = {r["sequence"]: (r["pck"]["thresholds_mm"], r["pck"]["fraction"]) for r in seqs}
+        pck = lambda r: r["pck"] if "pck" in r else r["joints21"]["pck"]  # noqa: E731  thesis keypoints, else 21 joints
+        curves = {r["sequence"]: (pck(r)["thresholds_mm"], pck(r)["fraction"]) for r in seqs if "pck" in r or "joints21" in r}
         plot_curves(curves, args.plot, "3D error threshold (mm)", "fraction of keypoints")
         print(f"wrote {args.plot}")
     return 1 if result["failed"] else 0
