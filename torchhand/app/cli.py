@@ -217,6 +217,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
     p.set_defaults(func=commands.evaluate)
 
+    p = sub.add_parser("view", help="a 3D recording of a tracked sequence for rerun: each camera's depth as points, "
+                       "the posed models, the 21 joints and the ground truth, per-frame error and fit-check curves, the "
+                       "camera rig (pip install 'torchhand[viz]')", formatter_class=_Formatter)
+    p.add_argument("out", type=Path, help="a tracked sequence's output folder, OUT/<sequence> of torchhand track")
+    p.add_argument("--gt", type=Path, default=None,
+                   help="the sequence folder: its depth, cameras and gt/ joints (default: the folder track_log.json "
+                        "names, drawn without ground truth)")
+    p.add_argument("--rrd", type=Path, default=None, help="write the recording to this .rrd file (rerun FILE opens it)")
+    p.add_argument("--spawn", action="store_true", help="send the recording to a rerun viewer it starts (a display)")
+    p.add_argument("--stride", type=_positive_int, default=4,
+                   help="every Nth pixel of each depth map, in each direction, becomes a point")
+    p.add_argument("--force", action="store_true", help="replace an existing --rrd file")
+    p.set_defaults(func=commands.view)
+
     p = sub.add_parser("track", help="track sequences from their first-frame pose (the tracking never reads gt/)",
                        formatter_class=_Formatter)
     p.add_argument("dirs", nargs="*", type=Path, help="sequence folders")

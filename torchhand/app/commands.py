@@ -188,6 +188,15 @@ def evaluate(args) -> int:
     return 1 if result["failed"] else 0
 
 
+def view(args) -> int:
+    from torchhand.app.viewer import view_sequence
+
+    res = view_sequence(args.out, rrd=args.rrd, gt=args.gt, spawn=args.spawn, stride=args.stride, force=args.force)
+    print(f"recorded {res['frames']} frames of {res['cameras']} camera(s)"
+          + (" with the ground truth" if res["ground_truth"] else "") + (f" -> {res['rrd']}" if res["rrd"] else ""))
+    return 0
+
+
 def track(args) -> int:
     from torchhand.app.options import TrackOptions
     from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, read_list, track_many
