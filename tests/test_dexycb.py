@@ -308,3 +308,53 @@ def test_eval_scores_a_prediction_against_the_imported_joints(sample, tmp_path, 
     assert 0 < r["mean_px"] < 10 and r["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-6) and r["lost_frames"] == 0
     assert len(r["joints21"]["per_camera_px"]) == 3
     assert "standard 21 joints: MPJPE 5.00 mm" in capsys.readouterr().out
+
+
+def test_eval_dataset_imports_tracks_scores_and_resumes(sample, tmp_path, capsys):
+    from torchhand.app.dataset_eval import RESULTS_NAME
+
+    split = tmp_path / "mine.txt"
+    split.write_text(str(sample.src.relative_to(sample.root)) + "\n")
+    run = tmp_path / "run"
+    base = ["eval-dataset", "dexycb", str(sample.root), "--split", str(split), "--out", str(run), "--cameras", MASTER]
+    assert main(base) == 0  # one camera: the automatic initialisation places the hand in one depth view
+    table = json.loads((run / RESULTS_NAME).read_text())
+    (row,) = table["sequences"]
+    assert row["status"] == "ok" and row["frames"] == FRAMES and row["sequence"] == "20200709-weiy_20200709_141754"
+    # the pipeline, not the tracking's accuracy: a floating hand auto-initialised in one view of 3 frames
+    assert np.isfinite([row[k] for k in ("mpjpe_mm", "pa_mpjpe_mm", "mean_px")]).all() and table["overall"]["sequences"] == 1
+    assert table["overall"]["mpjpe_mm"] == row["mpjpe_mm"]
+    log = run / "track" / row["sequence"] / "track_log.json"
+    stamp = log.stat().st_mtime_ns
+    assert "MPJPE" in capsys.readouterr().out
+    assert main(base) == 0
+    assert log.stat().st_mtime_ns == stamp  # resumed: nothing tracked again
+    assert json.loads((run / RESULTS_NAME).read_text())["sequences"] == table["sequences"]
+    assert main(base + ["--energy", "LO"]) == 1  # other settings: that sequence is refused, named
+    assert "tracked with other settings" in capsys.readouterr().err
+
+
+def test_dataset_splits(tmp_path):
+    from torchhand.app.dataset_eval import DEXYCB_SPLITS, split_sequences
+    from torchhand.core.errors import UsageError
+
+    for subject in ("20200709-weiy", "20200813-ceppner"):
+        for k in range(100):
+            (tmp_path / subject / f"20200709_{k:06d}").mkdir(parents=True)
+    val = split_sequences("dexycb", tmp_path, "s0_val")
+    assert len(val) == 40 and val[0].src.name == "20200709_000004" and val[0].options == {}
+    with pytest.raises(UsageError, match="20200813-ceppner: 0 sequence folders|20200820-amousavian: 0 sequence"):
+        split_sequences("dexycb", tmp_path, "s1_train")
+    assert set(DEXYCB_SPLITS) == {f"s{k}_{s}" for k in range(4) for s in ("train", "val", "test")}
+    (tmp_path / "train" / "ABF10" / "depth").mkdir(parents=True)
+    assert [s.name for s in split_sequences("ho3d", tmp_path, "train")] == ["ABF10"]
+    with pytest.raises(UsageError, match="--split nope: not a list file nor a split of ho3d"):
+        split_sequences("ho3d", tmp_path, "nope")
+
+
+def test_segmentation_is_stored_for_one_camera_only(sample, tmp_path):
+    seg = {"mode": "auto", "hands": 1, "near": 200.0, "far": 1500.0, "remove_plane": False}
+    rig = import_dexycb(sample.src, tmp_path / "rig", segmentation=seg)
+    assert rig.segmentation is None and rig.source["segmentation_not_applied"] == seg
+    one = import_dexycb(sample.src, tmp_path / "one", segmentation=seg, cameras=[MASTER])
+    assert read_sequence_info(tmp_path / "one").segmentation == seg and len(one.cameras) == 1

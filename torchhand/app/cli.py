@@ -217,6 +217,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
     p.set_defaults(func=commands.evaluate)
 
+    p = sub.add_parser("eval-dataset", help="import, track and score a whole split of a public dataset (one task per "
+                       "sequence, resumable; DIR/results.json: per sequence and overall MPJPE, PA-MPJPE, AUC, 2D px)",
+                       formatter_class=_Formatter)
+    p.add_argument("name", choices=DATASET_FORMATS, help="the dataset")
+    p.add_argument("root", type=Path, help="the dataset's root folder, as published")
+    p.add_argument("--split", required=True,
+                   help="a split name (dexycb: s0_train ... s3_test; ho3d: a folder of ROOT such as train; fpha: all; "
+                        "nyu: train or test) or a file of sequence folders relative to ROOT, one per line")
+    p.add_argument("--out", type=Path, required=True,
+                   help="run folder: sequences/, track/, scores/ and results.json; run again to resume")
+    p.add_argument("--cameras", default=None, metavar="SERIAL,...",
+                   help="dexycb: the cameras of every sequence (default: the split's; camera 0 the master when selected)")
+    _scale_options(p)
+    p.add_argument("--energy", default="LO+F", help="energy terms of the tracking (as torchhand track --energy)")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    _segment_options(p, "auto")
+    p.set_defaults(func=commands.eval_dataset)
+
     p = sub.add_parser("view", help="a 3D recording of a tracked sequence for rerun: each camera's depth as points, "
                        "the posed models, the 21 joints and the ground truth, per-frame error and fit-check curves, the "
                        "camera rig (pip install 'torchhand[viz]')", formatter_class=_Formatter)

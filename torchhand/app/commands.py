@@ -188,6 +188,33 @@ def evaluate(args) -> int:
     return 1 if result["failed"] else 0
 
 
+def eval_dataset(args) -> int:
+    from torchhand.app.dataset_eval import RESULTS_NAME, evaluate_dataset
+    from torchhand.app.options import TrackOptions
+    from torchhand.tracking.energies import parse_energy
+    from torchhand.tracking.tracker import TrackerConfig
+
+    parse_energy(args.energy)
+    seg = segment_config(args, "auto")
+    table = evaluate_dataset(args.name, args.root, args.split, args.out,
+                             TrackOptions(TrackerConfig(energy=args.energy), device=args.device),
+                             workers=args.workers, ray=args.ray, retries=args.retries, threads=args.threads,
+                             segmentation=None if seg.mode == "none" else seg.to_dict(),
+                             cameras=None if args.cameras is None else [c for c in args.cameras.split(",") if c.strip()])
+    for r in table["sequences"]:
+        if r["status"] == "ok":
+            print(f"{r['sequence']}: {r['frames']} frames, MPJPE {r['mpjpe_mm']:.2f} mm, PA-MPJPE "
+                  f"{r['pa_mpjpe_mm']:.2f} mm, 2D {r['mean_px']:.2f} px, {r['lost_frames']} lost")
+        else:
+            print(f"torchhand eval-dataset: error: {r['sequence']}: {r['error']}", file=sys.stderr)
+    o = table["overall"]
+    if o["sequences"]:
+        print(f"{args.name} {args.split}: {o['sequences']} sequences, {o['frames']} frames: MPJPE {o['mpjpe_mm']:.2f} "
+              f"mm, PA-MPJPE {o['pa_mpjpe_mm']:.2f} mm, AUC 0-50 mm {o['auc_0_50']:.3f}, 2D {o['mean_px']:.2f} px")
+    print(f"wrote {Path(args.out) / RESULTS_NAME}")
+    return 1 if table["failed"] else 0
+
+
 def view(args) -> int:
     from torchhand.app.viewer import view_sequence
 
