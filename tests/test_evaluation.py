@@ -13,7 +13,7 @@ import torch
 from torchhand.geometry.camera import kinect_camera
 from torchhand.data.layout import Poses, read_poses, write_poses
 from torchhand.app.scaleout import evaluate_pairs
-from torchhand.scoring.sequences import EvaluationError, evaluate_many, evaluate_sequence
+from torchhand.scoring.sequences import JOINT_KEYS, EvaluationError, evaluate_many, evaluate_sequence
 from torchhand.scoring.metrics import PCK_THRESHOLDS_MM, auc, keypoint_errors, pck_curve, penetration
 from torchhand.model.scene import Scene
 
@@ -80,7 +80,7 @@ def test_pck_and_auc_basics():
 def test_ground_truth_against_itself_scores_zero(gt_dir):
     r = evaluate_sequence(gt_dir, gt_dir)
     assert r["frames"] == 3
-    assert r["mean_px"] == 0.0 and r["median_px"] == 0.0
+    assert r["thesis_mean_px"] == 0.0 and r["median_px"] == 0.0
     assert r["mean_mm"] == 0.0 and r["median_mm"] == 0.0
     assert r["auc_0_50mm"] == 1.0
     assert r["pck"]["fraction"] == [1.0] * 51
@@ -101,7 +101,7 @@ def test_shift_of_5mm(gt1, gt_dir, tmp_path):
     assert abs(r["mean_mm"] - 5.0) <= 1e-9 and abs(r["median_mm"] - 5.0) <= 1e-9
     # a 5 mm shift along x moves u by fx * 5 / z pixels, v not at all
     expect_px = FX * 5.0 / gt1.keypoints_3d[..., 2]
-    assert abs(r["mean_px"] - expect_px.mean()) <= 1e-9
+    assert abs(r["thesis_mean_px"] - expect_px.mean()) <= 1e-9
     assert abs(r["median_px"] - np.median(expect_px)) <= 1e-9
     curve = np.asarray(r["pck"]["fraction"])
     np.testing.assert_array_equal(r["pck"]["thresholds_mm"], np.arange(51.0))
@@ -359,8 +359,10 @@ def test_joints21_block_for_a_known_shift(gt1, gt_dir, tmp_path):
     write_joints21(pred_dir, shifted, _project(shifted))
     r = evaluate_sequence(pred_dir, gt_dir, with_penetration=False)
     same = evaluate_sequence(gt_dir, gt_dir, with_penetration=False)
-    assert {k: r[k] for k in ("mean_px", "mean_mm")} == {k: same[k] for k in ("mean_px", "mean_mm")}  # own keys kept
+    own = ("thesis_mean_px", "mean_mm", "median_px", "auc_0_50mm")
+    assert {k: r[k] for k in own} == {k: same[k] for k in own}  # the thesis keypoints' own keys kept
     b = r["joints21"]
+    assert {k: r[k] for k in JOINT_KEYS} == {k: b[k] for k in JOINT_KEYS}  # the 21 joints' at the top level
     assert b["mpjpe_mm"] == pytest.approx(5.0)
     assert b["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-6) and b["rr_mpjpe_mm"] == pytest.approx(0.0, abs=1e-9)
     assert b["auc_0_50"] == pytest.approx(auc(PCK_THRESHOLDS_MM, pck_curve(np.full(10, 5.0))), abs=0.02)  # at 5 mm
@@ -413,3 +415,54 @@ def test_joints21_pooled_over_sequences(gt1, tmp_path):
     pooled = evaluate_many(pairs, with_penetration=False, progress=False)
     assert pooled["joints21"]["mpjpe_mm"] == pytest.approx(7.5)
     assert pooled["joints21"]["scored_joints"] == 2 * 21 * len(gt1.theta)
+
+
+# ------------------------------------------------------------------ ground truth of 21 joints alone
+def _joints_only(folder, j3, j2, valid=None):
+    """A public dataset's gt/: the 21 joints (and a validity mask), no theta, no meta.json."""
+    from torchhand.data.layout import write_joints21
+
+    folder.mkdir(parents=True)
+    write_joints21(folder, j3, j2, valid)
+    return folder
+
+
+def test_ground_truth_of_joints_alone(gt1, tmp_path):
+    from torchhand.data.layout import write_joints21
+
+    N = len(gt1.theta)
+    j3, j2 = _joints21(N=N)
+    valid = np.ones((N, 21), bool)
+    valid[1] = False  # a frame without a hand pose: its joints (here garbage) are left out
+    gt3 = j3.copy()
+    gt3[1] = -1.0
+    gt_dir = _joints_only(tmp_path / "seq" / "gt", gt3, j2, valid)
+    pred_dir = tmp_path / "pred"
+    write_poses(pred_dir, gt1)  # a tracker's output: its own poses and the 21 joints
+    shifted = j3 + np.array([3.0, 4.0, 0.0])
+    shifted[2, 0, :] += np.array([0.0, 0.0, 30.0])  # frame 2 off by ~30.4 mm: lost
+    write_joints21(pred_dir, shifted, _project(shifted))
+    r = evaluate_sequence(pred_dir, tmp_path / "seq", with_penetration=False)  # the sequence folder is accepted
+    assert r["frames"] == N and r["ground_truth"] == "the standard 21 joints only" and r["sequence"] == "seq"
+    assert set(JOINT_KEYS) <= set(r) and "thesis_mean_px" not in r and "models" not in r
+    expect = np.r_[5.0, np.linalg.norm([3.0, 4.0, 30.0]), np.full(N - 3, 5.0)]
+    assert r["mpjpe_mm"] == pytest.approx(expect.mean()) and r["joints21"]["scored_joints"] == 21 * (N - 1)
+    assert np.isnan(r["joints21"]["per_frame_mm"][1]) and r["joints21"]["per_frame_mm"][0] == pytest.approx(5.0)
+    assert r["lost_frames"] == 1 and r["lost_frame_ids"] == [2]
+    px = np.linalg.norm(_project(shifted) - j2, axis=-1)[[0, *range(2, N)]]
+    assert r["mean_px"] == pytest.approx(px.mean())  # the frame without a pose is left out of 2D too
+    json.dumps(r)
+    pooled = evaluate_many([(pred_dir, gt_dir), (pred_dir, gt_dir)], with_penetration=False, progress=False)
+    assert pooled["mpjpe_mm"] == pytest.approx(r["mpjpe_mm"]) and pooled["lost_frames"] == 2
+    assert "thesis_mean_px" not in pooled and pooled["frames"] == 2 * N
+
+
+def test_joints_alone_need_the_predictions_joints(gt1, tmp_path):
+    j3, j2 = _joints21(N=len(gt1.theta))
+    gt_dir = _joints_only(tmp_path / "gt", j3, j2)
+    write_poses(tmp_path / "old", gt1)  # no keypoints21
+    with pytest.raises(EvaluationError, match="holds the standard 21 joints only, but .*old has none"):
+        evaluate_sequence(tmp_path / "old", gt_dir)
+    _joints_only(tmp_path / "short", j3[:-1], j2[:-1])
+    with pytest.raises(EvaluationError, match=r"21-joint arrays of .*short \(2, 1, 21, 3\) do not match"):
+        evaluate_sequence(tmp_path / "short", gt_dir)

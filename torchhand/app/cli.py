@@ -27,7 +27,7 @@ _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
 #: ``torchhand import --format`` choices: the names of ``torchhand.data.datasets.FORMATS``,
 #: spelled out so that parsing does not load the readers (tests/test_fpha.py compares them).
-DATASET_FORMATS = ("fpha", "nyu", "ho3d")
+DATASET_FORMATS = ("fpha", "nyu", "ho3d", "dexycb")
 
 
 def _frames_slice(text: str | None) -> slice | None:
@@ -217,6 +217,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-penetration", action="store_true", help="skip the mesh interpenetration measures")
     p.set_defaults(func=commands.evaluate)
 
+    p = sub.add_parser("eval-dataset", help="import, track and score a whole split of a public dataset (one task per "
+                       "sequence, resumable; DIR/results.json: per sequence and overall MPJPE, PA-MPJPE, AUC, 2D px)",
+                       formatter_class=_Formatter)
+    p.add_argument("name", choices=DATASET_FORMATS, help="the dataset")
+    p.add_argument("root", type=Path, help="the dataset's root folder, as published")
+    p.add_argument("--split", required=True,
+                   help="a split name (dexycb: s0_train ... s3_test; ho3d: a folder of ROOT such as train; fpha: all; "
+                        "nyu: train or test) or a file of sequence folders relative to ROOT, one per line")
+    p.add_argument("--out", type=Path, required=True,
+                   help="run folder: sequences/, track/, scores/ and results.json; run again to resume")
+    p.add_argument("--cameras", default=None, metavar="SERIAL,...",
+                   help="dexycb: the cameras of every sequence (default: the split's; camera 0 the master when selected)")
+    _scale_options(p)
+    p.add_argument("--energy", default="LO+F", help="energy terms of the tracking (as torchhand track --energy)")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    _segment_options(p, "auto")
+    p.set_defaults(func=commands.eval_dataset)
+
+    p = sub.add_parser("view", help="a 3D recording of a tracked sequence for rerun: each camera's depth as points, "
+                       "the posed models, the 21 joints and the ground truth, per-frame error and fit-check curves, the "
+                       "camera rig (pip install 'torchhand[viz]')", formatter_class=_Formatter)
+    p.add_argument("out", type=Path, help="a tracked sequence's output folder, OUT/<sequence> of torchhand track")
+    p.add_argument("--gt", type=Path, default=None,
+                   help="the sequence folder: its depth, cameras and gt/ joints (default: the folder track_log.json "
+                        "names, drawn without ground truth)")
+    p.add_argument("--rrd", type=Path, default=None, help="write the recording to this .rrd file (rerun FILE opens it)")
+    p.add_argument("--spawn", action="store_true", help="send the recording to a rerun viewer it starts (a display)")
+    p.add_argument("--stride", type=_positive_int, default=4,
+                   help="every Nth pixel of each depth map, in each direction, becomes a point")
+    p.add_argument("--force", action="store_true", help="replace an existing --rrd file")
+    p.set_defaults(func=commands.view)
+
     p = sub.add_parser("track", help="track sequences from their first-frame pose (the tracking never reads gt/)",
                        formatter_class=_Formatter)
     p.add_argument("dirs", nargs="*", type=Path, help="sequence folders")
@@ -312,11 +344,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=DATASET_FORMATS,
                    help="read SRC as a published dataset's sequence (fpha: <root>/Video_files/<subject>/<action>/"
                         "<seq>, its skeleton.txt as ground truth; nyu: a split folder, train/ or test/, with its "
-                        "joint_data.mat; ho3d: one sequence folder <root>/<split>/<SEQ> with depth/, meta/ and rgb/), "
+                        "joint_data.mat; ho3d: one sequence folder <root>/<split>/<SEQ> with depth/, meta/ and rgb/; "
+                        "dexycb: one sequence folder <root>/<subject>/<YYYYMMDD_HHMMSS>, all its cameras as one rig), "
                         "with the dataset's own intrinsics and units; default: a folder of depth "
                         "PNGs")
     p.add_argument("--camera", type=_positive_int, default=None,
                    help="with --format nyu: which of the split's three Kinects (1-3; default 1)")
+    p.add_argument("--cameras", default=None, metavar="SERIAL,...",
+                   help="with --format dexycb: the camera serials to import (default: all of meta.yml; camera 0 is "
+                        "the master when selected)")
     p.add_argument("--fx", type=float, help="focal length x, px")
     p.add_argument("--fy", type=float, help="focal length y, px")
     p.add_argument("--cx", type=float, help="principal point x, px (pixel centres at integers)")

@@ -154,10 +154,11 @@ def evaluate(args) -> int:
     for f in result["failed"]:
         print(f"torchhand eval: error: {f['prediction']}: {f['error']}", file=sys.stderr)
     flagged = sum(r["flagged_frames"] for r in result.get("sequences", [result]))
-    print(f"{result['frames']} frames ({flagged} flagged by the tracker): "
-          f"2D error mean {result['mean_px']:.2f} px (median {result['median_px']:.2f}), "
-          f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
-          f"AUC 0-50 mm {result['auc_0_50mm']:.3f}")
+    print(f"{result['frames']} frames ({flagged} flagged by the tracker)" + (
+        f": thesis keypoints 2D error mean {result['thesis_mean_px']:.2f} px (median {result['median_px']:.2f}), "
+        f"3D error mean {result['mean_mm']:.2f} mm (median {result['median_mm']:.2f}), "
+        f"AUC 0-50 mm {result['auc_0_50mm']:.3f}" if "thesis_mean_px" in result else
+        f", ground truth of the standard 21 joints only; {result['lost_frames']} lost frames (above 20 mm)"))
     models = result.get("models", {})
     if models:
         name, worst = max(models.items(), key=lambda kv: kv[1]["mean_mm"])
@@ -180,10 +181,47 @@ def evaluate(args) -> int:
         from torchhand.app.drawing import plot_curves
 
         seqs = result.get("sequences", [result])
-        curves = {r["sequence"]: (r["pck"]["thresholds_mm"], r["pck"]["fraction"]) for r in seqs}
+        pck = lambda r: r["pck"] if "pck" in r else r["joints21"]["pck"]  # noqa: E731  thesis keypoints, else 21 joints
+        curves = {r["sequence"]: (pck(r)["thresholds_mm"], pck(r)["fraction"]) for r in seqs if "pck" in r or "joints21" in r}
         plot_curves(curves, args.plot, "3D error threshold (mm)", "fraction of keypoints")
         print(f"wrote {args.plot}")
     return 1 if result["failed"] else 0
+
+
+def eval_dataset(args) -> int:
+    from torchhand.app.dataset_eval import RESULTS_NAME, evaluate_dataset
+    from torchhand.app.options import TrackOptions
+    from torchhand.tracking.energies import parse_energy
+    from torchhand.tracking.tracker import TrackerConfig
+
+    parse_energy(args.energy)
+    seg = segment_config(args, "auto")
+    table = evaluate_dataset(args.name, args.root, args.split, args.out,
+                             TrackOptions(TrackerConfig(energy=args.energy), device=args.device),
+                             workers=args.workers, ray=args.ray, retries=args.retries, threads=args.threads,
+                             segmentation=None if seg.mode == "none" else seg.to_dict(),
+                             cameras=None if args.cameras is None else [c for c in args.cameras.split(",") if c.strip()])
+    for r in table["sequences"]:
+        if r["status"] == "ok":
+            print(f"{r['sequence']}: {r['frames']} frames, MPJPE {r['mpjpe_mm']:.2f} mm, PA-MPJPE "
+                  f"{r['pa_mpjpe_mm']:.2f} mm, 2D {r['mean_px']:.2f} px, {r['lost_frames']} lost")
+        else:
+            print(f"torchhand eval-dataset: error: {r['sequence']}: {r['error']}", file=sys.stderr)
+    o = table["overall"]
+    if o["sequences"]:
+        print(f"{args.name} {args.split}: {o['sequences']} sequences, {o['frames']} frames: MPJPE {o['mpjpe_mm']:.2f} "
+              f"mm, PA-MPJPE {o['pa_mpjpe_mm']:.2f} mm, AUC 0-50 mm {o['auc_0_50']:.3f}, 2D {o['mean_px']:.2f} px")
+    print(f"wrote {Path(args.out) / RESULTS_NAME}")
+    return 1 if table["failed"] else 0
+
+
+def view(args) -> int:
+    from torchhand.app.viewer import view_sequence
+
+    res = view_sequence(args.out, rrd=args.rrd, gt=args.gt, spawn=args.spawn, stride=args.stride, force=args.force)
+    print(f"recorded {res['frames']} frames of {res['cameras']} camera(s)"
+          + (" with the ground truth" if res["ground_truth"] else "") + (f" -> {res['rrd']}" if res["rrd"] else ""))
+    return 0
 
 
 def track(args) -> int:
@@ -246,11 +284,15 @@ def import_dataset(args) -> int:
         unused.append("--models")
     if args.camera is not None and args.format != "nyu":
         unused.append("--camera")
+    if args.cameras is not None and args.format != "dexycb":
+        unused.append("--cameras")
     if unused:
         raise ValueError(f"--format {args.format} reads the dataset's own camera, units and hand; "
                          f"{', '.join(unused)} cannot be given with it")
     seg = segment_config(args, "auto")
     options = {"camera": args.camera or 1} if args.format == "nyu" else {}
+    if args.format == "dexycb" and args.cameras is not None:
+        options = {"cameras": [c for c in args.cameras.split(",") if c.strip()]}
     info = FORMATS[args.format](args.src, args.out, force=args.force,
                                 segmentation=None if seg.mode == "none" else seg.to_dict(), **options)
     missing = len(info.source.get("frames_without_pose", []))
@@ -264,6 +306,8 @@ def import_folder(args) -> int:
 
     if args.format is not None:
         return import_dataset(args)
+    if args.cameras is not None:
+        raise ValueError("--cameras selects the cameras of a dataset with several (--format dexycb)")
     given = [args.fx, args.fy, args.cx, args.cy]
     if args.intrinsics is not None:
         if any(v is not None for v in given):

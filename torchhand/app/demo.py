@@ -98,5 +98,5 @@ def _track_demo(out: Path, scene: Scene, theta: torch.Tensor, cam, device: str) 
     seconds = (time.perf_counter() - t0) / len(theta)
     result = evaluate_sequence(out / "track" / "demo", SequenceLayout(seq).gt.root, with_penetration=False)
     (out / "eval.json").write_text(json.dumps(result, indent=2))
-    return {"frames": len(theta), "seconds_per_frame": seconds, "mean_px": result["mean_px"],
+    return {"frames": len(theta), "seconds_per_frame": seconds, "mean_px": result["thesis_mean_px"],
             "mean_mm": result["mean_mm"], "auc_0_50mm": result["auc_0_50mm"]}

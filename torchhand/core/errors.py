@@ -7,7 +7,7 @@ from __future__ import annotations
 __all__ = ["UsageError", "UnknownName", "MissingExtra", "EXTRAS"]
 
 #: The optional dependencies and the extra of ``pyproject.toml`` that installs each.
-EXTRAS = {"ray": "ray", "pybullet": "physics", "fcl": "fcl", "pygel3d": "rig", "smplx": "bench"}
+EXTRAS = {"ray": "ray", "pybullet": "physics", "fcl": "fcl", "pygel3d": "rig", "smplx": "bench", "rerun": "viz"}
 
 
 class UsageError(ValueError):

@@ -22,6 +22,8 @@
                                NaN or all -1 where a dataset lacks a joint
         keypoints21_2d.npy     optional, (N, C, 21 x hands, 2) float64 px; NaN or -1 where
                                a joint is not seen
+        keypoints21_valid.npy  optional, (N, 21 x hands) bool: the joint is annotated in the
+                               frame (a dataset's validity mask; scoring leaves the others out)
         ids/000000.png         8-bit per-pixel model id of camera 0: 0 background, k+1 model k
         salient_2d.npy         (N, C, P, 2) float64 px: the nail centres in each camera
         salient_visible.npy    (N, C, P) bool: the nail centre is seen (colour renders)
@@ -70,6 +72,7 @@ __all__ = [
     "Poses",
     "write_joints21",
     "read_joints21",
+    "read_joints21_valid",
     "SequenceLayout",
     "PosesLayout",
     "GroundTruthLayout",
@@ -170,6 +173,8 @@ class PosesLayout(_Folder):
     keypoints21_3d = _Entry("keypoints21_3d.npy", "(N, C, 21 x hands, 3) float64 mm: the standard 21 joints of "
                             "each hand, in each camera's frame")
     keypoints21_2d = _Entry("keypoints21_2d.npy", "(N, C, 21 x hands, 2) float64 px: the standard 21 joints")
+    keypoints21_valid = _Entry("keypoints21_valid.npy", "(N, 21 x hands) bool, optional: the joint is annotated "
+                               "in the frame (a dataset's validity mask)")
 
     @property
     def arrays(self) -> List[Path]:
@@ -428,15 +433,19 @@ def read_poses(folder) -> Poses:
         raise SequenceError(f"{folder.root}: {err}") from None
 
 
-def write_joints21(folder, joints_3d: np.ndarray, joints_2d: np.ndarray) -> None:
+def write_joints21(folder, joints_3d: np.ndarray, joints_2d: np.ndarray, valid: Optional[np.ndarray] = None) -> None:
     """``folder`` (a path or a :class:`PosesLayout`, already holding the poses) receives the
     standard 21 joints of its hands: joints_3d (N, C, 21 x hands, 3) mm, joints_2d
-    (N, C, 21 x hands, 2) px."""
+    (N, C, 21 x hands, 2) px, and when given their validity ``valid`` (N, 21 x hands) bool."""
     out = PosesLayout(Path(folder))
     if joints_3d.shape[:3] != joints_2d.shape[:3] or joints_3d.shape[2] % 21:
         raise ValueError(f"21-joint arrays {joints_3d.shape} and {joints_2d.shape} do not match (N, C, 21 x hands)")
+    if valid is not None and np.shape(valid) != (joints_3d.shape[0], joints_3d.shape[2]):
+        raise ValueError(f"21-joint validity {np.shape(valid)} does not match (N, 21 x hands) of {joints_3d.shape}")
     np.save(out.keypoints21_3d, np.asarray(joints_3d, np.float64))
     np.save(out.keypoints21_2d, np.asarray(joints_2d, np.float64))
+    if valid is not None:
+        np.save(out.keypoints21_valid, np.asarray(valid, bool))
 
 
 def read_joints21(folder) -> Optional[tuple]:
@@ -453,3 +462,18 @@ def read_joints21(folder) -> Optional[tuple]:
         raise SequenceError(f"{folder.root}: 21-joint arrays {j3.shape} and {j2.shape}, expected (N, C, 21 x hands, 3) "
                             "and (N, C, 21 x hands, 2)")
     return j3, j2
+
+
+def read_joints21_valid(folder) -> Optional[np.ndarray]:
+    """The (N, 21 x hands) bool validity of :func:`write_joints21` in ``folder``, or None
+    where the folder has none (then NaN or all -1 marks an absent joint)."""
+    path = PosesLayout(Path(folder)).keypoints21_valid
+    if not path.is_file():
+        return None
+    try:
+        valid = np.load(path, allow_pickle=False)
+    except ValueError as err:
+        raise SequenceError(f"{path}: unreadable ({err})") from None
+    if valid.dtype != bool or valid.ndim != 2 or valid.shape[1] % 21:
+        raise SequenceError(f"{path}: {valid.dtype} {valid.shape}, expected bool (N, 21 x hands)")
+    return valid

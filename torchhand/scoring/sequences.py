@@ -18,13 +18,24 @@ Every model is scored per frame (``models`` in the result), in mm in the world f
 A frame is *lost* when any model's error exceeds :data:`LOST_MM`.
 
 When both sides hold the standard 21 joints of their hands (``keypoints21_3d.npy``,
-``keypoints21_2d.npy``; docs/model.md), the result adds ``joints21``: ``mpjpe_mm``,
-``pa_mpjpe_mm`` (after a similarity Procrustes per hand and frame), ``rr_mpjpe_mm``
-(wrist-relative), ``auc_0_50`` (PCK over 0-50 mm), ``mean_px`` (2D, over the joints
-the ground truth has in each camera), ``per_camera_px``, ``per_joint`` and ``pck``.
-Joints absent from the ground truth (NaN or all -1) are left out. 3D errors are taken
-in camera 0's frame (distances do not depend on the camera). They are a block of their
-own so that the thesis keypoints' figures (``mean_px``, ``mean_mm``, ...) keep their keys.
+``keypoints21_2d.npy``; docs/model.md), they give the result's top-level keys, the
+figures papers print: ``mpjpe_mm``, ``pa_mpjpe_mm`` (after a similarity Procrustes per
+hand and frame), ``rr_mpjpe_mm`` (wrist-relative), ``auc_0_50`` (PCK over 0-50 mm),
+``mean_px`` (2D, over the joints the ground truth has in each camera); the ``joints21``
+block repeats them with ``scored_joints``, ``per_camera_px``, ``per_joint``, ``pck`` and
+``per_frame_mm`` (each frame's mean 3D error, NaN where it has no joint). Joints absent
+from the ground truth (NaN, all -1, or False in its ``keypoints21_valid.npy``) are left
+out. 3D errors are taken in camera 0's frame (distances do not depend on the camera).
+
+The thesis keypoints' figures keep their keys (``thesis_mean_px``, ``median_px``,
+``mean_mm``, ``median_mm``, ``auc_0_50mm``, ``pck``, ``per_keypoint``, ``per_frame``);
+only their mean 2D error was renamed from ``mean_px`` to ``thesis_mean_px`` when the
+21 joints took that key.
+
+Ground truth that holds the 21 joints alone (a public dataset's ``gt/``: no ``theta.npy``,
+no ``meta.json``) is scored on them alone: the result has the five keys, ``joints21``,
+``frames``, ``flagged_frames`` and ``lost_frames`` (frames whose mean 21-joint error
+exceeds :data:`LOST_MM`).
 """
 
 from __future__ import annotations
@@ -36,14 +47,14 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from torchhand.data.layout import (OutputLayout, Poses, PosesLayout, SequenceError, SequenceLayout, read_joints21,
-                                   read_poses)
+                                   read_joints21_valid, read_poses)
 from torchhand.model.joints21 import STANDARD_JOINT_NAMES
 from torchhand.scoring.metrics import (PCK_THRESHOLDS_MM, auc, joint_errors, joint_scores, keypoint_errors, max_depth,
                                        mean_px, model_pair_counts, pck_curve, per_joint_mean,
                                        valid_joints)
 
 __all__ = ["EvaluationError", "evaluate_sequence", "evaluate_many", "summarize", "model_errors", "fit_report",
-           "LOST_MM", "GOOD_IOU"]
+           "LOST_MM", "GOOD_IOU", "JOINT_KEYS"]
 
 #: a frame whose fitted models overlap their data with a silhouette IoU below this is
 #: counted as poorly fitted by :func:`fit_report`
@@ -57,11 +68,20 @@ class EvaluationError(ValueError):
     """Prediction and ground truth cannot be compared; the message says why."""
 
 
+#: the five 21-joint figures, top-level keys of every result that has them
+JOINT_KEYS = ("mpjpe_mm", "pa_mpjpe_mm", "rr_mpjpe_mm", "auc_0_50", "mean_px")
+
+
+def _has_poses(folder: Path) -> bool:
+    f = PosesLayout(folder)
+    return f.meta.is_file() or f.keypoints21_3d.is_file()
+
+
 def _resolve(folder) -> Path:
     """Accept a gt/-layout folder or a sequence folder holding gt/."""
     folder = Path(folder)
     gt = SequenceLayout(folder).gt
-    if not PosesLayout(folder).meta.is_file() and gt.meta.is_file():
+    if not _has_poses(folder) and _has_poses(gt.root):
         return gt.root
     return folder
 
@@ -88,12 +108,16 @@ def _check_pair(pred: Poses, gt: Poses, pred_dir: Path, gt_dir: Path) -> None:
 def evaluate_sequence(pred_dir, gt_dir, with_penetration: bool = True) -> Dict:
     """Score one prediction folder against one ground-truth folder.
 
-    Returns a JSON-ready dict with ``frames``, ``mean_px``, ``median_px``,
-    ``mean_mm``, ``median_mm``, ``auc_0_50mm``, ``pck`` (thresholds and fractions),
-    ``per_keypoint`` and ``per_frame`` errors, and ``penetration`` when the scene has
-    several models (mean intersecting triangle pairs per frame, max depth in mm).
+    Returns a JSON-ready dict with ``frames``, the thesis keypoints' ``thesis_mean_px``,
+    ``median_px``, ``mean_mm``, ``median_mm``, ``auc_0_50mm``, ``pck`` (thresholds and
+    fractions), ``per_keypoint`` and ``per_frame`` errors, ``penetration`` when the scene
+    has several models (mean intersecting triangle pairs per frame, max depth in mm), and
+    the 21 joints' :data:`JOINT_KEYS` and ``joints21`` when both sides have them. Ground
+    truth of 21 joints alone is scored on them alone (module docstring).
     """
     pred_dir, gt_dir = _resolve(pred_dir), _resolve(gt_dir)
+    if not PosesLayout(gt_dir).meta.is_file() and PosesLayout(gt_dir).keypoints21_3d.is_file():
+        return _evaluate_joints_only(pred_dir, gt_dir)
     try:
         pred, gt = read_poses(pred_dir), read_poses(gt_dir)
     except SequenceError as err:
@@ -122,34 +146,71 @@ def evaluate_sequence(pred_dir, gt_dir, with_penetration: bool = True) -> Dict:
         result["penetration"] = _penetration(pred)
     joints21 = _joints21(pred_dir, gt_dir)
     if joints21 is not None:
-        result["joints21"] = joints21
+        result.update({k: joints21[k] for k in JOINT_KEYS}, joints21=joints21)
     return result
 
 
-def _joints21(pred_dir: Path, gt_dir: Path):
-    """The ``joints21`` block of the module docstring, or None when a side has no 21 joints."""
+def _evaluate_joints_only(pred_dir: Path, gt_dir: Path) -> Dict:
+    """Score a prediction against ground truth that holds the 21 joints alone (module docstring)."""
+    joints21 = _joints21(pred_dir, gt_dir)
+    if joints21 is None:
+        raise EvaluationError(f"{gt_dir} holds the standard 21 joints only, but {pred_dir} has none "
+                              f"(keypoints21_3d.npy and keypoints21_2d.npy, which torchhand track writes for hands)")
+    try:
+        flagged = int((~np.asarray(json.loads(PosesLayout(pred_dir).meta.read_text()).get("valid", []), bool)).sum())
+    except (OSError, ValueError):
+        flagged = 0
+    per_frame = np.asarray(joints21["per_frame_mm"], float)
+    lost = np.nan_to_num(per_frame, nan=0.0) > LOST_MM
+    return {"frames": len(per_frame), "sequence": gt_dir.parent.name if gt_dir.name == "gt" else gt_dir.name,
+            "prediction": str(pred_dir), "ground_truth": "the standard 21 joints only",
+            **{k: joints21[k] for k in JOINT_KEYS}, "joints21": joints21, "flagged_frames": flagged,
+            "lost_frames": int(lost.sum()), "lost_frame_ids": np.nonzero(lost)[0].tolist()}
+
+
+def _read_joints21(pred_dir: Path, gt_dir: Path):
+    """((pred 3D, 2D), (gt 3D, 2D), gt validity (N, P) or None), or None when a side has no 21 joints."""
     try:
         pred, gt = read_joints21(pred_dir), read_joints21(gt_dir)
+        valid = read_joints21_valid(gt_dir) if gt is not None else None
     except SequenceError as err:
         raise EvaluationError(str(err)) from None
     if pred is None or gt is None:
         return None
     if pred[0].shape != gt[0].shape or pred[1].shape != gt[1].shape:
-        raise EvaluationError(f"21-joint arrays of {pred_dir} {pred[0].shape} do not match {gt_dir} {gt[0].shape}")
+        raise EvaluationError(f"21-joint arrays of {pred_dir} {pred[0].shape} do not match {gt_dir} {gt[0].shape} "
+                              "(frames, cameras, joints)")
+    if valid is not None and valid.shape != (gt[0].shape[0], gt[0].shape[2]):
+        raise EvaluationError(f"{PosesLayout(gt_dir).keypoints21_valid}: {valid.shape}, expected (N, 21 x hands) "
+                              f"{(gt[0].shape[0], gt[0].shape[2])}")
+    return pred, gt, valid
+
+
+def _joints21(pred_dir: Path, gt_dir: Path):
+    """The ``joints21`` block of the module docstring, or None when a side has no 21 joints."""
+    read = _read_joints21(pred_dir, gt_dir)
+    if read is None:
+        return None
+    pred, gt, valid = read
     N, C, P, _ = gt[0].shape
-    hands = lambda a: a[:, 0].reshape(N * (P // 21), 21, 3)  # noqa: E731  camera 0, one row per hand and frame
+    ok3 = valid_joints(gt[0][:, 0], valid)  # (N, P) present in 3D
+    ok2 = valid_joints(gt[1], None if valid is None else valid[:, None])  # (N, C, P) present in each camera
+    hands = lambda a: a.reshape(N * (P // 21), 21, a.shape[-1])  # noqa: E731  one row per hand and frame
     try:
-        s = joint_scores(hands(pred[0]), hands(gt[0]))
-        e2 = joint_errors(pred[1], gt[1])  # (N, C, P) px, NaN where the ground truth has no joint
+        s = joint_scores(hands(pred[0][:, 0]), hands(gt[0][:, 0]), hands(ok3[..., None])[..., 0])
+        e3 = joint_errors(pred[0][:, 0], gt[0][:, 0], ok3)  # (N, P) mm
+        e2 = joint_errors(pred[1], gt[1], ok2)  # (N, C, P) px, NaN where the ground truth has no joint
     except ValueError as err:
         raise EvaluationError(f"{pred_dir}: 21 joints: {err}") from None
     per_joint = zip(STANDARD_JOINT_NAMES, s.per_joint_mm, s.per_joint_pa_mm, s.per_joint_rr_mm)
+    per_frame = [float(np.nanmean(row)) if np.isfinite(row).any() else float("nan") for row in e3]
     return {"mpjpe_mm": s.mpjpe_mm, "pa_mpjpe_mm": s.pa_mpjpe_mm, "rr_mpjpe_mm": s.rr_mpjpe_mm,
-            "auc_0_50": s.auc_0_50, "mean_px": mean_px(pred[1], gt[1]),
-            "scored_joints": int(valid_joints(gt[0][:, 0]).sum()),
+            "auc_0_50": s.auc_0_50, "mean_px": mean_px(pred[1], gt[1], ok2),
+            "scored_joints": int(ok3.sum()), "scored_px": int((~np.isnan(e2)).sum()),
             "per_camera_px": per_joint_mean(np.moveaxis(e2, 1, -1)).tolist(),
             "per_joint": {n: {"mm": float(a), "pa_mm": float(b), "rr_mm": float(c)} for n, a, b, c in per_joint},
-            "pck": {"thresholds_mm": s.thresholds.tolist(), "fraction": s.pck.tolist()}}
+            "pck": {"thresholds_mm": s.thresholds.tolist(), "fraction": s.pck.tolist()},
+            "per_frame_mm": per_frame}
 
 
 def _frame_means(e: np.ndarray) -> list:
@@ -230,7 +291,7 @@ def _scores(e2: np.ndarray, e3: np.ndarray) -> Dict:
     curve = pck_curve(e3, PCK_THRESHOLDS_MM)
     return {
         "frames": int(e2.shape[0]),
-        "mean_px": float(e2.mean()) if e2.size else float("nan"),
+        "thesis_mean_px": float(e2.mean()) if e2.size else float("nan"),
         "median_px": float(np.median(e2)) if e2.size else float("nan"),
         "mean_mm": float(e3.mean()) if e3.size else float("nan"),
         "median_mm": float(np.median(e3)) if e3.size else float("nan"),
@@ -271,19 +332,35 @@ def summarize(results: List[Dict]) -> Dict:
     """Pool per-sequence results over all keypoints of all frames: means and the AUC
     are weighted by each sequence's number of keypoint errors (exact pooling, since
     both are linear in the errors' distribution); medians are taken over the
-    per-frame mean errors."""
-    frames = sum(r["frames"] for r in results)
+    per-frame mean errors. The thesis keypoints' figures pool the results that have
+    them; the 21 joints' (:data:`JOINT_KEYS`, top level and ``joints21``) are given when
+    every result has them."""
+    if len(results) == 1:
+        return results[0]
+    pooled = {"frames": sum(r["frames"] for r in results)}
+    thesis = [r for r in results if "keypoint_errors" in r]
+    if thesis:
+        pooled.update(_pool_thesis(thesis))
+    pooled["lost_frames"] = sum(r["lost_frames"] for r in results)
+    if all("joints21" in r for r in results):
+        pooled["joints21"] = _pool_joints21([r["joints21"] for r in results])
+        pooled.update({k: pooled["joints21"][k] for k in JOINT_KEYS})
+    pooled["note"] = "median_px/median_mm pooled over per-frame mean errors of all sequences"
+    pooled["sequences"] = results
+    return pooled
+
+
+def _pool_thesis(results: List[Dict]) -> Dict:
+    """The thesis keypoints' figures and every model's of several sequences."""
     w = np.array([r["keypoint_errors"] for r in results], float)
     pooled = {
-        "frames": frames,
-        "mean_px": float(np.average([r["mean_px"] for r in results], weights=w)),
+        "thesis_mean_px": float(np.average([r["thesis_mean_px"] for r in results], weights=w)),
         "mean_mm": float(np.average([r["mean_mm"] for r in results], weights=w)),
         "median_px": float(np.median(np.concatenate([r["per_frame"]["px"] for r in results]))),
         "median_mm": float(np.median(np.concatenate([r["per_frame"]["mm"] for r in results]))),
         "auc_0_50mm": float(np.average([r["auc_0_50mm"] for r in results], weights=w)),
         "keypoint_errors": int(w.sum()),
     }
-    pooled["lost_frames"] = sum(r["lost_frames"] for r in results)
     models: Dict[str, Dict] = {}
     for r in results:
         for name, m in r["models"].items():
@@ -294,20 +371,17 @@ def summarize(results: List[Dict]) -> Dict:
         pooled["models"][name] = {"metric": m["metric"], "mean_mm": float(e.mean()), "median_mm": float(np.median(e)),
                                   "worst_frame_mm": float(e.max()), "frames_over_20mm": int((e > LOST_MM).sum()),
                                   "frames": int(len(e))}
-    if len(results) == 1:
-        return results[0]
-    if all("joints21" in r for r in results):
-        pooled["joints21"] = _pool_joints21([r["joints21"] for r in results])
-    pooled["note"] = "median_px/median_mm pooled over per-frame mean errors of all sequences"
-    pooled["sequences"] = results
     return pooled
 
 
 def _pool_joints21(blocks: List[Dict]) -> Dict:
-    """The five 21-joint means of several sequences, weighted by their scored joints."""
-    w = np.array([b["scored_joints"] for b in blocks], float)
-    pooled = {"scored_joints": int(w.sum())}
-    for key in ("mpjpe_mm", "pa_mpjpe_mm", "rr_mpjpe_mm", "auc_0_50", "mean_px"):
+    """The five 21-joint means of several sequences, weighted by their scored joints
+    (the 2D mean by the scored 2D joints)."""
+    pooled = {"scored_joints": int(sum(b["scored_joints"] for b in blocks)),
+              "scored_px": int(sum(b.get("scored_px", b["scored_joints"]) for b in blocks))}
+    for key in JOINT_KEYS:
+        w = np.array([b.get("scored_px", b["scored_joints"]) if key == "mean_px" else b["scored_joints"]
+                      for b in blocks], float)
         v = np.array([b[key] for b in blocks], float)
         ok = np.isfinite(v) & (w > 0)
         pooled[key] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")

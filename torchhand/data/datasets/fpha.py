@@ -226,16 +226,20 @@ def import_fpha(src, out, force: bool = False, segmentation: Optional[Dict] = No
 
 
 def write_imported(out: Path, info: SequenceInfo, force: bool, write_frames: Callable[[SequenceLayout], None],
-                   joints: np.ndarray, pixels: np.ndarray) -> None:
+                   joints: np.ndarray, pixels: np.ndarray, valid: Optional[np.ndarray] = None) -> None:
     """Write a dataset's sequence folder ``out`` atomically: ``write_frames`` fills a hidden
     folder beside it, then the standard 21 joints (N, 21, 3) mm and (N, 21, 2) px of camera 0
-    and ``info`` are written and the folder is renamed to ``out``; a failure removes it."""
+    (or (N, C, 21, 3) and (N, C, 21, 2), one slice per camera of a rig), their validity
+    ``valid`` (N, 21) when given, and ``info`` are written and the folder is renamed to
+    ``out``; a failure removes it."""
     partial = partial_dir(out.absolute())
+    if joints.ndim == 3:
+        joints, pixels = joints[:, None], pixels[:, None]
     try:
         seq = SequenceLayout(partial)
         write_frames(seq)
         seq.gt.root.mkdir()
-        write_joints21(seq.gt, joints[:, None], pixels[:, None])
+        write_joints21(seq.gt, joints, pixels, valid)
         write_sequence_info(partial, info)
         commit_dir(partial, out.absolute(), force)
     except BaseException:
