@@ -30,8 +30,10 @@ import torch
 from torchhand.io.assets import FINGER_NAMES
 from torchhand.model.articulated import ArticulatedModel, ModelOutput
 from torchhand.model.scene import Scene, SceneOutput
+from torchhand.model.skinning import lbs_jacobian
 
-__all__ = ["STANDARD_JOINT_NAMES", "JointSources", "joint_sources", "standard_joints", "is_hand", "scene_joint_names",
+__all__ = ["STANDARD_JOINT_NAMES", "JointSources", "joint_sources", "standard_joints", "standard_joint_jacobian",
+           "is_hand", "scene_joint_names",
            "scene_standard_joints"]
 
 _FINGER_JOINTS = {"thumb": ("cmc", "mcp", "ip", "tip")}
@@ -111,6 +113,22 @@ def standard_joints(posed: ModelOutput, model: ArticulatedModel, sources: JointS
     B = origins.shape[0]
     fingers = torch.cat([origins[:, 1:].reshape(B, 5, 3, 3), tips[:, :, None]], dim=2)  # (B, 5, 4, 3)
     return torch.cat([origins[:, :1], fingers.reshape(B, 20, 3)], dim=1)
+
+
+def standard_joint_jacobian(posed: ModelOutput, model: ArticulatedModel, sources: JointSources | None = None
+                            ) -> torch.Tensor:
+    """(B, 21, 3, D) analytic Jacobian of :func:`standard_joints` with respect to the
+    model's theta: each joint centre as a point rigidly attached to its bone, each tip
+    as its skinned vertex (:func:`~torchhand.model.skinning.lbs_jacobian`)."""
+    src = joint_sources(model) if sources is None else sources
+    G, twists = posed.G, posed.twists
+    bones = src.bones[:, None]
+    origins = lbs_jacobian(G, twists, model.rest_transforms[src.bones, :3, 3], bones,
+                           torch.ones_like(bones, dtype=G.dtype), model.dof_bone, model.descendants)
+    tips = model.jacobian(None, src.tip_vertices, fk=(G, twists))
+    B, D = origins.shape[0], origins.shape[-1]
+    fingers = torch.cat([origins[:, 1:].reshape(B, 5, 3, 3, D), tips[:, :, None]], dim=2)
+    return torch.cat([origins[:, :1], fingers.reshape(B, 20, 3, D)], dim=1)
 
 
 def is_hand(model: ArticulatedModel) -> bool:

@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import List, Optional
 
 from torchhand.tracking.energies import (anatomy, chain_smoothness, collision, data_to_model, edges, free_space,
-                                         nails, optical_flow, physics, regularization)
+                                         keypoints, nails, optical_flow, physics, regularization)
 from torchhand.tracking.energies.edges import Edges
 from torchhand.tracking.energies.nails import Nails
 from torchhand.tracking.energies.optical_flow import OpticalFlow
@@ -27,6 +27,7 @@ from torchhand.tracking.energies.chain_smoothness import ChainSmoothness
 from torchhand.tracking.energies.collision import Collision
 from torchhand.tracking.energies.data_to_model import DataToModel
 from torchhand.tracking.energies.free_space import FreeSpace
+from torchhand.tracking.energies.keypoints import Keypoints
 from torchhand.tracking.energies.model_to_data import ModelToData
 from torchhand.tracking.energies.physics import Physics
 from torchhand.tracking.energies.regularization import Regularization
@@ -34,7 +35,7 @@ from torchhand.tracking.energies.salient_points import Salient
 from torchhand.tracking.energies.wrappers import Robust, Weighted
 
 __all__ = ["EnergyTerm", "Residuals", "Counts", "counts", "Prepared", "TrackState", "ModelToData", "DataToModel", "Collision", "Salient",
-           "FreeSpace", "Physics", "Edges", "OpticalFlow", "Nails", "Anatomy", "Regularization", "ChainSmoothness",
+           "Keypoints", "FreeSpace", "Physics", "Edges", "OpticalFlow", "Nails", "Anatomy", "Regularization", "ChainSmoothness",
            "Weighted", "Robust", "parse_energy", "default_data_to_model", "default_free_space", "default_priors",
            "ENERGY_COMPONENTS"]
 
@@ -45,7 +46,9 @@ ENERGY_COMPONENTS = {"E": "edges of colour images (rendered occluding contours t
                      "S": "salient points (with LO: fingertips detected in depth, Eq. 4.14-4.15; without: "
                           "nails detected in colour views, Ballan Eq. 3)",
                      "F": "free space (model surface where the sensor saw nothing or farther, pulled into its data)",
-                     "P": "physics (Bullet stability of held rigid objects, Eq. 4.16; needs pybullet)"}
+                     "P": "physics (Bullet stability of held rigid objects, Eq. 4.16; needs pybullet)",
+                     "K": "keypoints (the model's 21 joints pulled onto the hand localiser's, robust, "
+                          "confidence-weighted; docs/localiser.md)"}
 
 
 def default_data_to_model(**kwargs) -> EnergyTerm:
@@ -101,4 +104,6 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
         terms.append(default_free_space())
     if "P" in extra:
         terms.append(Weighted(Physics(), physics.DEFAULT_WEIGHT))
+    if "K" in extra:
+        terms.append(Weighted(Robust(Keypoints(), keypoints.DEFAULT_LOSS), keypoints.DEFAULT_WEIGHT))
     return terms + default_priors()
