@@ -131,11 +131,12 @@ def evaluate(args) -> int:
             print(f"{r['sequence']}: {r['frames']} frames, silhouette IoU mean {r['mean_iou']:.2f} (min "
                   f"{r['min_iou']:.2f} at frame {r['worst_frame']}), median depth residual "
                   f"{r['median_depth_residual_mm']:.1f} mm, {r['frames_below_iou']} frames below IoU "
-                  f"{result['iou_threshold']}, {r['reinitialized_frames']} re-initialised")
+                  f"{result['iou_threshold']}, {r['reinitialized_frames']} re-initialised, "
+                  f"{r['fit_flagged_frames']} failing the fit check")
         print(f"fit quality (no ground truth) over {result['frames']} frames: silhouette IoU mean "
               f"{result['mean_iou']:.2f} (min {result['min_iou']:.2f}), median depth residual "
               f"{result['median_depth_residual_mm']:.1f} mm, {result['frames_below_iou']} frames below IoU "
-              f"{result['iou_threshold']}")
+              f"{result['iou_threshold']}, {result['fit_flagged_frames']} failing the fit check")
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(result, indent=2))

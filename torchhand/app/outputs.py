@@ -59,7 +59,7 @@ class TrackedSequence:
 def failed(name: str, error: str) -> dict:
     """The summary of a sequence for which nothing was written."""
     return {"sequence": name, "status": "failed", "error": error, "frames": 0, "out": None,
-            "seconds_per_frame": float("nan"), "flagged_frames": 0, "reinitialized_frames": 0}
+            "seconds_per_frame": float("nan"), "flagged_frames": 0, "reinitialized_frames": 0, "fit_flagged_frames": 0}
 
 
 def write_sequence(final: Path, *, seq: TrackedSequence, scene: Scene, renderer, options: TrackOptions,
@@ -113,6 +113,7 @@ def _summary(seq: TrackedSequence, valid: np.ndarray, out: str) -> dict:
     return {"sequence": seq.name, "status": "ok", "frames": N, "out": out,
             "seconds_per_frame": float(np.mean([r.seconds for r in seq.results[:N]])) / seq.batch,
             "flagged_frames": int((~valid).sum()), "reinitialized_frames": int(sum(seq.reinitialized)),
+            "fit_flagged_frames": int(sum(bool(getattr(q, "flagged", False)) for q in seq.quality)),
             "mean_iou": float(np.mean(ious)) if ious else float("nan"),
             "median_depth_residual_mm": float(np.median(res)) if res else float("nan")}
 
@@ -129,14 +130,23 @@ def _write_motion(out: OutputLayout, scene: Scene, th: torch.Tensor) -> None:
         write_motion(out.motion(thesis_name.get(model_name, model_name)), mot)
 
 
+def _check_fields(q) -> dict:
+    """The localiser's side of a frame's fit check (:class:`~torchhand.scoring.metrics.FitCheck`)."""
+    return {"keypoint_px": _finite(getattr(q, "keypoint_px", float("nan"))),
+            "keypoint_mm": _finite(getattr(q, "keypoint_mm", float("nan"))),
+            "hand_explained": _finite(getattr(q, "explained", float("nan"))),
+            "off_hand": _finite(getattr(q, "off_hand", float("nan"))),
+            "fit_flagged": bool(getattr(q, "flagged", False))}
+
+
 def _write_log(out: OutputLayout, seq: TrackedSequence, settings: dict) -> None:
     i = seq.index
     log = [{"frame": f, "seconds": r.seconds, "iterations": int(r.iterations[i]),
             "energy": None if not np.isfinite(float(r.energy[i])) else float(r.energy[i]),
             "valid": bool(r.valid[i]), "recovered": bool(r.recovered[i]),
             "correspondences": int(r.correspondences[i]), "iou": _finite(seq.quality[f][0]),
-            "depth_residual_mm": _finite(seq.quality[f][1]), "reinitialized": seq.reinitialized[f],
-            "notes": r.notes[i]}
+            "depth_residual_mm": _finite(seq.quality[f][1]), **_check_fields(seq.quality[f]),
+            "reinitialized": seq.reinitialized[f], "notes": r.notes[i]}
            for f, r in enumerate(seq.results[:seq.info.frames])]
     out.track_log.write_text(json.dumps({"sequence": seq.name, "source": str(seq.root),
                                          "energy": settings["tracker"]["energy"], "settings": settings,
@@ -174,7 +184,8 @@ def _write_overlays(out: OutputLayout, seq: TrackedSequence, scene: Scene, posed
     whole sequence (and its colour bar), the frame number, the tracked models (hand
     skeletons, object outlines) and, where ``root/gt`` exists, the ground-truth
     skeletons in white beside them; with a segmentation, the outline of the hands'
-    pixels in green and the forearm cut away in red. One PNG per frame and an MP4."""
+    pixels in green and the forearm cut away in red; a frame whose fit check failed
+    (``fit_flagged``) framed in red and labelled. One PNG per frame and an MP4."""
     info, cam = seq.info, seq.rig[0]
     out.overlays_dir.mkdir()
     gt = _ground_truth_2d(seq.root, scene, info.frames)
@@ -196,7 +207,11 @@ def _write_overlays(out: OutputLayout, seq: TrackedSequence, scene: Scene, posed
                 draw_mask_outline(img, segs[f][1], (0, 0, 220))
             draw_models(img, scene, posed, f, cam, None if gt is None else gt[f, 0])
             draw_colorbar(img, near, far)
-            draw_legend(img, f"frame {f}", legend)
+            q = seq.quality[f]
+            flagged = bool(getattr(q, "flagged", False))
+            draw_legend(img, f"frame {f}" + (" FIT CHECK FAILED" if flagged else ""), legend)
+            if flagged:  # a red frame around a fit the localiser contradicts
+                cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (0, 0, 255), 4)
             cv2.imwrite(str(out.overlay(f)), img)
             images.append(img)
     write_video(images, out.overlays_video, fps=info.fps)

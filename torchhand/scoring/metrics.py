@@ -1,6 +1,8 @@
 """Error measures: keypoint errors in px and mm, PCK curves and their AUC, the joint
 errors of the hand pose literature (MPJPE, PA-MPJPE, root-relative MPJPE) with validity
-masks, and interpenetration of posed meshes.
+masks, interpenetration of posed meshes, and the fit check of a tracked frame without
+ground truth (:func:`fit_check`: the tracker's own data, and the hand localiser's
+independent evidence, which can say that the tracker follows the wrong thing).
 
 The 2D measure is the thesis' (Table 4.6): the mean Euclidean distance in pixels
 between projected keypoints and ground truth. The 3D measure is the same in mm in
@@ -14,12 +16,14 @@ scored as zero; a mean over no joints is NaN.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple, Optional, Sequence
 
+import cv2
 import numpy as np
 
 __all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "max_depth", "model_pair_counts",
-           "PCK_THRESHOLDS_MM", "fit_quality", "valid_joints", "joint_errors", "similarity_align", "mpjpe",
+           "PCK_THRESHOLDS_MM", "fit_quality", "fit_check", "FitCheck", "FitCheckLimits", "valid_joints", "joint_errors", "similarity_align", "mpjpe",
            "pa_mpjpe", "rr_mpjpe", "JointScores", "joint_scores", "mean_px", "per_joint_mean"]
 
 #: thresholds of the PCK curve, 0..50 mm in 1 mm steps
@@ -45,6 +49,87 @@ def fit_quality(model_depth: np.ndarray, data_depth: np.ndarray) -> tuple:
         return 0.0, float("nan")
     diff = np.asarray(model_depth, np.float64)[both] - np.asarray(data_depth, np.float64)[both]
     return float(both.sum()) / union, float(np.median(np.abs(diff)))
+
+
+@dataclass(frozen=True)
+class FitCheckLimits:
+    """Where a frame's fit check fails (docs/localiser.md, "The fit check").
+
+    Attributes:
+        keypoint_mm: the median distance between the model's projected standard joints
+            and the localiser's confident ones, in mm at the joints' depth (px x z / f),
+            above which the fit is flagged (the shipped localiser's joints lie ~25 mm
+            from the true ones on its test set, a hand on the wrong blob hundreds);
+        explained: the share of the localiser's hand pixels under the model's
+            silhouette below which it is flagged;
+        off_hand: the share of the model's silhouette on measured pixels that the
+            localiser calls not hand (3 px of margin) above which it is flagged;
+        confidence: joints of the localiser below this confidence are not compared.
+    """
+
+    keypoint_mm: float = 40.0
+    explained: float = 0.6
+    off_hand: float = 0.3
+    confidence: float = 0.3
+
+
+class FitCheck(NamedTuple):
+    """One frame's fit check: the silhouette IoU and median depth residual of
+    :func:`fit_quality`, and against the localiser (NaN without it): ``keypoint_px``
+    (the median joint distance in px) and ``keypoint_mm`` (the same in mm at the joints'
+    depth), ``explained``, ``off_hand`` (see :class:`FitCheckLimits`); ``flagged``: a
+    limit is crossed (False without the localiser's evidence)."""
+
+    iou: float
+    residual_mm: float
+    keypoint_px: float = float("nan")
+    keypoint_mm: float = float("nan")
+    explained: float = float("nan")
+    off_hand: float = float("nan")
+    flagged: bool = False
+
+
+def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Optional[np.ndarray] = None,
+              labels: Optional[np.ndarray] = None, model_uv: Optional[np.ndarray] = None,
+              located_uv: Optional[np.ndarray] = None, located_confidence: Optional[np.ndarray] = None,
+              located_z: Optional[np.ndarray] = None, focal: float = float("nan"),
+              limits: FitCheckLimits = FitCheckLimits()) -> FitCheck:
+    """A fit check that can fail: :func:`fit_quality` against the tracker's own data, and
+    three measures against the hand localiser's independent evidence.
+
+    Args:
+        model_depth, data_depth: as :func:`fit_quality`.
+        hand_mask: (H, W) bool, the localiser's pixels of the hands the scene tracks.
+        labels: (H, W) uint8, the localiser's class of every pixel (1, 2: hands; 255:
+            nothing measured, so a model pixel there is no evidence either way).
+        model_uv, located_uv: (P, 2) the model's projected standard joints and the
+            localiser's, in the same order (NaN rows: not compared);
+            located_confidence: (P,) the localiser's confidences; located_z: (P,) its
+            joints' depth (mm) and ``focal`` the camera's focal length (px), to measure
+            the distances in mm.
+    """
+    iou, residual = fit_quality(model_depth, data_depth)
+    if hand_mask is None or labels is None:
+        return FitCheck(iou, residual)
+    model = np.asarray(model_depth) > 0
+    hand = np.asarray(hand_mask, bool)
+    explained = float((model & hand).sum()) / hand.sum() if hand.any() else float("nan")
+    any_hand = np.isin(labels, (1, 2)).astype(np.uint8)
+    near_hand = cv2.dilate(any_hand, np.ones((7, 7), np.uint8)) > 0
+    on_model = model & (np.asarray(labels) != 255)
+    off_hand = float((on_model & ~near_hand).sum()) / on_model.sum() if on_model.any() else float("nan")
+    kp, kp_mm = float("nan"), float("nan")
+    if model_uv is not None and located_uv is not None:
+        conf = np.ones(len(located_uv)) if located_confidence is None else np.asarray(located_confidence)
+        d = np.linalg.norm(np.asarray(model_uv, np.float64) - np.asarray(located_uv, np.float64), axis=-1)
+        use = np.isfinite(d) & (conf >= limits.confidence)
+        kp = float(np.median(d[use])) if use.any() else float("nan")
+        if located_z is not None and use.any():
+            kp_mm = float(np.median(d[use] * np.asarray(located_z, np.float64)[use] / focal))
+    flagged = bool((np.isfinite(kp_mm) and kp_mm > limits.keypoint_mm) or not hand.any()
+                   or (np.isfinite(explained) and explained < limits.explained)
+                   or (np.isfinite(off_hand) and off_hand > limits.off_hand))
+    return FitCheck(iou, residual, kp, kp_mm, explained, off_hand, flagged)
 
 
 def keypoint_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -394,8 +394,9 @@ def fit_report(pred_dirs: Sequence) -> Dict:
     median depth residual on their overlap, per frame; :func:`torchhand.scoring.
     metrics.fit_quality`). Returns ``{"sequences": [...], "frames", "mean_iou",
     "min_iou", "median_depth_residual_mm", "frames_below_iou", "iou_threshold"}``,
-    per sequence the same plus ``worst_frame``, ``reinitialized_frames`` and
-    ``flagged_frames``."""
+    per sequence the same plus ``worst_frame``, ``reinitialized_frames``,
+    ``flagged_frames`` and ``fit_flagged_frames`` (frames whose fit check against the hand
+    localiser failed, docs/localiser.md); ``fit_flagged_frames`` overall too."""
     rows = []
     for d in pred_dirs:
         path = OutputLayout(d).track_log
@@ -418,8 +419,11 @@ def fit_report(pred_dirs: Sequence) -> Dict:
                      "frames_below_iou": int((iou[ok] < GOOD_IOU).sum()),
                      "reinitialized_frames": int(sum(bool(f.get("reinitialized")) for f in frames)),
                      "flagged_frames": int(sum(not f.get("valid", True) for f in frames)),
+                     "fit_flagged_frames": int(sum(bool(f.get("fit_flagged")) for f in frames)),
                      "per_frame": [{"frame": k, "iou": None if not ok[k] else float(iou[k]),
-                                    "depth_residual_mm": None if not np.isfinite(res[k]) else float(res[k])}
+                                    "depth_residual_mm": None if not np.isfinite(res[k]) else float(res[k]),
+                                    "keypoint_px": frames[k].get("keypoint_px"),
+                                    "fit_flagged": bool(frames[k].get("fit_flagged"))}
                                    for k in range(len(frames))]})
     all_iou = np.concatenate([[f["iou"] for f in r["per_frame"] if f["iou"] is not None] for r in rows] or [[]])
     all_res = np.concatenate([[f["depth_residual_mm"] for f in r["per_frame"] if f["depth_residual_mm"] is not None]
@@ -428,4 +432,5 @@ def fit_report(pred_dirs: Sequence) -> Dict:
             "mean_iou": float(np.mean(all_iou)) if all_iou.size else float("nan"),
             "min_iou": float(np.min(all_iou)) if all_iou.size else float("nan"),
             "median_depth_residual_mm": float(np.median(all_res)) if all_res.size else float("nan"),
+            "fit_flagged_frames": int(sum(r["fit_flagged_frames"] for r in rows)),
             "frames_below_iou": int(sum(r["frames_below_iou"] for r in rows))}
