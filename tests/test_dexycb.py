@@ -352,9 +352,9 @@ def test_dataset_splits(tmp_path):
         split_sequences("ho3d", tmp_path, "nope")
 
 
-def test_segmentation_is_stored_for_one_camera_only(sample, tmp_path):
+def test_segmentation_is_stored_for_a_rig_and_one_camera(sample, tmp_path):
     seg = {"mode": "auto", "hands": 1, "near": 200.0, "far": 1500.0, "remove_plane": False}
     rig = import_dexycb(sample.src, tmp_path / "rig", segmentation=seg)
-    assert rig.segmentation is None and rig.source["segmentation_not_applied"] == seg
+    assert rig.segmentation == seg and read_sequence_info(tmp_path / "rig").segmentation == seg
     one = import_dexycb(sample.src, tmp_path / "one", segmentation=seg, cameras=[MASTER])
     assert read_sequence_info(tmp_path / "one").segmentation == seg and len(one.cameras) == 1

@@ -100,19 +100,19 @@ def test_segmentation_blobs_and_errors():
     depth = np.zeros((480, 640), np.float32)
     _disc(depth, (240, 200), 45, 500.0)  # ~ 8000 mm^2 at 500 mm: hand-sized
     depth[:, 450:] = 900.0  # a wall, larger than a hand, behind
-    seg = segment_hands(depth, CAM, SegmentConfig())
+    seg = segment_hands(depth, CAM, SegmentConfig(mode="blobs"))
     assert abs(seg.mask.sum() - np.pi * 45 ** 2) < 300 and not seg.mask[:, 450:].any()
     _disc(depth, (240, 330), 45, 520.0)
     with pytest.raises(SegmentationError, match="two hand-sized blobs"):
-        segment_hands(depth, CAM, SegmentConfig(strict=True), frame="f7.png")
-    two = segment_hands(depth, CAM, SegmentConfig(hands=2))
+        segment_hands(depth, CAM, SegmentConfig(mode="blobs", strict=True), frame="f7.png")
+    two = segment_hands(depth, CAM, SegmentConfig(mode="blobs", hands=2))
     assert len(two.blobs) == 2 and two.blobs[0][240, 200] and two.blobs[1][240, 330]  # left to right
     with pytest.raises(SegmentationError, match=r"f3.png: no depth between"):
-        segment_hands(np.zeros((480, 640), np.float32), CAM, SegmentConfig(), frame="f3.png")
+        segment_hands(np.zeros((480, 640), np.float32), CAM, SegmentConfig(mode="blobs"), frame="f3.png")
     far_only = np.zeros((480, 640), np.float32)
     far_only[:, 450:] = 900.0
     with pytest.raises(SegmentationError, match="no hand-sized blob"):
-        segment_hands(far_only, CAM, SegmentConfig())
+        segment_hands(far_only, CAM, SegmentConfig(mode="blobs"))
     assert segment_hands(far_only, CAM, SegmentConfig(mode="range")).mask.sum() == 480 * 190
 
 
@@ -120,7 +120,7 @@ def test_wrist_cut_on_a_palm_with_a_forearm():
     depth = np.zeros((480, 640), np.float32)
     _disc(depth, (200, 320), 40, 500.0)  # palm, radius 42 mm
     depth[200:480, 300:341] = 500.0  # a forearm 43 mm wide leaving the image at the bottom
-    seg = segment_hands(depth, CAM, SegmentConfig())
+    seg = segment_hands(depth, CAM, SegmentConfig(mode="blobs"))
     assert seg.forearm[0] @ np.array([0, 1, 0]) > 0.95
     rows = np.nonzero(seg.mask.any(1))[0]
     # kept up to ~69 mm below the palm centre (about 66 px at 500 mm), the rest cut
@@ -135,7 +135,7 @@ def test_segmentation_of_real_frames():
     files = sorted(SR305.glob("*/*.png"))
     for p in files:
         d = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float32) / 8
-        seg = segment_hands(d, CAM, SegmentConfig())
+        seg = segment_hands(d, CAM, SegmentConfig(mode="blobs"))
         z = d[seg.mask]
         area = np.sum((z / CAM.fx) ** 2)
         body = d[(d > 0) & ~seg.mask & ~seg.cut]
@@ -239,7 +239,7 @@ def test_automatic_initialisation_of_a_rendered_hand():
     cam = info.cameras[0]
     with torch.no_grad():
         depth = tracker.renderer(scene(truth).vertices, cam, normals=False).depth[0].numpy()
-    seg = segment_hands(depth, cam, SegmentConfig())
+    seg = segment_hands(depth, cam, SegmentConfig(mode="blobs"))
     res = initialize_hands(tracker, depth, cam, seg)
     with torch.no_grad():
         err = (scene(res.theta[None]).keypoints - scene(truth).keypoints).norm(dim=-1).mean()
@@ -265,7 +265,7 @@ def test_detected_fingertips_seed_the_hand_axis():
     with torch.no_grad():
         depth = tracker.renderer(scene(truth).vertices, cam, normals=False).depth[0].numpy()
         kp = cam.to_camera(scene(truth).keypoints)[0].numpy()
-    seg = segment_hands(depth, cam, SegmentConfig())
+    seg = segment_hands(depth, cam, SegmentConfig(mode="blobs"))
     tips = Initializer(tracker).fingertips(seg.apply(depth), seg.blobs[0], cam)
     assert len(tips) >= 3
     model_tips = kp[[4, 8, 12, 16, 20]]

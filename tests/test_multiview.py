@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -12,6 +13,7 @@ import torch
 from torchhand.data.layout import camera_dir, frame_name, read_depth, read_rgb, read_sequence_info
 from torchhand.data.synth import demo_motion, with_camera_ring, write_synthetic_sequence
 from torchhand.geometry.camera import Camera
+from torchhand.model.scene import Scene
 from torchhand.tracking.energies import Edges, OpticalFlow, default_priors, parse_energy
 from torchhand.tracking.preprocess import preprocess_colour
 from torchhand.tracking.tracker import Tracker, TrackerConfig
@@ -315,3 +317,25 @@ def test_nail_detections_come_from_salient_json_or_the_shipped_detector(tmp_path
     assert main(["track", str(seq), "--energy", "E+C+S", "--nails", "detector", "--out", str(out)]) == 0
     log = json.loads((out / info.name / "track_log.json").read_text())
     assert log["settings"]["nails"] == "detector"
+
+
+def test_a_segmented_rig_keeps_each_views_hands_and_leaves_a_blind_view_unknown(tmp_path):
+    from torchhand.app.frames import read_rig_frame
+    from torchhand.data.layout import read_sequence_info
+    from torchhand.tracking.segmentation import SegmentConfig, SegmentationError
+
+    frames = with_camera_ring(demo_motion(slice(0, 1), dtype=F64), 2)
+    frames = frames.__class__(Scene.from_names(["hand_right"], dtype=F64),
+                              frames.theta[:, frames.scene.slices["hand_right"]], frames.cameras, "rig", {})
+    seq = write_synthetic_sequence(frames, tmp_path / "seq", noise="none", depth=True, rgb=False, progress=False)
+    info = read_sequence_info(seq)
+    blind = camera_dir(seq, 1) / "depth" / frame_name(0)
+    cv2.imwrite(str(blind), np.zeros((info.cameras[1].height, info.cameras[1].width), np.uint16))
+    views, seg0 = read_rig_frame(seq, info, 0, SegmentConfig(mode="blobs"))
+    assert len(views) == 2 and seg0 is not None and seg0.mask.any()
+    assert np.isnan(views[1]).all()  # camera 1 sees no hand: all unknown, it costs nothing
+    assert (views[0][~seg0.mask & ~np.isnan(views[0])] == 0).all()
+    cv2.imwrite(str(camera_dir(seq, 0) / "depth" / frame_name(0)),
+                np.zeros((info.cameras[0].height, info.cameras[0].width), np.uint16))
+    with pytest.raises(SegmentationError, match="no view finds a hand"):
+        read_rig_frame(seq, info, 0, SegmentConfig(mode="blobs"))

@@ -46,8 +46,10 @@ def _segment_options(p: argparse.ArgumentParser, default: str | None) -> None:
     from torchhand.tracking.segmentation import SEGMENT_MODES
 
     p.add_argument("--segment", default=default, choices=SEGMENT_MODES,
-                   help="hand segmentation: auto (the nearest hand-sized blobs, cut at the wrist), range (the depth "
-                        "range only), none (all valid depth is hands and objects)"
+                   help="hand segmentation: auto (the learned hand localiser: hands, arm and body told apart, "
+                        "joints and handedness; the blob rules when it finds no hand), blobs (the nearest "
+                        "hand-sized depth blobs, cut at the wrist), range (the depth range only), skin (colour), "
+                        "none (all valid depth is hands and objects)"
                    + ("" if default else "; default: what the sequence folder says (set by import), else none"))
     p.add_argument("--near", type=float, default=200.0, help="nearest depth kept, mm")
     p.add_argument("--far", type=float, default=1500.0, help="farthest depth kept, mm")

@@ -6,6 +6,7 @@ frame read and segmented, the segmentation of a sequence, the fit of a pose)."""
 from __future__ import annotations
 
 import json
+from functools import lru_cache
 from pathlib import Path
 from typing import Dict, Iterator, List, NamedTuple, Optional
 
@@ -15,14 +16,16 @@ import torch
 
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb
+from torchhand.geometry.camera import project_points
+from torchhand.model.joints21 import is_hand, scene_standard_joints
 from torchhand.model.scene import Scene
 from torchhand.salient import SalientDetector
-from torchhand.scoring.metrics import fit_quality
+from torchhand.scoring.metrics import FitCheck, fit_check
 from torchhand.tracking.preprocess import ColourView
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 
-__all__ = ["FrameRecord", "FrameReader", "read_frame", "read_colour", "segment_of", "segment_for_search",
-           "pose_fit"]
+__all__ = ["FrameRecord", "FrameReader", "read_frame", "read_rig_frame", "read_colour", "segment_of", "segment_for_search",
+           "pose_fit", "hand_sides", "model_sides"]
 
 
 class FrameRecord(NamedTuple):
@@ -84,8 +87,7 @@ class FrameReader:
                         depth, s = read_frame(root, info, f, seg)
                         view = depth
                     elif self.depth:
-                        view = [read_depth(self.layouts[i].depth(f, c), info.depth_unit_mm)
-                                for c in range(self.views)]
+                        view, s = read_rig_frame(root, info, f, seg)
                         depth = view[0]
                     if self.colour:
                         colour = [self._colour_view(i, c, f) for c in range(self.views)]
@@ -177,8 +179,35 @@ def read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Segment
         return depth, None
     rgb_path = seq.rgb(f)
     rgb = read_rgb(rgb_path) if segment.mode == "skin" and rgb_path.is_file() else None
-    seg = segment_hands(depth, info.cameras[0], segment, frame=str(path), rgb=rgb)
+    seg = segment_hands(depth, info.cameras[0], segment, frame=str(path), rgb=rgb,
+                        sides=model_sides(tuple(info.models)))
     return seg.apply(depth), seg
+
+
+def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig]) -> tuple:
+    """(depth mm of every view, camera 0's segmentation or None) of a camera rig's frame.
+
+    Segmented, each view keeps its hands' pixels; a view in which no hand is found is
+    all unknown (NaN), so it costs nothing, and the frame fails only when no view finds
+    a hand."""
+    seq = SequenceLayout(root)
+    views = [read_depth(seq.depth(f, c), info.depth_unit_mm) for c in range(len(info.cameras))]
+    if segment is None:
+        return views, None
+    out, segs, errors = [], [], []
+    for c, depth in enumerate(views):
+        try:
+            sg = segment_hands(depth, info.cameras[c], segment, frame=str(seq.depth(f, c)),
+                               sides=model_sides(tuple(info.models)))
+            out.append(sg.apply(depth))
+            segs.append(sg)
+        except SegmentationError as err:
+            out.append(np.full(depth.shape, np.nan, np.float32))
+            segs.append(None)
+            errors.append(str(err))
+    if all(sg is None for sg in segs):
+        raise SegmentationError(f"frame {f}: no view finds a hand ({errors[0]})")
+    return out, segs[0]
 
 
 def segment_for_search(segment: Optional[SegmentConfig], scene: Scene) -> SegmentConfig:
@@ -201,8 +230,44 @@ def segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[S
     return None
 
 
-def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray) -> tuple:
-    """(silhouette IoU, median depth residual) of a scene at one pose (D,) against data (H, W) mm."""
+def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
+             segmentation: Optional[Segmentation] = None) -> FitCheck:
+    """The fit check of a scene at one pose (D,) against data (H, W) mm: the silhouette
+    IoU and median depth residual, and, where the frame was segmented by the hand
+    localiser, its independent measures (:func:`~torchhand.scoring.metrics.fit_check`;
+    each hand model is compared with the located hand of its side, else the one in
+    its place; with the blob rules deciding after a localiser found too little, its
+    classes still count)."""
     with torch.no_grad():
-        model = renderer(scene(theta[None]).vertices, cam, normals=False).depth[0].cpu().numpy()
-    return fit_quality(model, data)
+        posed = scene(theta[None])
+        model = renderer(posed.vertices, cam, normals=False).depth[0].cpu().numpy()
+    seg = segmentation
+    if seg is None or seg.labels is None:
+        return fit_check(model, data)
+    with torch.no_grad():
+        joints = scene_standard_joints(scene, posed)[0]
+        T = cam.T_cw.to(joints)
+        uv = project_points(joints @ T[:3, :3].T + T[:3, 3], cam.K.to(joints)).cpu().numpy()
+    hands = [m for m in scene.models if is_hand(m)]
+    located_uv = np.full((21 * len(hands), 2), np.nan)
+    conf, z = np.zeros(21 * len(hands)), np.full(21 * len(hands), np.nan)
+    for j, m in enumerate(hands):
+        loc = next((h for h in seg.located if h.side == m.side), None)
+        if loc is None and j < len(seg.located):
+            loc = seg.located[j]
+        if loc is not None:
+            located_uv[21 * j:21 * j + 21], conf[21 * j:21 * j + 21] = loc.uv, loc.confidence
+            z[21 * j:21 * j + 21] = loc.z
+    return fit_check(model, data, seg.mask, seg.labels, uv, located_uv, conf, z, float(cam.fx))
+
+
+def hand_sides(scene: Scene) -> tuple:
+    """The sides (``"left"`` / ``"right"``) of a scene's hands, in scene order, that the
+    localiser looks for."""
+    return tuple(m.side for m in scene.models if m.kind == "hand" and m.side)
+
+
+@lru_cache(maxsize=None)
+def model_sides(names: tuple) -> tuple:
+    """:func:`hand_sides` of the scene of these model names (read once per process)."""
+    return hand_sides(Scene.from_names(list(names)))

@@ -12,13 +12,13 @@ import numpy as np
 import torch
 
 from torchhand.app.drawing import depth_to_color, draw_mask_outline, draw_skeleton
-from torchhand.app.frames import read_frame, segment_for_search, segment_of
+from torchhand.app.frames import hand_sides, read_frame, segment_for_search, segment_of
 from torchhand.data.layout import SequenceInfo, SequenceLayout, read_depth, read_init_pose, read_sequence_info, \
     write_init_pose
 from torchhand.model.scene import Scene
 from torchhand.scoring.metrics import fit_quality
 from torchhand.tracking.initialization import InitConfig, Initializer, InitResult
-from torchhand.tracking.segmentation import SegmentConfig, segment_hands
+from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import Tracker, TrackerConfig
 
 __all__ = ["initialize_sequence", "automatic_init", "first_pose"]
@@ -36,8 +36,8 @@ def first_pose(root: Path, info: SequenceInfo, scene: Scene, initializer: Option
                              f"{list(info.models)} has {scene.num_dofs} DoF")
         return th, ""
     if initializer is None:
-        raise ValueError(f"{root}: no init_pose.json, and the automatic initialisation places hands only, in one "
-                         f"depth view (the scene {list(info.models)}, {len(info.cameras)} view(s), this energy): "
+        raise ValueError(f"{root}: no init_pose.json, and the automatic initialisation places hands only, from "
+                         f"depth (the scene {list(info.models)}, {len(info.cameras)} view(s), this energy): "
                          "write init_pose.json")
     res = automatic_init(root, info, initializer, cam, segment)
     return res.theta.cpu().double().numpy(), (f"no init_pose.json: initialised automatically (depth discrepancy "
@@ -47,12 +47,31 @@ def first_pose(root: Path, info: SequenceInfo, scene: Scene, initializer: Option
 def automatic_init(root: Path, info: SequenceInfo, initializer: Initializer, cam,
                    segment: Optional[SegmentConfig]) -> InitResult:
     """The automatic initialisation of a sequence's frame 0 (its segmentation, or the
-    automatic one with as many hands as the scene has)."""
+    automatic one with as many hands as the scene has). A camera rig is initialised in
+    the view where the hands are seen best (the localiser's hand pixels times their
+    score; camera 0 with the blob rules); the pose is in world coordinates either way."""
     segment = segment_for_search(segment, initializer.tracker.scene)
-    path = SequenceLayout(root).depth(0)
-    depth = read_depth(path, info.depth_unit_mm)
-    seg = segment_hands(depth, info.cameras[0], segment, frame=str(path))
-    return initializer(depth, cam, seg)
+    seq = SequenceLayout(root)
+    sides = hand_sides(initializer.tracker.scene)
+    best, first_error = None, None
+    for c in range(len(info.cameras)):
+        path = seq.depth(0, c)
+        depth = read_depth(path, info.depth_unit_mm)
+        try:
+            seg = segment_hands(depth, info.cameras[c], segment, frame=str(path), sides=sides)
+        except SegmentationError as err:
+            first_error = first_error or err
+            continue
+        seen = sum(float(h.score) * float(h.mask.sum()) for h in seg.located) if seg.located else float(seg.mask.sum())
+        if best is None or (len(seg.blobs), seen) > best[0]:
+            best = ((len(seg.blobs), seen), c, depth, seg)
+        if not seg.located:  # the blob rules: camera 0 as before
+            break
+    if best is None:
+        raise first_error
+    _, c, depth, seg = best
+    camera = cam if c == 0 else info.cameras[c].to(cam.device)
+    return initializer(depth, camera, seg)
 
 
 def initialize_sequence(root, force: bool = False, segment: Optional[SegmentConfig] = None,

@@ -19,12 +19,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchhand.app.frames import FrameReader, pose_fit, segment_for_search, segment_of
+from torchhand.app.frames import FrameReader, hand_sides, pose_fit, segment_for_search, segment_of
 from torchhand.app.initialize import first_pose
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE, NAIL_SOURCES, REINIT_IOU, TrackOptions
 from torchhand.app.outputs import TrackedSequence, failed, write_sequence
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb, read_sequence_info
 from torchhand.model.scene import Scene
+from torchhand.scoring.metrics import FitCheck
 from torchhand.tracking.energies import EnergyTerm, parse_energy
 from torchhand.tracking.initialization import Initializer
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
@@ -177,9 +178,6 @@ def _unusable(root: Path, info: SequenceInfo, needs: set, segment: Optional[Segm
         k = next(k for k, size in enumerate(sizes) if size != sizes[0])
         return (f"{root}: sequence.json camera {k} is {sizes[k][0]}x{sizes[k][1]} px, camera 0 is {sizes[0][0]}x"
                 f"{sizes[0][1]}: every view of a rig needs the same image size")
-    if len(info.cameras) > 1 and (segment is not None or info.segmentation is not None):
-        return (f"{root}: a segmentation (--segment or sequence.json) reads one depth view; a camera rig "
-                f"({len(info.cameras)} views) is tracked unsegmented")
     return ""
 
 
@@ -202,10 +200,11 @@ def _track_batch(run: _Run, models: list, V: int, members: List[int],
     tracker = Tracker(scene, opt.config, terms)  # terms None: the tracker's own of the config
     cams = [run.infos[k].cameras[0].to(opt.device) for k in members]
     rigs = [[c.to(opt.device) for c in run.infos[k].cameras] for k in members] if V > 1 else None
-    segs = [segment_of(run.infos[k], opt.segment) if V == 1 else None for k in members]
+    segs = [segment_of(run.infos[k], opt.segment) for k in members]
     hands_only = all(m.kind == "hand" for m in scene.models)
-    # the automatic initialisation and re-initialisation read one depth view
-    initializer = Initializer(tracker, opt.init_config) if hands_only and V == 1 and "depth" in needs else None
+    # the automatic initialisation reads the depth view that sees the hands best, the
+    # re-initialisation and the fit check camera 0's
+    initializer = Initializer(tracker, opt.init_config) if hands_only and "depth" in needs else None
     init, init_notes = _starts(run, members, scene, initializer, cams, segs)
     n_frames = max(run.infos[k].frames for k in members)
     frames = FrameReader([run.roots[k] for k in members], [run.infos[k] for k in members], n_frames, segs,
@@ -278,8 +277,8 @@ class _Refit:
         self.quality: List[List[tuple]] = []
         self.reinitialized: List[List[bool]] = []
 
-    def fit(self, theta: torch.Tensor, i: int, data: np.ndarray) -> tuple:
-        return pose_fit(self.scene, self.tracker.renderer, theta, self.cams[i], data)
+    def fit(self, theta: torch.Tensor, i: int, data: np.ndarray, seg=None) -> FitCheck:
+        return pose_fit(self.scene, self.tracker.renderer, theta, self.cams[i], data, seg)
 
     def __call__(self, f: int, res: FrameResult) -> FrameResult:
         record = self.frames.record(f)
@@ -287,33 +286,46 @@ class _Refit:
         quality, flags = [], []
         for i, depth in enumerate(record.depths):
             if depth is None or not bool(res.valid[i]):
-                quality.append((float("nan"), float("nan")))
+                quality.append(FitCheck(float("nan"), float("nan")))
                 flags.append(False)
                 continue
+            seg = record.segmentations[i]
+            if seg is not None and seg.note and not notes[i]:
+                notes[i] = seg.note
             data = np.where(np.isnan(depth) | ((depth >= self.near) & (depth <= self.far)), depth, 0)
-            q, flag = self.fit(theta[i], i, data), False
-            if self.initializer is not None and f > 0 and q[0] < self.reinit_iou:
-                q, flag = self._reinitialise(i, depth, record.segmentations[i], data, theta, q, notes)
+            q, flag = self.fit(theta[i], i, data, seg), False
+            if self.initializer is not None and f > 0 and (q.iou < self.reinit_iou or q.flagged):
+                q, flag = self._reinitialise(i, depth, seg, data, theta, q, notes)
             quality.append(q)
             flags.append(flag)
         self.quality.append(quality)
         self.reinitialized.append(flags)
         return res._replace(theta=theta, notes=notes)
 
-    def _reinitialise(self, i: int, depth: np.ndarray, seg, data: np.ndarray, theta: torch.Tensor, q: tuple,
+    def _reinitialise(self, i: int, depth: np.ndarray, seg, data: np.ndarray, theta: torch.Tensor, q: FitCheck,
                       notes: list) -> tuple:
-        """The search around problem ``i``'s pose; its pose replaces ``theta[i]`` when it
-        fits better. Returns (fit quality, re-initialised)."""
+        """The search around problem ``i``'s pose (seeded from the localiser's joints where
+        it found them); its pose replaces ``theta[i]`` when it fits better: for a failed
+        fit check, one that passes it or explains more of the localiser's hand and lies
+        less off it; else a higher silhouette IoU.
+        Returns (fit check, re-initialised)."""
+        why = (f"fit check (keypoints {q.keypoint_mm:.0f} mm from the localiser's, {q.explained:.2f} of its hand "
+               f"explained, {q.off_hand:.2f} off it)" if q.flagged else f"silhouette IoU {q.iou:.2f}")
         try:
             if seg is None:
-                seg = segment_hands(depth, self.cams[i], self.search[i])
+                seg = segment_hands(depth, self.cams[i], self.search[i], sides=hand_sides(self.scene))
             new = self.initializer(depth, self.cams[i], seg, around=theta[i])
         except (SegmentationError, ValueError) as err:
-            notes[i] = f"silhouette IoU {q[0]:.2f}; no re-initialisation: {err}"
+            notes[i] = f"{why}; no re-initialisation: {err}"
             return q, False
-        q2 = self.fit(new.theta.to(theta), i, data)
-        if q2[0] > q[0]:
-            notes[i] = f"re-initialised: silhouette IoU {q[0]:.2f} -> {q2[0]:.2f} ({new.seconds:.1f} s)"
+        q2 = self.fit(new.theta.to(theta), i, data, seg)
+        by_check = q.flagged and np.isfinite(q.explained) and np.isfinite(q2.explained)
+        better = ((not q2.flagged, q2.explained - q2.off_hand) > (False, q.explained - q.off_hand) if by_check
+                  else q2.iou > q.iou)
+        if better:
+            what = (f"hand explained {q.explained:.2f} -> {q2.explained:.2f}, off it {q.off_hand:.2f} -> "
+                    f"{q2.off_hand:.2f}" if by_check else f"silhouette IoU {q.iou:.2f} -> {q2.iou:.2f}")
+            notes[i] = f"re-initialised ({why}): {what} ({new.seconds:.1f} s)"
             theta[i] = new.theta.to(theta)
             return q2, True
         return q, False

@@ -3,7 +3,11 @@
 Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
 ``torchhand init``. Per hand blob of the segmentation (:mod:`torchhand.tracking.segmentation`):
 
-1. seeds: the model's palm centre on the blob's palm centre (12 mm behind the seen
+1. seeds: where the localiser found the hand's 21 joints (``segment auto``), first the
+   pose whose standard joints best fit them (:func:`keypoint_pose`: the palm by a rigid
+   fit of the wrist and knuckles, then every DoF by LM on all 21 joints weighted by
+   their confidence), so half-closed hands and fists start curled; and always the
+   blob's seeds: the model's palm centre on the blob's palm centre (12 mm behind the seen
    surface), the hand's length axis on the blob's first principal axis (pointing away
    from the forearm where one was seen; else towards the fingertips that the shipped
    detector finds on the blob, when at least two lie 20 mm or more along the axis from
@@ -45,6 +49,9 @@ from torchhand.core.check import skip_checks
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.geometry.render import Renderer
+from torchhand.geometry.rigid import kabsch
+from torchhand.model.joints21 import joint_sources, standard_joints
+from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.model.kinematics import so3_log
 from torchhand.model.proxy import coarse_model
 from torchhand.model.scene import Scene
@@ -53,7 +60,12 @@ from torchhand.tracking.preprocess import preprocess_depth
 from torchhand.tracking.segmentation import Segmentation
 
 __all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth_discrepancy", "crop_camera",
-           "search_box"]
+           "search_box", "keypoint_pose", "KEYPOINT_SEED_CONFIDENCE"]
+
+#: A located hand seeds the search from its joints when their mean confidence reaches this.
+KEYPOINT_SEED_CONFIDENCE = 0.3
+#: The palm's joints among the standard 21 (wrist, thumb CMC, the four knuckles).
+_PALM_JOINTS = [0, 1, 5, 9, 13, 17]
 
 
 #: Fingertip detections scoring below this are not used (as the salient-point term).
@@ -183,6 +195,18 @@ class Initializer:
 
     def _seed_poses(self, model, k: int, segmentation: Segmentation, data_full: np.ndarray,
                     camera: Camera) -> list:
+        located = segmentation.located[k] if k < len(segmentation.located) else None
+        if located is not None and float(np.mean(located.confidence)) >= KEYPOINT_SEED_CONFIDENCE:
+            joints = np.stack([(located.uv[:, 0] - camera.cx) * located.z / camera.fx,
+                               (located.uv[:, 1] - camera.cy) * located.z / camera.fy, located.z], 1)
+            # the joints' pose first; the blob's seeds stay hypotheses of their own swarms
+            # (the swarm keeps what fits the depth best: a few misplaced joints cannot trap it)
+            return [keypoint_pose(model, joints, located.confidence, camera)] + self._blob_seeds(
+                model, k, segmentation, data_full, camera)
+        return self._blob_seeds(model, k, segmentation, data_full, camera)
+
+    def _blob_seeds(self, model, k: int, segmentation: Segmentation, data_full: np.ndarray,
+                    camera: Camera) -> list:
         """The seed hypotheses (D_m,) float64 of one hand ``model`` from its blob ``k``:
         the palm at the blob's palm point, the hand's length along the blob's main axis
         (pointing away from the forearm, or towards the fingertips seen, else both ways)
@@ -284,6 +308,46 @@ class Initializer:
                      tracker.renderer)[0]
         k = int(torch.argmin(final))
         return InitResult(refined[k].detach(), float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
+
+
+def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Camera, iterations: int = 30
+                  ) -> torch.Tensor:
+    """(D,) float64 the pose of hand ``model`` whose standard 21 joints
+    (:mod:`torchhand.model.joints21`) best fit ``joints`` (21, 3) mm in ``camera``'s
+    frame, weighted by ``confidence`` (21,): the global pose by a rigid fit of the palm's
+    joints (wrist, thumb base, knuckles), then every DoF within its limits by LM on all
+    21 joints (``iterations``)."""
+    m = model
+    dt = m.vertices_rest.dtype
+    src = joint_sources(m)
+    T_wc = camera.T_wc.to(dt).cpu()
+    target = torch.as_tensor(joints, dtype=dt) @ T_wc[:3, :3].T + T_wc[:3, 3]  # world frame
+    w = torch.as_tensor(np.clip(confidence, 0.05, 1.0), dtype=dt).sqrt()
+    with torch.no_grad():
+        rest = standard_joints(m(m.zero_pose(1).to(dt)), m, src)[0]
+    T = kabsch(rest[_PALM_JOINTS].double(), target[_PALM_JOINTS].double()).to(dt)
+    rc = m.rest_transforms[0][:3, 3]
+    theta0 = torch.zeros(1, m.num_dofs, dtype=dt)
+    theta0[0, 3:6] = so3_log(T[None, :3, :3])[0]
+    theta0[0, :3] = T[:3, 3] + T[:3, :3] @ rc - rc
+
+    D = m.num_dofs
+    eps = 1e-3
+
+    def residuals(theta: torch.Tensor, with_jacobian: bool) -> tuple:
+        # one batched forward: theta and its central differences (LBS of 75 poses is
+        # cheaper than 37 backward passes)
+        th = theta if not with_jacobian else torch.cat(
+            [theta, theta + eps * torch.eye(D, dtype=dt), theta - eps * torch.eye(D, dtype=dt)])
+        with torch.no_grad(), skip_checks():
+            r = ((standard_joints(m(th, validate=False), m, src) - target) * w[:, None]).reshape(len(th), -1)
+        if not with_jacobian:
+            return r, None
+        J = ((r[1:D + 1] - r[D + 1:]) / (2 * eps)).T[None]
+        return r[:1], J
+
+    res = levenberg_marquardt(residuals, theta0, m.lower, m.upper, max_iterations=iterations)
+    return res.theta[0].detach().double()
 
 
 def _spread(scene, config: InitConfig) -> torch.Tensor:

@@ -8,13 +8,22 @@ frame (:func:`segment_hands`):
 2. split the valid pixels into depth-connected blobs: neighbours belong together when
    their depths differ by less than ``jump`` mm (a hand in front of the body is cut
    from it by the depth step at its outline);
-3. ``mode="auto"``: the hands are the ``hands`` nearest blobs (by their 5th percentile
+3. ``mode="auto"`` (the default): the learned hand localiser
+   (:mod:`torchhand.salient.localiser`) classifies every pixel as background, left
+   hand, right hand or arm and body, and finds each hand's 21 joints and handedness;
+   the hands are its most confident hands, those of the scene's sides first (a second
+   hand of the same side, or a hand clearly (handedness >= 0.8) of a side the scene has
+   no model for, is reported in ``Segmentation.note`` and its pixels are unknown to the tracker); the arm's and
+   body's pixels within a hand's window are ``cut`` (unknown, not free space). When it
+   finds no hand scoring ``min_score`` or more, the blob rules below decide, and
+   ``note`` says so;
+   ``mode="blobs"``: the hands are the ``hands`` nearest blobs (by their 5th percentile
    depth) whose area is that of a hand (``min_area_mm2`` .. ``max_area_mm2``, measured
    in the blob's own depth, so the choice does not depend on the distance); a blob
    within ``depth_band`` mm of its nearest point is kept, the rest of it (the body
    behind a hand that touches it) is dropped. ``mode="range"``: every valid pixel in
    the range is hand, nothing is cut (floating renders, or a user's own ``--near/--far``);
-4. cut at the wrist: the palm centre is the blob point deepest inside the blob (the
+4. (blobs) cut at the wrist: the palm centre is the blob point deepest inside the blob (the
    maximum of its distance transform, in mm); the forearm is the part of the blob
    beyond ``reach_mm`` of the palm centre that reaches farthest (a forearm is longer
    than any finger); the data beyond a plane at ``wrist_cut_mm`` from the palm
@@ -37,19 +46,21 @@ defaults suit hands 0.3-1.5 m from a depth camera and are documented in docs/rea
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from typing import Dict, List, NamedTuple, Optional
+from dataclasses import asdict, dataclass, replace
+from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
 
 from torchhand.geometry.camera import Camera
 
-__all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands", "skin_mask", "SEGMENT_MODES"]
+__all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands", "locate_hands", "skin_mask",
+           "SEGMENT_MODES", "shared_localiser"]
 
-#: the segmentation modes: none (all valid data), range (the depth range only), auto,
-#: skin (the skin-coloured pixels of the colour image)
-SEGMENT_MODES = ("none", "range", "auto", "skin")
+#: the segmentation modes: none (all valid data), range (the depth range only), auto
+#: (the learned localiser, the blob rules as fallback), blobs (the blob rules), skin (the
+#: skin-coloured pixels of the colour image)
+SEGMENT_MODES = ("none", "range", "auto", "blobs", "skin")
 
 
 class SegmentationError(ValueError):
@@ -74,6 +85,7 @@ class SegmentConfig:
     reach_mm: float = 140.0
     wrist_cut_mm: float = 69.0
     strict: bool = False
+    min_score: float = 0.5
 
     def __post_init__(self) -> None:
         if self.mode not in SEGMENT_MODES:
@@ -100,13 +112,24 @@ class Segmentation(NamedTuple):
     ordered by image column of the palm centre (left to right); palms: (n, 3) camera-
     frame palm centres (mm); forearm: (n, 3) unit directions from the palm centre
     towards the forearm (zeros where none was seen); cut: (H, W) bool, the pixels
-    dropped by the wrist cut."""
+    dropped by the wrist cut (or, with the localiser, the arm and body near a hand).
+
+    With the localiser (``mode="auto"``): ``located`` holds each blob's
+    :class:`~torchhand.salient.localiser.LocatedHand` (joints, handedness), ``labels`` its
+    class of every pixel (:data:`~torchhand.salient.localiser_data.CLASSES`; 255 where
+    the sensor measured nothing: the fit check's evidence), ``source`` is
+    ``"localiser"`` (``"blobs"`` for the blob rules, also as the fallback) and ``note``
+    says what a user should know (a fallback, an extra hand)."""
 
     mask: np.ndarray
     blobs: List[np.ndarray]
     palms: np.ndarray
     forearm: np.ndarray
     cut: np.ndarray
+    located: tuple = ()
+    labels: Optional[np.ndarray] = None
+    source: str = "blobs"
+    note: str = ""
 
     def apply(self, depth: np.ndarray) -> np.ndarray:
         """The depth the tracker sees: the hands' pixels, 0 elsewhere, and NaN on the
@@ -159,13 +182,16 @@ def _skin_blobs(d: np.ndarray, valid: np.ndarray, rgb: Optional[np.ndarray], han
 
 
 def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = SegmentConfig(),
-                  frame: Optional[str] = None, rgb: Optional[np.ndarray] = None) -> Segmentation:
+                  frame: Optional[str] = None, rgb: Optional[np.ndarray] = None, sides: Sequence[str] = (),
+                  localiser=None) -> Segmentation:
     """Segment the hands of one depth map (H, W) in mm (0 = no measurement).
 
     ``frame`` names the frame in error messages; ``rgb``: the (H, W, 3) uint8 colour
-    frame, needed by ``mode="skin"``. Raises :class:`SegmentationError` when no
-    hand-sized blob is in range, or (``strict``) when more blobs than hands stand in
-    front.
+    frame, needed by ``mode="skin"``; ``sides``: the scene's hands (``"left"`` /
+    ``"right"``, one per hand model) that the localiser looks for; ``localiser``: a
+    :class:`~torchhand.salient.localiser.HandLocaliser` (default: the shipped one,
+    loaded once per process). Raises :class:`SegmentationError` when no hand is found,
+    or (``strict``) when more blobs than hands stand in front.
     """
     where = f"{frame}: " if frame else ""
     d = np.asarray(depth, np.float32)
@@ -185,6 +211,13 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     if not valid.any():
         raise SegmentationError(f"{where}no depth between {config.near:g} and {config.far:g} mm")
     fx, fy = camera.fx, camera.fy
+    note, labels = "", None
+    if config.mode == "auto":
+        found = locate_hands(d, camera, config, sides, localiser, where)
+        if found.source == "localiser":
+            return found
+        note = f"the hand localiser found no hand scoring {config.min_score:g} or more; the blob rules decided"
+        config, labels = replace(config, mode="blobs"), found.labels
     if config.mode in ("none", "range"):
         blobs = [valid]
     elif config.mode == "skin":
@@ -194,7 +227,7 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     points = _points(d, camera)
     out, palms, arms, cut = [], [], [], empty.copy()
     for blob in blobs:
-        if config.mode == "auto":
+        if config.mode == "blobs":
             palm, arm, keep = _wrist_cut(blob, d, points, fx, config)
         else:  # the data as it is: a palm centre for the seeds, nothing cut
             palm, arm, keep = _palm_centre(blob, d, points, fx)[0], np.zeros(3), blob
@@ -208,7 +241,7 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     out = [out[k] for k in order]
     mask = np.any(out, 0) if out else empty
     return Segmentation(mask, out, np.array([palms[k] for k in order]).reshape(-1, 3),
-                        np.array([arms[k] for k in order]).reshape(-1, 3), cut)
+                        np.array([arms[k] for k in order]).reshape(-1, 3), cut, labels=labels, note=note)
 
 
 def _column(p: np.ndarray, camera: Camera) -> float:
@@ -343,3 +376,100 @@ def _wrist_cut(blob: np.ndarray, d: np.ndarray, points: np.ndarray, fx: float, c
         if labels[r, c] > 0:
             keep = labels == labels[r, c]
     return palm, arm, keep
+
+
+_LOCALISER = None
+#: A hand of the other side than the scene's model is warned about when the localiser's
+#: handedness is at least this clear (its votes on real frames are often near 0.5).
+CLEAR_HANDEDNESS = 0.8
+
+
+def shared_localiser():
+    """The shipped :class:`~torchhand.salient.localiser.HandLocaliser` (ONNX Runtime),
+    loaded once per process."""
+    global _LOCALISER
+    if _LOCALISER is None:
+        from torchhand.salient.localiser import HandLocaliser
+
+        _LOCALISER = HandLocaliser.load()
+    return _LOCALISER
+
+
+def _back_project(uv: np.ndarray, z: np.ndarray, camera: Camera) -> np.ndarray:
+    return np.stack([(uv[:, 0] - camera.cx) * z / camera.fx, (uv[:, 1] - camera.cy) * z / camera.fy, z], 1)
+
+
+def _cut_forearm(mask: np.ndarray, points: np.ndarray, palm: np.ndarray, arm: np.ndarray,
+                 config: SegmentConfig) -> np.ndarray:
+    """A located hand's pixels without the forearm: where they reach farther than
+    ``reach_mm`` from the palm centre towards the wrist joint (no finger reaches that
+    far, so a forearm is in the mask), those beyond ``wrist_cut_mm`` are dropped, as
+    the blob rules' wrist cut (the shipped hands end there)."""
+    along = (points[mask] - palm) @ arm
+    if not len(along) or along.max() <= config.reach_mm:
+        return mask
+    keep = mask.copy()
+    keep[mask] = along <= config.wrist_cut_mm
+    return keep
+
+
+def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Sequence[str] = (),
+                 localiser=None, where: str = "") -> Segmentation:
+    """The localiser's segmentation of a range-clipped depth map ``d`` (see the module).
+
+    Raises :class:`SegmentationError` when it finds no hand at all (a frame of body,
+    arm or room only: the blob rules would take a part of the body for a hand). When
+    its hands all score below ``config.min_score``, returns an empty segmentation of
+    ``source="none"`` holding only its ``labels`` (the caller's blob rules decide).
+    """
+    loc = (localiser or shared_localiser()).locate(d)
+    labels = np.where(d > 0, loc.labels, 255).astype(np.uint8)
+    if not loc.hands:
+        raise SegmentationError(f"{where}the hand localiser found no hand in view (--segment blobs takes the "
+                                "nearest hand-sized depth blob instead)")
+    good = [h for h in loc.hands if h.score >= config.min_score]
+    if not good:
+        H, W = d.shape
+        return Segmentation(np.zeros((H, W), bool), [], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((H, W), bool),
+                            labels=labels, source="none")
+    want = list(sides)[: config.hands] if sides else []
+    picked, notes = [], []
+    for side in want:  # the scene's sides first, each its most confident hand
+        h = next((h for h in good if h.side == side and not any(h is p for p in picked)), None)
+        if h is not None:
+            picked.append(h)
+    for h in good:  # then any other hand, up to the number asked for
+        if len(picked) < config.hands and not any(h is p for p in picked):
+            if want and h.handedness >= CLEAR_HANDEDNESS:
+                notes.append(f"a {h.side} hand (handedness {h.handedness:.2f}) is taken for the scene's "
+                             f"{' and '.join(want)} hand model(s)")
+            picked.append(h)
+    for h in good:
+        if not any(h is p for p in picked):
+            notes.append(f"another {h.side} hand (score {h.score:.2f}) was found and left out")
+    H, W = d.shape
+    cut = np.zeros((H, W), bool)
+    for h in loc.hands:
+        r0, r1, c0, c1 = h.box
+        win = np.zeros((H, W), bool)
+        win[max(r0, 0):max(r1, 0), max(c0, 0):max(c1, 0)] = True
+        cut |= win & (loc.labels == 3)
+        if not any(h is p for p in picked):
+            cut |= h.mask
+    order = np.argsort([float(np.mean(h.uv[:, 0])) for h in picked], kind="stable")
+    picked = [picked[k] for k in order]
+    palms, arms, blobs = [], [], []
+    points = _points(d, camera)
+    for h in picked:
+        j = _back_project(h.uv.astype(np.float64), h.z.astype(np.float64), camera)
+        palm = j[[0, 5, 9, 13, 17]].mean(0)
+        arm = j[0] - j[[5, 9, 13, 17]].mean(0)
+        arm = arm / max(np.linalg.norm(arm), 1e-9)
+        palms.append(palm)
+        arms.append(arm)
+        blobs.append(_cut_forearm(h.mask, points, palm, arm, config))
+    for h, blob in zip(picked, blobs):
+        cut |= h.mask & ~blob
+    return Segmentation(np.any(blobs, 0), blobs, np.array(palms).reshape(-1, 3), np.array(arms).reshape(-1, 3),
+                        cut & ~np.any(blobs, 0), tuple(picked), labels, "localiser",
+                        "; ".join(notes))

@@ -290,9 +290,8 @@ def import_dexycb(src, out, force: bool = False, segmentation: Optional[Dict] = 
         src: ``<root>/<subject>/<YYYYMMDD_HHMMSS>``; the calibration is read from ``<root>/calibration``.
         out: sequence folder to create (must be new or empty unless ``force``).
         force: replace a non-empty ``out``.
-        segmentation: hand-segmentation settings stored in ``sequence.json`` for a single
-            camera; a rig is tracked unsegmented by the runner, so with several cameras they
-            are kept in ``source.segmentation_not_applied`` instead.
+        segmentation: hand-segmentation settings stored in ``sequence.json`` (applied to
+            every view of the rig: a view that finds no hand costs nothing).
         cameras: serials to import (default: all of ``meta.yml``).
     Returns:
         the written :class:`SequenceInfo`: one camera per serial (camera 0 the master),
@@ -317,11 +316,6 @@ def import_dexycb(src, out, force: bool = False, segmentation: Optional[Dict] = 
     source = {"format": "dexycb", "imported_from": str(src), "subject": src.parent.name, "sequence": src.name,
               "serials": serials, "master": master, "extrinsics": meta.extrinsics,
               "frames_without_pose": np.nonzero(~valid.any(-1))[0].tolist()}
-    if segmentation is not None and len(serials) > 1:
-        # the runner segments one depth view and tracks a rig unsegmented (it refuses a rig with a
-        # segmentation): the settings are kept in the provenance, not where the runner reads them
-        source["segmentation_not_applied"] = segmentation
-        segmentation = None
     info = SequenceInfo(out.name, rig, [meta.model], meta.frames, FPS, 1.0, True, source, segmentation)
 
     def write_frames(seq: SequenceLayout) -> None:
