@@ -28,8 +28,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List
 
@@ -54,7 +53,7 @@ WEIGHT_NAME = "hand_localiser"
 class LocaliserTrainConfig(RunConfig):
     """A localiser run (``--config`` JSON overrides fields)."""
 
-    steps: int = 1800
+    steps: int = 4000
     batch_size: int = 24
     lr: float = 3e-3
     checkpoint_every: int = 150
@@ -178,8 +177,9 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
 
 
 def targets(joints: torch.Tensor, ref: torch.Tensor, size: int, cfg: LocaliserTrainConfig) -> tuple:
-    """Heat-map targets (B, 42, h, w), the positive cells (B, 42, h, w) bool, offset
-    targets (B, 84, h, w) and depth targets (B, 42, h, w) at stride 2."""
+    """Heat-map targets (B, 21, h, w) (the joints of both hands share a channel: the
+    larger Gaussian wins), the positive cells (B, 21, h, w) bool, offset targets (B, 42,
+    h, w) and depth targets (B, 21, h, w) at stride 2."""
     B = joints.shape[0]
     h = w = size // STRIDE
     J = joints.reshape(B, 42, 3)
@@ -190,18 +190,19 @@ def targets(joints: torch.Tensor, ref: torch.Tensor, size: int, cfg: LocaliserTr
     xs = torch.arange(w, dtype=torch.float32).view(1, 1, 1, w)
     ys = torch.arange(h, dtype=torch.float32).view(1, 1, h, 1)
     g = torch.exp(-((xs - pc[..., 0, None, None]) ** 2 + (ys - pc[..., 1, None, None]) ** 2) / (2 * cfg.heat_sigma ** 2))
-    g = g * inside[..., None, None]
-    pos = torch.zeros(B, 42, h, w, dtype=torch.bool)
+    g = (g * inside[..., None, None]).reshape(B, 2, 21, h, w).amax(1)
+    pos = torch.zeros(B, 21, h, w, dtype=torch.bool)
     b_i, j_i = torch.nonzero(inside, as_tuple=True)
-    pos[b_i, j_i, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = True
+    c_i = j_i % 21
+    pos[b_i, c_i, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = True
     heat = torch.where(pos, torch.ones_like(g), g)
-    off = torch.zeros(B, 84, h, w)
-    dep = torch.zeros(B, 42, h, w)
+    off = torch.zeros(B, 42, h, w)
+    dep = torch.zeros(B, 21, h, w)
     delta = pc - cell.float()
     rel = (J[..., 2] - ref[:, None]) / LocaliserConfig(**cfg.network).relative_scale_mm
-    off[b_i, 2 * j_i, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = delta[b_i, j_i, 0]
-    off[b_i, 2 * j_i + 1, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = delta[b_i, j_i, 1]
-    dep[b_i, j_i, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = torch.nan_to_num(rel[b_i, j_i])
+    off[b_i, 2 * c_i, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = delta[b_i, j_i, 0]
+    off[b_i, 2 * c_i + 1, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = delta[b_i, j_i, 1]
+    dep[b_i, c_i, cell[b_i, j_i, 1], cell[b_i, j_i, 0]] = torch.nan_to_num(rel[b_i, j_i])
     return heat, pos, off, dep
 
 

@@ -31,6 +31,7 @@ default (:meth:`HandLocaliser.load`).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import List, NamedTuple, Optional
@@ -52,6 +53,9 @@ __all__ = ["LocaliserConfig", "LocaliserOutput", "LocaliserNet", "HandLocaliser"
 LOCALISER_FORMAT = "torchhand.salient.LocaliserNet/1"
 #: How far a joint centre lies behind the skin the sensor sees (mm).
 JOINT_INSIDE_MM = 8.0
+#: Output names of the ONNX graph (the fields of :class:`LocaliserOutput`; the joints'
+#: depth is ``joint_depth``, as ``depth`` names the input).
+ONNX_OUTPUTS = ["classes", "heat", "offset", "joint_depth"]
 #: Output stride of the network (input px per output cell).
 STRIDE = 2
 
@@ -99,10 +103,10 @@ class LocaliserConfig:
 
 
 class LocaliserOutput(NamedTuple):
-    """Network outputs at stride 2: classes (B, 4, h, w) logits; heat (B, 42, h, w)
-    logits (hand-major: left 0..20, right 21..41); offset (B, 84, h, w) sub-cell (du, dv)
-    per joint in cells; depth (B, 42, h, w) joint depth minus the reference, in units of
-    ``relative_scale_mm``."""
+    """Network outputs at stride 2: classes (B, 4, h, w) logits; heat (B, 21, h, w)
+    logits of the joints of any hand (which hand a peak belongs to is read from the
+    classes); offset (B, 42, h, w) sub-cell (du, dv) per joint in cells; depth (B, 21,
+    h, w) joint depth minus the reference, in units of ``relative_scale_mm``."""
 
     classes: torch.Tensor
     heat: torch.Tensor
@@ -140,7 +144,7 @@ class LocaliserNet(nn.Module):
         self.enc3 = nn.Sequential(_conv(c2, c3, 2), *[_conv(c3, c3, dilation=d) for d in self.config.dilations])
         self.dec2 = _conv(c3 + c2, d2)
         self.dec1 = _conv(d2 + c1, d1)
-        J = 2 * self.JOINTS
+        J = self.JOINTS
         self.head = nn.Conv2d(d1, len(CLASSES) + J + 2 * J + J, 1)
         with torch.no_grad():  # heat starts rare (focal-loss prior)
             self.head.bias[len(CLASSES):len(CLASSES) + J] = -4.0
@@ -153,7 +157,7 @@ class LocaliserNet(nn.Module):
         u2 = self.dec2(torch.cat([F.interpolate(e3, size=e2.shape[-2:], mode="nearest"), e2], 1))
         u1 = self.dec1(torch.cat([F.interpolate(u2, size=e1.shape[-2:], mode="nearest"), e1], 1))
         out = self.head(u1)
-        C, J = len(CLASSES), 2 * self.JOINTS
+        C, J = len(CLASSES), self.JOINTS
         return LocaliserOutput(out[:, :C], out[:, C:C + J], out[:, C + J:C + 3 * J], out[:, C + 3 * J:])
 
     def save(self, path) -> Path:
@@ -181,11 +185,13 @@ def export_localiser_onnx(net: LocaliserNet, path, size: int = 128, opset: int =
     net = net.eval()
     x = torch.zeros(1, 1, size, size)
     ref = torch.full((1,), 500.0)
-    names = list(LocaliserOutput._fields)
-    torch.onnx.export(net, (x, ref), str(path), input_names=["depth", "reference"], output_names=names,
-                      dynamic_axes={"depth": {0: "b", 2: "h", 3: "w"}, "reference": {0: "b"},
-                                    **{n: {0: "b", 2: "oh", 3: "ow"} for n in names}},
-                      opset_version=opset, dynamo=False)
+    names = ONNX_OUTPUTS
+    with warnings.catch_warnings():  # the legacy exporter announces its deprecation
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(net, (x, ref), str(path), input_names=["depth", "reference"], output_names=names,
+                          dynamic_axes={"depth": {0: "b", 2: "h", 3: "w"}, "reference": {0: "b"},
+                                        **{n: {0: "b", 2: "oh", 3: "ow"} for n in names}},
+                          opset_version=opset, dynamo=False)
     return path
 
 
@@ -297,8 +303,14 @@ class HandLocaliser:
         """Classes and hands of one (H, W) depth frame in mm (0 = no measurement)."""
         depth = np.asarray(depth)
         if depth.ndim != 2:
-            raise ValueError(f"depth must be one (H, W) frame, got shape {depth.shape}")
-        d = depth.astype(np.float32)
+            raise ValueError(f"depth must be one (H, W) frame in mm, got shape {depth.shape} (colour given as depth?)")
+        if depth.dtype == np.uint8:
+            raise ValueError("depth is 8-bit: expected millimetres (16-bit PNG or float), e.g. a depth "
+                             "visualisation was given instead of the depth")
+        d = np.nan_to_num(depth.astype(np.float32), nan=0.0)
+        valid = d[d > 0]
+        if len(valid) and float(np.median(valid)) < 20.0:
+            raise ValueError(f"depth looks like metres (median {float(np.median(valid)):.3g}): expected millimetres")
         H, W = d.shape
         probs = self._frame_pass(d)
         labels = np.where(d > 0, probs.argmax(0), 0).astype(np.uint8)
@@ -352,7 +364,8 @@ class HandLocaliser:
         hand_p = win[1] + win[2]
         mask = np.zeros((H, W), bool)
         mask[sr, sc] = (hand_p > 0.5) & (d[sr, sc] > 0)
-        uv, z, conf = self._joints(heat, offset, dz, k, ref, side, r0, c0)
+        own = cv2.dilate((p[1 + k] > 0.3).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+        uv, z, conf = self._joints(heat, offset, dz, own, ref, side, r0, c0)
         mask &= self._depth_gate(d, z, conf)
         # the blob the hand was found from: keep the part connected to it
         n, lab = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
@@ -366,21 +379,23 @@ class HandLocaliser:
         return LocatedHand(("left", "right")[k], handedness, score, mask, (r0, r0 + side, c0, c0 + side), uv, z,
                            conf.astype(np.float32))
 
-    def _joints(self, heat, offset, dz, k: int, ref: float, side: int, r0: int, c0: int) -> tuple:
-        """Joints of hand side ``k`` from the crop pass's maps, in frame pixels."""
+    def _joints(self, heat, offset, dz, own: np.ndarray, ref: float, side: int, r0: int, c0: int) -> tuple:
+        """Joints of the crop pass's maps, each the best cell on the hand's own pixels
+        (``own``, the cells of its class, widened; the whole crop when empty), in frame
+        pixels."""
         J = LocaliserNet.JOINTS
-        hm = heat[k * J:(k + 1) * J]
+        hm = np.where(own[None], heat, -np.inf) if own.any() else heat
         h, w = hm.shape[1:]
         flat = hm.reshape(J, -1).argmax(1)
         cy, cx = flat // w, flat % w
-        j = np.arange(J) + k * J
+        j = np.arange(J)
         du, dv = offset[2 * j, cy, cx], offset[2 * j + 1, cy, cx]
         u_in = (cx + 0.5 + du) * STRIDE - 0.5  # cell centre (in input px) + offset
         v_in = (cy + 0.5 + dv) * STRIDE - 0.5
         s = side / self.config.input_size
         uv = np.stack([c0 + (u_in + 0.5) * s - 0.5, r0 + (v_in + 0.5) * s - 0.5], 1)
         z = ref + dz[j, cy, cx] * self.config.relative_scale_mm
-        conf = 1.0 / (1.0 + np.exp(-hm[np.arange(J), cy, cx]))
+        conf = 1.0 / (1.0 + np.exp(-heat[j, cy, cx]))
         return uv, z, conf
 
     @staticmethod

@@ -1,0 +1,258 @@
+"""The hand localiser measured: a realistic synthetic test set, the initialisation it
+seeds, its speed, and the real SR305 frames.
+
+    python eval/exp_localiser.py --json docs/localiser.json --figure docs/localiser_sr305.png \
+        [--frames 200] [--init-frames 30] [--sr305 ../shared/data/real/sr305]
+
+1. **Test set**: ``--frames`` renders of hands in context
+   (:func:`torchhand.salient.localiser_data.render_context_frames`) with a seed never
+   used in training (9001), the finger poses of the thesis motions held out of training
+   (sequences 03, 10, 20) besides random and curled ones, and the independent
+   active-stereo noise model (training used the Kinect one). Measured: the hand-pixel
+   IoU per frame (left and right hand pixels together, pixels with depth) for the
+   localiser and for the blob rules (``--segment blobs``, nearest hand-sized blob cut at
+   the wrist; frames with one hand), the median 2D joint error (px at 640x480) and the
+   3D error of the lifted joints (mm) of the hands found, handedness accuracy and the
+   share of hands found.
+2. **Initialisation**: ``--init-frames`` one-hand frames (right hand, shipped size) are
+   segmented and initialised as ``torchhand track`` does without ``init_pose.json``;
+   success = mean error of the 21 joints <= 10 mm; the time per hand. With
+   ``--compare-blobs``, the same frames with the blob rules' seeds.
+3. **Speed**: the network at its input size (128 px crop, 160x120 frame) and the whole
+   ``locate`` of a 640x480 frame, ONNX Runtime on 2 threads.
+4. **SR305** (``--sr305``): the 19 real frames through ``segment_hands`` (auto); the
+   figure shows each frame's classes (green hand, blue arm/body) and joints. The fit
+   of those frames is measured by ``eval/exp_real.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from torchhand.salient.localiser import HandLocaliser
+from torchhand.salient.localiser_data import IGNORE, ContextConfig, render_context_frames
+
+REPO = Path(__file__).resolve().parents[1]
+HIA = REPO.parent / "shared" / "data" / "hands_in_action"
+TEST_SEED = 9001
+HELD_OUT = ["03", "10", "20"]
+
+
+def _motions() -> dict:
+    from train.hand_localiser import thesis_articulations
+
+    return thesis_articulations(HIA, HELD_OUT) if HIA.is_dir() else {}
+
+
+def test_set(loc: HandLocaliser, n: int) -> dict:
+    """Section 1 of the module docstring."""
+    from torchhand.geometry.camera import Camera
+    from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
+
+    fr = render_context_frames(n, TEST_SEED, ContextConfig(noise="stereo"), _motions(), name="test")
+    ious, blob_ious, single_ious, e2, e3, right, found, total = [], [], [], [], [], 0, 0, 0
+    for f in range(n):
+        res = loc.locate(fr.depth[f].astype(np.float32))
+        known = fr.labels[f] != IGNORE
+        gt = np.isin(fr.labels[f], (1, 2)) & known
+        if not gt.any():
+            continue
+        ious.append(float((np.isin(res.labels, (1, 2)) & gt).sum() / (np.isin(res.labels, (1, 2)) & known | gt).sum()))
+        hands = np.isfinite(fr.joints_z[f]).all(1)
+        if hands.sum() == 1:
+            single_ious.append(ious[-1])
+            K = fr.K[f]
+            cam = Camera.from_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480)
+            try:
+                seg = segment_hands(fr.depth[f].astype(np.float32), cam, SegmentConfig(mode="blobs", far=4000.0))
+                blob_ious.append(float((seg.mask & gt).sum() / ((seg.mask & known) | gt).sum()))
+            except SegmentationError:
+                blob_ious.append(0.0)
+        for k, side in enumerate(("left", "right")):
+            if not hands[k]:
+                continue
+            total += 1
+            uv_gt, z_gt = fr.joints_uv[f, k], fr.joints_z[f, k]
+            cand = [h for h in res.hands if np.mean(np.linalg.norm(h.uv - uv_gt, axis=1)) < 60]
+            if not cand:
+                continue
+            h = cand[0]
+            found += 1
+            right += h.side == side
+            e2.append(np.linalg.norm(h.uv - uv_gt, axis=1))
+            K = fr.K[f]
+            p = lambda uv, z: np.stack([(uv[:, 0] - K[0, 2]) * z / K[0, 0], (uv[:, 1] - K[1, 2]) * z / K[1, 1], z], 1)
+            e3.append(np.linalg.norm(p(h.uv, h.z) - p(uv_gt, z_gt), axis=1))
+    e2, e3 = np.concatenate(e2), np.concatenate(e3)
+    return {"frames": n, "hands": total, "hand_iou_mean": float(np.mean(ious)),
+            "hand_iou_median": float(np.median(ious)), "frames_iou_ge_0_9": float(np.mean(np.array(ious) >= 0.9)),
+            "blobs_hand_iou_mean": float(np.mean(blob_ious)) if blob_ious else None,
+            "localiser_hand_iou_mean_one_hand_frames": float(np.mean(single_ious)) if single_ious else None,
+            "keypoints_2d_median_px": float(np.median(e2)), "keypoints_2d_mean_px": float(np.mean(e2)),
+            "keypoints_3d_median_mm": float(np.median(e3)), "keypoints_3d_mean_mm": float(np.mean(e3)),
+            "handedness_accuracy": right / max(found, 1), "hands_found": found / max(total, 1)}
+
+
+def initialisation(n: int, compare_blobs: bool) -> dict:
+    """Section 2 of the module docstring."""
+    from torchhand.geometry.camera import Camera
+    from torchhand.model.joints21 import standard_joints
+    from torchhand.model.scene import Scene
+    from torchhand.tracking.initialization import Initializer
+    from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
+    from torchhand.tracking.tracker import Tracker, TrackerConfig
+
+    cfg = ContextConfig(noise="stereo", p_two_hands=0.0, scale=(1.0, 1.0), finger_factor=(1.0, 1.0),
+                        distance_mm=(350.0, 900.0))
+    fr = render_context_frames(2 * n, TEST_SEED + 1, cfg, _motions(), name="init")
+    keep = [f for f in range(len(fr.depth)) if np.isfinite(fr.joints_z[f, 1]).all()][:n]
+    scene = Scene.from_names(["hand_right"])
+    init = Initializer(Tracker(scene, TrackerConfig()))
+    out = {}
+    for mode in ("auto",) + (("blobs",) if compare_blobs else ()):
+        errs, secs, fails = [], [], 0
+        for f in keep:
+            K = fr.K[f]
+            cam = Camera.from_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480)
+            depth = fr.depth[f].astype(np.float32)
+            t0 = time.perf_counter()
+            try:
+                seg = segment_hands(depth, cam, SegmentConfig(mode=mode, far=4000.0), sides=("right",))
+                res = init(depth, cam, seg)
+            except (SegmentationError, ValueError):
+                fails += 1
+                errs.append(float("inf"))
+                continue
+            secs.append(time.perf_counter() - t0)
+            m = scene.models[0]
+            with torch.no_grad():
+                j = standard_joints(m(res.theta[None].float()), m)[0].numpy()
+            uv, z = fr.joints_uv[f, 1], fr.joints_z[f, 1]
+            gt = np.stack([(uv[:, 0] - K[0, 2]) * z / K[0, 0], (uv[:, 1] - K[1, 2]) * z / K[1, 1], z], 1)
+            errs.append(float(np.linalg.norm(j - gt, axis=1).mean()))
+            print(f"init ({mode}) frame {f}: {errs[-1]:.1f} mm, {secs[-1]:.1f} s", flush=True)
+        e = np.array(errs)
+        out[mode] = {"tries": len(keep), "success_le_10mm": float(np.mean(e <= 10.0)),
+                     "median_mm": float(np.median(e)), "failed_to_segment": fails,
+                     "seconds_per_hand_mean": float(np.mean(secs)) if secs else None}
+    return out
+
+
+def speed(loc: HandLocaliser, depth: np.ndarray, repeats: int = 30) -> dict:
+    """Section 3 of the module docstring."""
+    out = {}
+    for name, shape in (("crop_128", (1, 1, 128, 128)), ("frame_160x120", (1, 1, 120, 160))):
+        x = np.full(shape, 600.0, np.float32)
+        ref = np.array([600.0], np.float32)
+        loc._forward(x, ref)
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            loc._forward(x, ref)
+        out[f"network_{name}_ms"] = (time.perf_counter() - t0) / repeats * 1000
+    out["network_fps_at_input_size"] = 1000.0 / out["network_crop_128_ms"]
+    loc.locate(depth)
+    t0 = time.perf_counter()
+    for _ in range(10):
+        loc.locate(depth)
+    out["locate_640x480_ms"] = (time.perf_counter() - t0) / 10 * 1000
+    # the per-frame segmentation the tracker runs: the localiser's against the blob rules'
+    from torchhand.geometry.camera import kinect_camera
+    from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
+
+    for mode in ("auto", "blobs"):
+        t0 = time.perf_counter()
+        for _ in range(10):
+            try:
+                segment_hands(depth, kinect_camera(), SegmentConfig(mode=mode, far=4000.0), localiser=loc)
+            except SegmentationError:
+                pass
+        out[f"segment_{mode}_ms"] = (time.perf_counter() - t0) / 10 * 1000
+    return out
+
+
+def sr305(loc: HandLocaliser, root: Path, figure: Path | None) -> dict:
+    """Section 4 of the module docstring."""
+    from torchhand.geometry.camera import Camera
+    from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
+
+    cam = Camera.from_intrinsics(476.007, 476.007, 313.683, 242.755, 640, 480)
+    rows, tiles = [], []
+    for rec in sorted(p for p in root.iterdir() if p.is_dir()):
+        for png in sorted(rec.glob("*.png"), key=lambda p: int(p.stem)):
+            depth = cv2.imread(str(png), cv2.IMREAD_UNCHANGED).astype(np.float32) / 8.0
+            try:
+                seg = segment_hands(depth, cam, SegmentConfig(), sides=("right",), localiser=loc)
+            except SegmentationError as err:
+                rows.append({"frame": f"{rec.name}/{png.stem}", "error": str(err)})
+                continue
+            h = seg.located[0] if seg.located else None
+            rows.append({"frame": f"{rec.name}/{png.stem}", "source": seg.source, "pixels": int(seg.mask.sum()),
+                         "side": None if h is None else h.side, "score": None if h is None else h.score,
+                         "handedness": None if h is None else h.handedness})
+            if figure is not None:
+                tiles.append(_tile(depth, seg, f"{rec.name[-6:]}/{png.stem}"))
+    if figure is not None and tiles:
+        cols = 5
+        tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
+        grid = np.concatenate([np.concatenate(tiles[r:r + cols], 1) for r in range(0, len(tiles), cols)], 0)
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(figure), grid)
+    return {"frames": len(rows), "found_by_localiser": sum(r.get("source") == "localiser" for r in rows),
+            "right_hand": sum(r.get("side") == "right" for r in rows), "per_frame": rows}
+
+
+def _tile(depth: np.ndarray, seg, label: str, size: int = 240) -> np.ndarray:
+    v = np.clip((depth - 300) / 1200 * 255, 0, 255).astype(np.uint8)
+    img = cv2.cvtColor(255 - v, cv2.COLOR_GRAY2BGR)
+    img[depth == 0] = 0
+    if seg.labels is not None:
+        body = seg.labels == 3
+        img[body] = (0.5 * img[body] + [110, 40, 0]).astype(np.uint8)
+    img[seg.mask] = (0.4 * img[seg.mask] + [0, 150, 0]).astype(np.uint8)
+    for h in seg.located:
+        pts = h.uv.round().astype(int)
+        for a, b in [(0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11),
+                     (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18), (18, 19), (19, 20)]:
+            cv2.line(img, tuple(pts[a]), tuple(pts[b]), (0, 220, 255), 2)
+    img = cv2.resize(img, (size * 4 // 3, size))
+    cv2.putText(img, label, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
+    return img
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--init-frames", type=int, default=30)
+    ap.add_argument("--compare-blobs", action="store_true", help="also initialise with the blob rules' seeds")
+    ap.add_argument("--sr305", type=Path, default=REPO.parent / "shared" / "data" / "real" / "sr305")
+    ap.add_argument("--figure", type=Path, help="the SR305 frames' classes and joints, one PNG")
+    ap.add_argument("--weights", type=Path, help="an .onnx localiser (default: the shipped one)")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    loc = HandLocaliser.load(args.weights, threads=args.threads)
+    out = {"test_set": test_set(loc, args.frames)}
+    print(json.dumps(out["test_set"], indent=2), flush=True)
+    if args.sr305.is_dir():
+        out["sr305"] = sr305(loc, args.sr305, args.figure)
+        print({k: v for k, v in out["sr305"].items() if k != "per_frame"}, flush=True)
+    frame = render_context_frames(1, TEST_SEED + 2, ContextConfig(noise="stereo"), progress=False).depth[0]
+    out["speed"] = speed(loc, frame.astype(np.float32))
+    print(out["speed"], flush=True)
+    if args.init_frames > 0:
+        out["initialisation"] = initialisation(args.init_frames, args.compare_blobs)
+        print(out["initialisation"], flush=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
