@@ -64,6 +64,9 @@ __all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth
 
 #: A located hand seeds the search from its joints when their mean confidence reaches this.
 KEYPOINT_SEED_CONFIDENCE = 0.3
+#: A seed from the joints is dropped when its mesh centre lies farther than this (mm)
+#: from the located palm centre (a fit thrown off by misplaced joints).
+KEYPOINT_SEED_REACH = 150.0
 #: The palm's joints among the standard 21 (wrist, thumb CMC, the four knuckles).
 _PALM_JOINTS = [0, 1, 5, 9, 13, 17]
 
@@ -201,8 +204,14 @@ class Initializer:
                                (located.uv[:, 1] - camera.cy) * located.z / camera.fy, located.z], 1)
             # the joints' pose first; the blob's seeds stay hypotheses of their own swarms
             # (the swarm keeps what fits the depth best: a few misplaced joints cannot trap it)
-            return [keypoint_pose(model, joints, located.confidence, camera)] + self._blob_seeds(
-                model, k, segmentation, data_full, camera)
+            blob = self._blob_seeds(model, k, segmentation, data_full, camera)
+            seed = keypoint_pose(model, joints, located.confidence, camera)
+            # a fit thrown off by misplaced joints (its palm far from the hand's) is no seed
+            with torch.no_grad():
+                palm = model(seed[None].to(model.vertices_rest.dtype)).vertices[0].double().mean(0).cpu().numpy()
+            T_cw = camera.T_cw.double().cpu().numpy()
+            seen = T_cw[:3, :3] @ palm + T_cw[:3, 3]
+            return ([seed] if np.linalg.norm(seen - segmentation.palms[k]) < KEYPOINT_SEED_REACH else []) + blob
         return self._blob_seeds(model, k, segmentation, data_full, camera)
 
     def _blob_seeds(self, model, k: int, segmentation: Segmentation, data_full: np.ndarray,
