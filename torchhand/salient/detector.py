@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, NamedTuple, Optional, Union
 
@@ -45,6 +45,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchhand.io.assets import model_dirs
+from torchhand.salient.weights import load_weights, save_weights
 from torchhand.salient.hough import (DEFAULT_MAX_DETECTIONS, DEFAULT_NMS_RADIUS, DEFAULT_THRESHOLD, HOUGH_STRIDE,
                                      STRIDE, Detections, detect_peaks, hough_votes)
 
@@ -243,36 +244,13 @@ class SalientNet(nn.Module):
 
     # ------------------------------------------------------------------ weights files
     def save(self, path) -> Path:
-        """Write ``{"format", "config", "state_dict"}`` with :func:`torch.save`."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
-        torch.save({"format": WEIGHTS_FORMAT, "config": asdict(self.config), "state_dict": state}, path)
-        return path
+        """Write ``{"format", "config", "state_dict"}`` (:func:`~torchhand.salient.weights.save_weights`)."""
+        return save_weights(self, path, WEIGHTS_FORMAT)
 
     @classmethod
     def load(cls, path, map_location="cpu") -> "SalientNet":
         """Read a file written by :meth:`save`; errors name the file and what is wrong."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: salient detector weights not found")
-        try:
-            blob = torch.load(path, map_location=map_location, weights_only=True)
-        except Exception as e:  # pickle, zip and torch errors all mean the same here
-            raise ValueError(f"{path}: not a readable torch weights file ({type(e).__name__}: {e})") from None
-        if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT:
-            found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
-            raise ValueError(f"{path}: not salient detector weights (format {found!r}, expected {WEIGHTS_FORMAT!r})")
-        try:
-            config = SalientConfig(**blob["config"])
-        except (TypeError, ValueError, KeyError) as e:
-            raise ValueError(f"{path}: invalid network config: {e}") from None
-        net = cls(config)
-        try:
-            net.load_state_dict(blob["state_dict"])
-        except (RuntimeError, KeyError) as e:
-            raise ValueError(f"{path}: weights do not fit the network of its config {config}: {e}") from None
-        return net.to(map_location).eval()
+        return load_weights(cls, SalientConfig, path, WEIGHTS_FORMAT, "salient detector", map_location)
 
 
 def _check_net_input(image, modality: str = "depth") -> None:

@@ -32,7 +32,7 @@ default (:meth:`HandLocaliser.load`).
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import List, NamedTuple, Optional
 
@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchhand.io.assets import model_dirs
+from torchhand.salient.weights import load_weights, save_weights
 from torchhand.salient.localiser_data import CLASSES, HANDS
 
 __all__ = ["LocaliserConfig", "LocaliserOutput", "LocaliserNet", "HandLocaliser", "Localisation", "LocatedHand",
@@ -161,22 +162,13 @@ class LocaliserNet(nn.Module):
         return LocaliserOutput(out[:, :C], out[:, C:C + J], out[:, C + J:C + 3 * J], out[:, C + 3 * J:])
 
     def save(self, path) -> Path:
-        path = Path(path)
-        torch.save({"format": LOCALISER_FORMAT, "config": asdict(self.config),
-                    "state_dict": {k: v.cpu() for k, v in self.state_dict().items()}}, path)
-        return path
+        """Write ``{"format", "config", "state_dict"}`` (:func:`~torchhand.salient.weights.save_weights`)."""
+        return save_weights(self, path, LOCALISER_FORMAT)
 
     @classmethod
     def load(cls, path, map_location="cpu") -> "LocaliserNet":
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no localiser weights here (train with python -m train.hand_localiser)")
-        d = torch.load(path, map_location=map_location, weights_only=False)
-        if not isinstance(d, dict) or d.get("format") != LOCALISER_FORMAT:
-            raise ValueError(f"{path}: not a {LOCALISER_FORMAT} weights file")
-        net = cls(LocaliserConfig(**d["config"]))
-        net.load_state_dict(d["state_dict"])
-        return net.eval()
+        """Read a file written by :meth:`save` (``python -m train.hand_localiser``)."""
+        return load_weights(cls, LocaliserConfig, path, LOCALISER_FORMAT, "hand localiser", map_location)
 
 
 def export_localiser_onnx(net: LocaliserNet, path, size: int = 128, opset: int = 17) -> Path:
