@@ -19,6 +19,8 @@ from typing import Callable, NamedTuple, Optional, Tuple, Union
 
 import torch
 
+from torchhand.core.profiling import stage
+
 __all__ = ["LMResult", "LeastSquaresProblem", "FunctionProblem", "levenberg_marquardt", "solve_damped"]
 
 ResidualFn = Callable[[torch.Tensor, bool], Tuple[torch.Tensor, Optional[torch.Tensor]]]
@@ -155,7 +157,8 @@ def levenberg_marquardt(
             J = _freeze_active_bounds(J, r, theta, lower, upper)
         todo = ~done  # problems still looking for an acceptable step in this iteration
         for attempt in range(retries + 1):
-            delta = solve_damped(J, r, lam)
+            with stage("solve", work=lambda: _solve_work(J)):
+                delta = solve_damped(J, r, lam)
             cand = _clamp(theta + delta, lower, upper)
             r_new = problem.evaluate(cand)
             evaluations += 1
@@ -174,7 +177,8 @@ def levenberg_marquardt(
                     if not bool(todo.any()):
                         break
                     continue
-                flags = torch.cat([todo.any()[None], keep_going(theta, iters).bool()]).tolist()  # one transfer
+                with stage("host sync"):
+                    flags = torch.cat([todo.any()[None], keep_going(theta, iters).bool()]).tolist()  # one transfer
                 if not flags[0]:
                     host_status = flags[1:]
                     break
@@ -184,6 +188,13 @@ def levenberg_marquardt(
             r, J = problem.linearize(theta)
             evaluations += 1
     return LMResult(theta, cost, iters, done, lam, rejected, evaluations, host_status)
+
+
+def _solve_work(J: torch.Tensor) -> tuple:
+    """(flops, bytes) of the damped normal equations: J^T J and J^T r (2 m D^2), the
+    Cholesky solve (D^3 / 3), J read once."""
+    B, m, D = J.shape
+    return B * (2.0 * m * D * D + D ** 3 / 3.0), 4.0 * B * m * D
 
 
 def _freeze_active_bounds(J, r, theta, lower, upper):
