@@ -54,6 +54,10 @@ class TrackerConfig:
         solver: ``"lm"`` (Algorithm 1) or ``"pso"`` (HOPE: ``particles`` particles over
             ``generations`` generations, drawn about the start with ``swarm_spread``:
             global translation mm, global rotation rad, joint angles rad).
+        fused: the LM steps of Algorithm 1 take the depth terms' rows and Jacobians from
+            the fused Warp kernels and solve the normal equations they accumulate
+            (:mod:`~torchhand.tracking.fused`; float32 and one view per problem, else the
+            torch objective); False: the torch objective, the reference.
         limit_slack: rad; the solvers keep each sequence's θ within the joint limits
             widened by this and grown to hold its initial pose; None: no box, only the
             soft limits of E_anatomy (Eq. 4.17).
@@ -84,8 +88,11 @@ class TrackerConfig:
     generations: int = 40
     swarm_spread: Tuple[float, float, float] = (5.0, 0.05, 0.1)
     limit_slack: Optional[float] = 0.0
+    fused: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.fused, bool):
+            raise ValueError(f"fused must be True or False, got {self.fused!r}")
         check_number(self.prediction, "prediction", low=0, inclusive=True, none=True)
         if not isinstance(self.prediction_limiter, bool):
             raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")

@@ -16,6 +16,7 @@ import torch
 from torchhand.core.profiling import stage
 from torchhand.geometry.camera import Camera
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
+from torchhand.tracking.fused import FusedObjective, supports
 from torchhand.tracking.objective import Objective, prepare_terms
 from torchhand.tracking.views import same_camera
 
@@ -99,7 +100,8 @@ class Algorithm1:
                 labels = view.data_labels  # labelled once per frame, at its start pose
                 prep = prepare_terms(tracker.terms, view, state, V)
                 counts[idx] = prep.correspondences.to(counts.device)
-                objective = Objective(scene, tracker.terms, prep.prepared, state.posed, V)
+                fused = cfg.fused and supports(theta, V)
+                objective = (FusedObjective if fused else Objective)(scene, tracker.terms, prep.prepared, state.posed, V)
 
                 def going(th, steps, objective=objective, state=state):
                     # a problem goes on while its joints move; one whose step was rejected
