@@ -65,6 +65,18 @@ def test_point_index_finds_the_nearest_of_the_same_problem_and_group(backend):
 
 
 @needs_warp
+@pytest.mark.parametrize("cell", [0.7, 1.25, 3.0, 10.0])
+def test_point_index_cells_of_any_size_find_the_same_nearest(cell):
+    """The grid's cell only sets where a query's growing radius starts: the result is the
+    exact nearest for any cell (the labels use an eighth of their radius)."""
+    pts, problem, group, q, qgroup = _points()
+    problems = torch.tensor([2, 0, 1])
+    got = PointIndex(pts, problem, group, 3, 2, 10.0, "warp", cell=cell).nearest(q, problems, qgroup)
+    want = PointIndex(pts, problem, group, 3, 2, 10.0, "warp").nearest(q, problems, qgroup)
+    assert torch.equal(got, want) and int((got >= 0).sum()) > 300
+
+
+@needs_warp
 def test_point_index_radius_is_inclusive():
     pts = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 0.0, 10.5]])
     zero = torch.zeros(3, dtype=torch.int64)

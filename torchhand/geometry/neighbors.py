@@ -69,12 +69,14 @@ class PointIndex:
         group: (N,) int64 its group in [0, num_groups).
         radius: the largest query radius (the hash grid's cell size).
         backend: ``"warp"`` or ``"torch"`` (None: Warp when installed).
+        cell: mm, the Warp grid's cells and the first radius of a query (default: a
+            quarter of ``radius``); any value gives the same, exact nearest points.
 
     Build it once for a set of points (a frame's labelled data) and query it many times.
     """
 
     def __init__(self, points: torch.Tensor, problem: torch.Tensor, group: torch.Tensor, num_problems: int,
-                 num_groups: int, radius: float, backend: Optional[str] = None):
+                 num_groups: int, radius: float, backend: Optional[str] = None, cell: Optional[float] = None):
         check_tensor(points, "points", (None, 3), floating=True)
         check_tensor(problem, "problem", (points.shape[0],), integer=True)
         check_tensor(group, "group", (points.shape[0],), integer=True)
@@ -87,8 +89,10 @@ class PointIndex:
         if self.backend == "warp":
             from torchhand.geometry import warp_neighbors
 
-            # cells of a quarter of the radius: the queries grow their radius from there
-            self._grid = warp_neighbors.build_grid(self.points, self.key, self.radius / 4)
+            # cells of a quarter of the radius (or ``cell``): the queries start at a radius of
+            # about a cell and double it (exact at every size; small cells suit queries that
+            # mostly lie near their nearest point)
+            self._grid = warp_neighbors.build_grid(self.points, self.key, self.radius / 4 if cell is None else cell)
             self._grid.radius = self.radius
         elif self.backend == "cpu":
             from scipy.spatial import cKDTree
