@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from torchhand.core.profiling import stage
+from torchhand.core.threads import intra_op_threads
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.geometry.raycast import RayCaster
@@ -352,17 +353,18 @@ class Tracker:
         depth_frames = None if depths is None else iter(depths)
         colour_frames = None if colours is None else iter(colours)
         for f in itertools.count():
-            try:
-                frame = None if depth_frames is None else next(depth_frames)
-                colour = None if colour_frames is None else next(colour_frames)
-            except StopIteration:
-                return
-            start = predicted_start(list(history), cfg.motion_prediction, cfg.prediction_limiter)
-            with stage("frame"):
-                res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
-                                       colours=colour)
-            if revise is not None:
-                res = revise(f, res)
+            with intra_op_threads(cfg.threads):  # restored before yielding to the caller
+                try:
+                    frame = None if depth_frames is None else next(depth_frames)
+                    colour = None if colour_frames is None else next(colour_frames)
+                except StopIteration:
+                    return
+                start = predicted_start(list(history), cfg.motion_prediction, cfg.prediction_limiter)
+                with stage("frame"):
+                    res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
+                                           colours=colour)
+                if revise is not None:
+                    res = revise(f, res)
             theta = res.theta
             history.append((theta, res.valid.to(theta.device)))
             yield res
