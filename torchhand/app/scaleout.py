@@ -2,7 +2,8 @@
 cluster, with one progress bar, a summary, retries and resumable output.
 
 The unit of work is a *task*: up to ``batch`` same-scene sequences tracked as one
-batch by :func:`~torchhand.app.runner.track_sequences` (or one prediction scored). The
+batch by :func:`~torchhand.app.runner.track_sequences` (or one prediction scored),
+submitted longest first to workers started once per run. The
 tasks depend only on the sequence list and ``batch``, never on the number of workers,
 so a run with any worker count, local or on Ray, computes exactly what the sequential
 run computes (the same θ to the last bit on CPU with the same ``--threads``).
@@ -460,6 +461,10 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
         if k not in done:
             groups.setdefault(tuple(info.models), []).append(k)
     tasks = [members[j : j + batch] for members in groups.values() for j in range(0, len(members), batch)]
+    # the longest tasks first (stable: equal ones keep their order), so that no worker
+    # starts a long sequence while the others finish: the run ends sooner, whatever
+    # the number of workers, and each task still computes the same
+    tasks.sort(key=lambda t: -max(infos[k].frames for k in t))
     specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job,
               "settings": settings, "before": [_signature(out / names[k]) for k in t]} for t in tasks]
     total = sum(infos[k].frames for t in tasks for k in t)
