@@ -107,7 +107,7 @@ class PointIndex:
                 self._trees[k] = (cKDTree(pts[idx.numpy()], balanced_tree=False), idx)
 
     def nearest(self, queries: torch.Tensor, problems: torch.Tensor, groups: torch.Tensor,
-                radius: Optional[float] = None) -> torch.Tensor:
+                radius: Optional[float] = None, any_point: bool = False) -> torch.Tensor:
         """The nearest point of the same problem and group within ``radius`` (inclusive).
 
         Args:
@@ -115,6 +115,9 @@ class PointIndex:
             problems: (B,) int64 the problem of each row of queries.
             groups: (B, n) int64 the group of each query; -1 skips it.
             radius: at most the index's radius (default: it).
+            any_point: any point within ``radius`` will do (whether there is one, not
+                which: the Warp search stops at the first it finds; the others give the
+                nearest).
         Returns:
             (B, n) int64 index into ``points``, -1 where none.
         """
@@ -126,7 +129,7 @@ class PointIndex:
         if self.backend == "warp":
             from torchhand.geometry import warp_neighbors
 
-            return warp_neighbors.nearest_in_grid(self._grid, queries, key, radius)
+            return warp_neighbors.nearest_in_grid(self._grid, queries, key, radius, any_point)
         if self.backend == "cpu":
             return self._nearest_kdtree(queries, key, radius)
         return _nearest_brute_force(self.points, self.key, queries, key, radius)

@@ -43,9 +43,11 @@ def build_grid(points: torch.Tensor, groups: torch.Tensor, radius: float) -> Gri
     return Grid(points, groups, radius)
 
 
-def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, radius: float) -> torch.Tensor:
+def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, radius: float,
+                    any_point: bool = False) -> torch.Tensor:
     """(B, n) int64 index of the nearest grid point of the query's group within
-    ``radius`` (<= radius, ties to the smaller index), -1 where none or ``groups < 0``.
+    ``radius`` (<= radius, ties to the smaller index), -1 where none or ``groups < 0``;
+    with ``any_point``, of the first point found within ``radius``.
 
     queries: (B, n, 3); groups: (B, n) int.
     """
@@ -62,7 +64,7 @@ def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, rad
                   inputs=[grid.grid.id, grid._wp_points,
                           wp.from_torch(queries.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
                           wp.from_torch(groups.to(torch.int32).contiguous()), float(radius),
-                          _first_radius(grid.cell, float(radius))],
+                          _first_radius(grid.cell, float(radius)), int(bool(any_point))],
                   outputs=[wp.from_torch(out)], device=wp_device(queries.device))
     return out.long()
 
