@@ -212,11 +212,32 @@ def profile(args) -> dict:
                     wall, secs = timed_track([root], tmp / f"{key}_{name}_p", c, args.device)
                 scene[name] = {**run, **stage_table(rec, speed)}
                 print_table(f"{key} ({name}, cap {args.profile_cap})", scene[name])
+            t = scene["torch"]
+            out[f"{key}_ms"], out[f"{key}_px"] = 1e3 * t["seconds_per_frame_after_first"], t["mean_px"]
             if "fused" in scene:
-                t, f = scene["torch"], scene["fused"]
+                f = scene["fused"]
+                out[f"{key}_ms_fused"], out[f"{key}_px_fused"] = 1e3 * f["seconds_per_frame_after_first"], f["mean_px"]
                 scene["fused_speedup_vs_torch"] = t["seconds_per_frame_after_first"] / f["seconds_per_frame_after_first"]
                 scene["fused_lm_speedup_vs_torch"] = t["lm_ms_per_frame"] / f["lm_ms_per_frame"]
+                scene["theta_max_diff_rad"], scene["theta_max_diff_mm"] = theta_difference(
+                    tmp / f"{key}_torch", tmp / f"{key}_fused", root)
+                if key == "one_hand":
+                    out["fused_speedup_vs_torch"] = scene["fused_speedup_vs_torch"]
     return out
+
+
+def theta_difference(a: Path, b: Path, root: Path) -> tuple:
+    """The largest |theta| difference of two runs' outputs of the sequence ``root`` over
+    all frames: (rotations and joint angles, rad; root translations, mm)."""
+    import numpy as np
+
+    from torchhand.model.scene import Scene
+
+    (ta,), (tb,) = (list(Path(x).glob("*/theta.npy")) for x in (a, b))
+    d = np.abs(np.load(ta).astype(np.float64) - np.load(tb).astype(np.float64))
+    models = json.loads(SequenceLayout(root).info.read_text())["models"]
+    trans = np.array([n.split("/")[-1] in ("root:tx", "root:ty", "root:tz") for n in Scene.from_names(models).dof_names])
+    return float(d[:, ~trans].max()), float(d[:, trans].max())
 
 
 def stage_table(rec, speed: dict) -> dict:

@@ -556,7 +556,8 @@ class _SyncCounter:
         return counted
 
 
-def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
+@pytest.mark.parametrize("fused", [False, True], ids=["torch", "fused"])
+def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch, fused):
     """The Warp backends only (open3d and scipy are host libraries).
 
     Inside the outer iterations of Algorithm 1 (render, correspondences, LM step with
@@ -569,10 +570,12 @@ def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
     if default_backend() != "warp":
         pytest.skip("Warp cannot load here")
     scene, theta, cam, depth = hand_frame
-    tracker = Tracker(scene, TrackerConfig())
-    frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
+    dt = torch.float32 if fused else F64  # the fused objective runs in float32
+    scene, theta, cam = Scene.from_names(["hand_right"], dtype=dt), theta.to(dt), kinect_camera(dtype=dt)
+    tracker = Tracker(scene, TrackerConfig(fused=fused))
+    frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=dt)
     start = theta.clone()
-    start[0, :3] += torch.tensor([3.0, -2.0, 2.0], dtype=F64)
+    start[0, :3] += torch.tensor([3.0, -2.0, 2.0], dtype=dt)
     counter = _SyncCounter(monkeypatch)
 
     def syncs(iterations):

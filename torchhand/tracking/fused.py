@@ -287,9 +287,11 @@ class _Launch:
         wp = require_warp()
         dev = terms[0].vertex.device
         kind = torch.cat([torch.full((f.vertex.shape[1],), _KIND_IDS[f.kind], dtype=torch.int32) for f in terms])
-        per = torch.tensor([ROWS[f.kind] for f in terms]).repeat_interleave(torch.tensor([f.vertex.shape[1]
-                                                                                          for f in terms]))
-        first = (torch.cumsum(per, 0) - per).to(torch.int32)
+        starts = [0]
+        for f in terms:
+            starts.append(starts[-1] + ROWS[f.kind] * f.vertex.shape[1])
+        first = torch.cat([s + ROWS[f.kind] * torch.arange(f.vertex.shape[1], dtype=torch.int32)
+                           for s, f in zip(starts, terms)])
         pixel = [f for f in terms if f.kind == "pixel"] or terms[:1]  # the cameras: the problems' own, one per term
         cat = lambda name: torch.cat([getattr(f, name) for f in terms], 1).contiguous()  # noqa: E731
         self._keep = (kind.to(dev), first.to(dev), cat("vertex"), cat("a"), cat("b"), cat("weight"),
