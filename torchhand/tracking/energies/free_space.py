@@ -7,10 +7,10 @@ holes of the data (``DepthFrame.covered``): a structured-light sensor loses the 
 in the shadow beside an occluding finger, and a held rope seen through such shadows
 was pushed along its axis, away from the hands, by 100 mm over 40 frames. The vertex seen at such a
 pixel is paired with the nearest data pixel q labelled k within ``radius`` px (an
-exact Euclidean ring search from each of the subsampled free pixels,
-:func:`torchhand.geometry.neighbors.nearest_marked_pixel`, on the device; ties go to
-the smaller pixel hash. A feature transform of the whole box, once per frame, cost
-more than the few hundred searches of an iteration), and its residual is the image distance from the vertex's projection to q, in mm
+exact Euclidean feature transform of the data labels,
+:func:`torchhand.geometry.neighbors.marked_pixel_transform`, computed once per frame
+on the CPU, since the labels stay for the frame; each outer iteration then reads it on
+the device), and its residual is the image distance from the vertex's projection to q, in mm
 at the data's depth there: ``(pi(V) - q') z_q / f`` (2 rows), where q' is q moved
 ``tolerance`` px towards the free pixel. The model is pulled back to within
 ``tolerance`` px of its data silhouette along the image, whatever the depth there.
@@ -40,13 +40,12 @@ pixels in the solve's render box); no host synchronisation after the frame's tra
 
 from __future__ import annotations
 
-import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
 from torchhand.core.check import check_int, check_number
-from torchhand.geometry.neighbors import marked_boxes, nearest_marked_pixel
+from torchhand.geometry.neighbors import marked_pixel_transform
 from torchhand.geometry.render import window
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (PixelPairs, PixelRows, TrackState, VertexPixelTerm, begin, counts,
@@ -65,13 +64,13 @@ DEFAULT_LOSS = Cauchy(scale=5.0)
 
 
 class _Data(NamedTuple):
-    """The data side of a solve: depth (B, h, w) mm on the render box (h, w pixels from
-    ``origin`` (r0, c0)), 0 where nothing was seen, -1 in the data's small holes; boxes
-    (B, K, 4) int32 the pixel box of each model's labelled data pixels
-    (:func:`~torchhand.geometry.neighbors.marked_boxes`), where the searches start."""
+    """The data side of a solve, on the render box (h, w pixels from (r0, c0)): depth
+    (B, h, w) mm, 0 where nothing was seen, -1 in the data's small holes; nearest (B, K, h, w, 2) int64 the nearest
+    data pixel labelled k (row, col in the image); distance (B, K, h, w) px to it."""
 
     depth: torch.Tensor
-    boxes: torch.Tensor
+    nearest: torch.Tensor
+    distance: torch.Tensor
     origin: tuple
 
 
@@ -84,22 +83,18 @@ class FreeSpace(VertexPixelTerm):
             pixel has no pair: a model lost as a whole is not dragged across the image).
         tolerance: px, free-space pixels this near their data are not pulled.
         max_pixels: free-space pixels used per model and problem (a stride subsample).
-        backend: of the nearest data pixel search
-            (:func:`~torchhand.geometry.neighbors.nearest_marked_pixel`; None: Warp when
-            installed).
     """
 
     name = "free"
     needs = "depth"
 
-    def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400,
-                 backend: Optional[str] = None):
+    def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400):
         check_number(tolerance, "tolerance", low=0, inclusive=True, unit="px")
         check_number(margin, "margin", low=0, inclusive=True, unit="mm")
         check_number(radius, "radius", low=0, unit="px")
         check_int(max_pixels, "max_pixels", low=1)
         self.margin, self.radius, self.max_pixels = float(margin), float(radius), max_pixels
-        self.tolerance, self.backend = float(tolerance), backend
+        self.tolerance = float(tolerance)
 
     def _build(self, state: TrackState) -> _Data:
         dev = state.theta.device
@@ -113,12 +108,12 @@ class FreeSpace(VertexPixelTerm):
             return torch.where(mask, f.depth[r0:r1, c0:c1], torch.where(covered, -1.0, 0.0).to(f.depth))
 
         depth = torch.stack([seen(f) for f in state.frames]).to(dev)
-        K = len(state.scene.models)
-        return _Data(depth.float(), marked_boxes(state.data_labels, K).view(len(state.frames), K, 4), (r0, c0))
+        nearest, distance = marked_pixel_transform(state.data_labels, len(state.scene.models), box)
+        return _Data(depth.float(), nearest, distance, (r0, c0))
 
     def prepare(self, state: TrackState) -> PixelPairs:
         scene, B, dev, dt, data, p = begin(state, self, self._build)
-        depth, boxes = data.depth[p], data.boxes[p].reshape(-1, 4)
+        depth, nearest, distance = data.depth[p], data.nearest[p], data.distance[p]
         r0, c0 = data.origin
         h, w = depth.shape[1:]
         rend = window(state.render, (r0, r0 + h, c0, c0 + w))  # the data side's box
@@ -132,14 +127,9 @@ class FreeSpace(VertexPixelTerm):
         model = torch.arange(K, device=dev).repeat_interleave(M)[None].expand(B, -1)
         b = torch.arange(B, device=dev)[:, None]
         pr, pc = pos // w, pos % w
+        q = nearest[b, model, pr, pc]  # (B, K M, 2) image (row, col)
+        dist = distance[b, model, pr, pc].to(dt)
         rc = torch.stack([pr + r0, pc + c0], -1)
-        # the nearest data pixel of the model within the radius: an exact ring search from
-        # the free pixels (a few hundred per model), ties to the smaller pixel hash
-        q = nearest_marked_pixel(state.data_labels, rc, torch.where(slot, model, -1),
-                                 torch.full_like(pos, math.ceil(self.radius)), K, self.backend, boxes=boxes)
-        found = q[..., 0] >= 0
-        dist = torch.where(found, (rc - q).to(dt).norm(dim=-1), torch.full_like(pos, 2 * self.radius + 1, dtype=dt))
-        q = torch.where(found[..., None], q, rc)
         keep = slot & (dist <= self.radius) & (dist > self.tolerance)
         gap = (rc - q).to(dt)  # (row, col) from the data pixel to the free one
         target = q.to(dt) + gap * (self.tolerance / dist.clamp(min=1e-9))[..., None]  # q', tolerance px out
