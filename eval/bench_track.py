@@ -217,7 +217,8 @@ def profile(args) -> dict:
             if "fused" in scene:
                 f = scene["fused"]
                 out[f"{key}_ms_fused"], out[f"{key}_px_fused"] = 1e3 * f["seconds_per_frame_after_first"], f["mean_px"]
-                scene["fused_speedup_vs_torch"] = t["seconds_per_frame_after_first"] / f["seconds_per_frame_after_first"]
+                after = "seconds_per_frame_after_first"
+                scene["fused_speedup_vs_torch"] = t[after] / f[after]
                 scene["fused_lm_speedup_vs_torch"] = t["lm_ms_per_frame"] / f["lm_ms_per_frame"]
                 scene["theta_max_diff_rad"], scene["theta_max_diff_mm"] = theta_difference(
                     tmp / f"{key}_torch", tmp / f"{key}_fused", root)
@@ -236,7 +237,8 @@ def theta_difference(a: Path, b: Path, root: Path) -> tuple:
     (ta,), (tb,) = (list(Path(x).glob("*/theta.npy")) for x in (a, b))
     d = np.abs(np.load(ta).astype(np.float64) - np.load(tb).astype(np.float64))
     models = json.loads(SequenceLayout(root).info.read_text())["models"]
-    trans = np.array([n.split("/")[-1] in ("root:tx", "root:ty", "root:tz") for n in Scene.from_names(models).dof_names])
+    names = Scene.from_names(models).dof_names
+    trans = np.array([n.split("/")[-1] in ("root:tx", "root:ty", "root:tz") for n in names])
     return float(d[:, ~trans].max()), float(d[:, trans].max())
 
 

@@ -99,7 +99,6 @@ def fusable(term: EnergyTerm, prepared: Prepared, scene: Scene) -> Optional[Fuse
     vertex = torch.cat([r[0] + s for r, s in zip(rows, starts)], 1).to(torch.int32)
     B, n = vertex.shape
     mask = torch.cat([r[-1] for r in rows], 1)
-    zeros = mask.new_zeros(B, n, 3)
     camera, R, t = mask.new_zeros(B, 4), mask.new_zeros(B, 3, 3), mask.new_zeros(B, 3)  # read by pixel pairs only
     if kind == "plane":
         a, b, w = torch.cat([r.X for r in rows], 1), torch.cat([r.normal for r in rows], 1), mask
@@ -107,12 +106,12 @@ def fusable(term: EnergyTerm, prepared: Prepared, scene: Scene) -> Optional[Fuse
         a, b, w = torch.cat([r.d for r in rows], 1), torch.cat([r.m for r in rows], 1), mask
     else:
         q = torch.cat([r.q for r in rows], 1)
-        a, b = torch.cat([q, q.new_zeros(B, n, 1)], -1), zeros
+        a, b = torch.cat([q, q.new_zeros(B, n, 1)], -1), mask.new_zeros(B, n, 3)
         w = torch.cat([r.scale for r in rows], 1) * mask
         K = prepared.K
         camera = torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], -1)
         R, t = prepared.T_cw[:, :3, :3], prepared.T_cw[:, :3, 3]
-    w = (w * factor) if not isinstance(factor, float) else w * factor
+    w = w * factor
     c = lambda x: x.to(torch.float32).contiguous()  # noqa: E731
     return FusedRows(kind, vertex.contiguous(), c(a), c(b), c(w), c(camera), c(R), c(t))
 
@@ -298,9 +297,7 @@ class _Launch:
                       pixel[0].camera, pixel[0].R.contiguous(), pixel[0].t)
         k = self._keep
         self.skin = _skin(scene, dev)
-        self.static = [wp.from_torch(k[0]), wp.from_torch(k[1]), wp.from_torch(k[2]), wp.from_torch(k[3], dtype=wp.vec3),
-                       wp.from_torch(k[4], dtype=wp.vec3), wp.from_torch(k[5]), wp.from_torch(k[6]),
-                       wp.from_torch(k[7]), wp.from_torch(k[8])]
+        self.static = [wp.from_torch(x, dtype=wp.vec3) if i in (3, 4) else wp.from_torch(x) for i, x in enumerate(k)]
         self.device = dev
 
     def __call__(self, posed: SceneOutput, jacobian: bool) -> tuple:

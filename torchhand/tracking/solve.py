@@ -100,8 +100,8 @@ class Algorithm1:
                 labels = view.data_labels  # labelled once per frame, at its start pose
                 prep = prepare_terms(tracker.terms, view, state, V)
                 counts[idx] = prep.correspondences.to(counts.device)
-                fused = cfg.fused and supports(theta, V)
-                objective = (FusedObjective if fused else Objective)(scene, tracker.terms, prep.prepared, state.posed, V)
+                kind = FusedObjective if cfg.fused and supports(theta, V) else Objective
+                objective = kind(scene, tracker.terms, prep.prepared, state.posed, V)
 
                 def going(th, steps, objective=objective, state=state):
                     # a problem goes on while its joints move; one whose step was rejected
