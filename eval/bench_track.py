@@ -28,7 +28,8 @@ Measurements, side by side in one run:
   iteration, and its floor: the stage's unavoidable arithmetic and memory traffic at this
   machine's single-thread matmul GFLOP/s and copy GB/s (measured at the start),
   ``max(flops / GFLOP/s, bytes / GB/s)``. ``fused`` in the JSON when ``--fused`` is given:
-  the same with ``TrackerConfig.fused`` on, side by side.
+  the same with ``TrackerConfig.fused`` on, side by side; the ms per frame of each are
+  medians over ``--repeats`` further unprofiled runs, torch and fused alternating.
 Accuracy (mean keypoint error) is reported next to each timing. ``--device cuda`` runs
 the Warp backends on the GPU (open3d stays on the CPU).
 """
@@ -89,6 +90,7 @@ def main(argv=None) -> None:
     ap.add_argument("--profile-cap", type=int, default=1, help="iterations per frame of --profile")
     ap.add_argument("--scenes", default="one_hand,two_hands_object", help="scenes of --profile")
     ap.add_argument("--fused", action="store_true", help="--profile also with TrackerConfig.fused, side by side")
+    ap.add_argument("--repeats", type=int, default=4, help="--profile: unprofiled runs per variant, alternating")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     if args.profile:
@@ -212,6 +214,7 @@ def profile(args) -> dict:
                     wall, secs = timed_track([root], tmp / f"{key}_{name}_p", c, args.device)
                 scene[name] = {**run, **stage_table(rec, speed)}
                 print_table(f"{key} ({name}, cap {args.profile_cap})", scene[name])
+            alternate(scene, variants, root, tmp / f"{key}_again", args)
             t = scene["torch"]
             out[f"{key}_ms"], out[f"{key}_px"] = 1e3 * t["seconds_per_frame_after_first"], t["mean_px"]
             if "fused" in scene:
@@ -225,6 +228,24 @@ def profile(args) -> dict:
                 if key == "one_hand":
                     out["fused_speedup_vs_torch"] = scene["fused_speedup_vs_torch"]
     return out
+
+
+def alternate(scene: dict, variants: dict, root: Path, out: Path, args) -> None:
+    """``--repeats`` more unprofiled runs of every variant, alternating (torch, fused,
+    torch, ...), so that a change of the machine's load falls on both: each variant's
+    ``seconds_per_frame_after_first`` becomes the median over its runs (the single runs
+    in ``runs_after_first``)."""
+    import statistics
+
+    runs = {name: [scene[name]["seconds_per_frame_after_first"]] for name in variants}
+    for _ in range(args.repeats):
+        for name, c in variants.items():
+            timed_track([root], out, c, args.device)
+            log = json.loads(next(out.glob("*/track_log.json")).read_text())
+            runs[name].append(sum(f["seconds"] for f in log["frames"][1:]) / max(len(log["frames"]) - 1, 1))
+    for name in variants:
+        scene[name]["runs_after_first"] = runs[name]
+        scene[name]["seconds_per_frame_after_first"] = statistics.median(runs[name])
 
 
 def theta_difference(a: Path, b: Path, root: Path) -> tuple:
