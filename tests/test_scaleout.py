@@ -263,3 +263,13 @@ def test_tasks_are_submitted_longest_first(tmp_path, monkeypatch):
     run = track_many(roots, tmp_path / "out", JOB, batch=1, progress=False)
     assert seen == ["n1", "n3", "n2", "n0"]
     assert [s["sequence"] for s in run["sequences"]] == ["n0", "n1", "n2", "n3"]
+
+
+def test_the_workers_server_starts_only_for_local_workers():
+    from torchhand.app.workers import PRELOAD, start_server, worker_context
+
+    assert not start_server(1) and not start_server(4, ray="local")
+    ctx = worker_context("torchhand.app.dataset_eval")
+    if ctx.get_start_method() == "forkserver":
+        assert start_server(2)  # started now, or running already: the workers fork from it
+    assert "torch" in PRELOAD

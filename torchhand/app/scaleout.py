@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import multiprocessing
 import os
 import queue as queue_lib
 import socket
@@ -50,6 +49,7 @@ from tqdm import tqdm
 
 from torchhand.core.check import check_int
 from torchhand.app.options import TrackOptions
+from torchhand.app.workers import worker_context
 from torchhand.core.errors import MissingExtra
 from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
 from torchhand.io.output_dir import remove_partials
@@ -164,12 +164,9 @@ def _drain(q, handle) -> None:
 
 def _run_processes(fn, args, workers, retries, threads, handle) -> List:
     # workers fork from a server process that imported torch and the task's module once
-    # (no fork of this process, which may hold torch threads; no import per worker)
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["torch", fn.__module__, "torchhand.app.runner"])
-    else:
-        ctx = multiprocessing.get_context("spawn")
+    # (no fork of this process, which may hold torch threads; no import per worker); the
+    # command line starts it when it parses --workers (torchhand.app.workers)
+    ctx = worker_context(fn.__module__)
     results: Dict[int, object] = {}
     attempts = {i: 0 for i in range(len(args))}
     with ctx.Manager() as manager:
