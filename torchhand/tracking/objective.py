@@ -135,7 +135,8 @@ def _where(mask: torch.Tensor, a, b):
 
 
 # Floors of the stages (core.profiling): what the work cannot avoid, in flops and bytes.
-# K = 4 skinning influences per vertex (the shipped hands have up to 4).
+# K = 4 skinning influences per vertex: the thesis hands' vertices have 9 non-zero weights
+# on average but 3.5 above 0.01; a floor counts what a lean skinning would need.
 _K = 4
 
 
