@@ -8,7 +8,9 @@ over its 60 frames for as many frames as asked (kinect noise),
 one sequence per task (the CPU default). Timed side by side in one run:
 
 - ``sequential``: ``torchhand track`` with one worker (this process);
-- ``local_2``: two spawned worker processes (their start and imports included);
+- ``local_2``: two worker processes forked from the workers' server, which is started
+  before the clock (``worker_server_start_s``), as the command line starts it when it
+  parses ``--workers`` while it imports torchhand itself (their fork included);
 - ``ray_1`` / ``ray_2``: a local Ray instance with 1 / 2 CPUs, started before the clock
   (as a running cluster is), the workers' start and imports included.
 
@@ -26,6 +28,7 @@ to the last bit.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -80,6 +83,20 @@ def timed(seqs, out: Path, **kw) -> dict:
             "dispatch_s_per_task": (wall - first - sum(task_s) / used) / (len(task_s) / used)}
 
 
+def start_worker_server() -> float:
+    """Start the local workers' server and wait until it has imported what it preloads
+    (a worker forked from it ran a no-op): seconds."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from torchhand.app.workers import start_server, worker_context
+
+    t0 = time.perf_counter()
+    start_server(2)
+    with ProcessPoolExecutor(max_workers=1, mp_context=worker_context("torchhand.app.scaleout")) as pool:
+        pool.submit(os.getpid).result()
+    return time.perf_counter() - t0
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", type=Path, required=True)
@@ -92,7 +109,11 @@ def main(argv=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         seqs = make_sequences(tmp / "data", args.sequences, args.frames)
-        runs = {"sequential": timed(seqs, tmp / "seq"), "local_2": timed(seqs, tmp / "local2", workers=2)}
+        runs = {"sequential": timed(seqs, tmp / "seq")}
+        # the workers' server, started before the clock as the command line starts it
+        # when it parses --workers, while it imports torchhand itself (app.workers)
+        result["worker_server_start_s"] = start_worker_server()
+        runs["local_2"] = timed(seqs, tmp / "local2", workers=2)
         if not args.no_ray:
             import ray
 

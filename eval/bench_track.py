@@ -21,6 +21,15 @@ Measurements, side by side in one run:
 - ``energies``: for both scenes at ``--iterations``, the same frames tracked with each
   energy of ``--energies``; ``time_vs_first`` is each one's seconds per frame after
   frame 0 over the first's (the default LO+F against the thesis' LO).
+- ``--profile``: instead of the above, both scenes at ``--profile-cap`` iterations per
+  frame with the tracker's stage timers on (:mod:`torchhand.core.profiling`): per stage
+  (preprocess, labels, render, each term's preparation, rows and rows+J, posing, the
+  normal equations and solve, host syncs) its ms per frame after frame 0 and per outer
+  iteration, and its floor: the stage's unavoidable arithmetic and memory traffic at this
+  machine's single-thread matmul GFLOP/s and copy GB/s (measured at the start),
+  ``max(flops / GFLOP/s, bytes / GB/s)``. ``fused`` in the JSON when ``--fused`` is given:
+  the same with ``TrackerConfig.fused`` on, side by side; the ms per frame of each are
+  medians over ``--repeats`` further unprofiled runs, torch and fused alternating.
 Accuracy (mean keypoint error) is reported next to each timing. ``--device cuda`` runs
 the Warp backends on the GPU (open3d stays on the CPU).
 """
@@ -77,8 +86,16 @@ def main(argv=None) -> None:
     ap.add_argument("--prediction", type=float, default=0.0, help="TrackerConfig.prediction (1: constant-velocity start)")
     ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                     help="extrapolate the last step as it is (TrackerConfig.prediction_limiter=False)")
+    ap.add_argument("--profile", action="store_true", help="time the tracker's stages against their floors")
+    ap.add_argument("--profile-cap", type=int, default=1, help="iterations per frame of --profile")
+    ap.add_argument("--scenes", default="one_hand,two_hands_object", help="scenes of --profile")
+    ap.add_argument("--fused", action="store_true", help="--profile also with TrackerConfig.fused, side by side")
+    ap.add_argument("--repeats", type=int, default=4, help="--profile: unprofiled runs per variant, alternating")
     args = ap.parse_args(argv)
     set_threads(args.threads)
+    if args.profile:
+        write_json(args.json, {"threads": args.threads, **machine(), **profile(args)})
+        return
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations,
                         prediction=args.prediction, prediction_limiter=args.prediction_limiter)
     result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, "prediction": cfg.prediction,
@@ -143,6 +160,145 @@ def scored_run(root: Path, out: Path, cfg: TrackerConfig, device: str = "cpu") -
             "seconds_per_frame_after_first": after_first,
             "iterations_per_frame": sum(f["iterations"] for f in log["frames"]) / n,
             "mean_mm": ev["mean_mm"], "mean_px": ev["thesis_mean_px"], "worst_frame_mm": max(ev["per_frame"]["mm"])}
+
+
+SCENES = {"one_hand": "09", "two_hands_object": "16"}
+
+
+def throughput() -> dict:
+    """This machine's single-thread throughput: float32 matmul GFLOP/s (512 x 512) and
+    copy GB/s (32 MB read and written), medians of 20 runs."""
+    import statistics
+    a, b = torch.randn(512, 512), torch.randn(512, 512)
+    x, y = torch.empty(8 << 20), torch.empty(8 << 20)
+
+    def best(fn):
+        fn()
+        ts = []
+        for _ in range(20):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        return statistics.median(ts)
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        gflops = 2 * 512 ** 3 / best(lambda: a @ b) / 1e9
+        gbps = 2 * x.numel() * 4 / best(lambda: y.copy_(x)) / 1e9
+    finally:
+        torch.set_num_threads(old)
+    return {"matmul_gflops": gflops, "copy_gbps": gbps}
+
+
+def profile(args) -> dict:
+    """``--profile``: the stage table of each scene (and with ``--fused`` the fused
+    iteration's, in the same run)."""
+    from torchhand.core.profiling import recording
+
+    speed = throughput()
+    out = {"profile_cap": args.profile_cap, **speed, "scenes": {}}
+    cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.profile_cap,
+                        first_frame_iterations=args.iterations)
+    variants = {"torch": cfg}
+    if args.fused:
+        variants["fused"] = replace(cfg, fused=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for key in [k for k in args.scenes.split(",") if k.strip()]:
+            root = render(args.hia_root, SCENES[key], 0, args.frames, tmp / key)
+            scene = out["scenes"][key] = {}
+            for name, c in variants.items():
+                run = scored_run(root, tmp / f"{key}_{name}", c, args.device)  # warm-up and accuracy
+                with recording(synchronize=args.device.startswith("cuda")) as rec:
+                    wall, secs = timed_track([root], tmp / f"{key}_{name}_p", c, args.device)
+                scene[name] = {**run, **stage_table(rec, speed)}
+                print_table(f"{key} ({name}, cap {args.profile_cap})", scene[name])
+            alternate(scene, variants, root, tmp / f"{key}_again", args)
+            t = scene["torch"]
+            out[f"{key}_ms"], out[f"{key}_px"] = 1e3 * t["seconds_per_frame_after_first"], t["mean_px"]
+            if "fused" in scene:
+                f = scene["fused"]
+                out[f"{key}_ms_fused"], out[f"{key}_px_fused"] = 1e3 * f["seconds_per_frame_after_first"], f["mean_px"]
+                after = "seconds_per_frame_after_first"
+                scene["fused_speedup_vs_torch"] = t[after] / f[after]
+                scene["fused_lm_speedup_vs_torch"] = t["lm_ms_per_frame"] / f["lm_ms_per_frame"]
+                scene["theta_max_diff_rad"], scene["theta_max_diff_mm"] = theta_difference(
+                    tmp / f"{key}_torch", tmp / f"{key}_fused", root)
+                if key == "one_hand":
+                    out["fused_speedup_vs_torch"] = scene["fused_speedup_vs_torch"]
+    return out
+
+
+def alternate(scene: dict, variants: dict, root: Path, out: Path, args) -> None:
+    """``--repeats`` more unprofiled runs of every variant, alternating (torch, fused,
+    torch, ...), so that a change of the machine's load falls on both: each variant's
+    ``seconds_per_frame_after_first`` becomes the median over its runs (the single runs
+    in ``runs_after_first``)."""
+    import statistics
+
+    runs = {name: [scene[name]["seconds_per_frame_after_first"]] for name in variants}
+    for _ in range(args.repeats):
+        for name, c in variants.items():
+            timed_track([root], out, c, args.device)
+            log = json.loads(next(out.glob("*/track_log.json")).read_text())
+            runs[name].append(sum(f["seconds"] for f in log["frames"][1:]) / max(len(log["frames"]) - 1, 1))
+    for name in variants:
+        scene[name]["runs_after_first"] = runs[name]
+        scene[name]["seconds_per_frame_after_first"] = statistics.median(runs[name])
+
+
+def theta_difference(a: Path, b: Path, root: Path) -> tuple:
+    """The largest |theta| difference of two runs' outputs of the sequence ``root`` over
+    all frames: (rotations and joint angles, rad; root translations, mm)."""
+    import numpy as np
+
+    from torchhand.model.scene import Scene
+
+    (ta,), (tb,) = (list(Path(x).glob("*/theta.npy")) for x in (a, b))
+    d = np.abs(np.load(ta).astype(np.float64) - np.load(tb).astype(np.float64))
+    models = json.loads(SequenceLayout(root).info.read_text())["models"]
+    names = Scene.from_names(models).dof_names
+    trans = np.array([n.split("/")[-1] in ("root:tx", "root:ty", "root:tz") for n in names])
+    return float(d[:, ~trans].max()), float(d[:, trans].max())
+
+
+def stage_table(rec, speed: dict) -> dict:
+    """Per stage path: ms per frame after frame 0, calls per frame, floor ms per frame."""
+    frames, current = [], {}
+    for path, s, f, b in rec.events:  # a frame's stages end before the frame does
+        if not path.startswith("frame"):
+            continue
+        t = current.setdefault(path, [0, 0.0, 0.0, 0.0])
+        t[0] += 1
+        t[1] += s
+        t[2] += f
+        t[3] += b
+        if path == "frame":
+            frames.append(current)
+            current = {}
+    later = frames[1:] or frames
+    n = len(later)
+    iters = sum(fr.get("frame/iteration", [0])[0] for fr in later) / max(n, 1)
+    rows = []
+    for path in dict.fromkeys(p for fr in frames for p in fr):
+        calls, secs, flops, nbytes = (sum(fr.get(path, [0, 0.0, 0.0, 0.0])[i] for fr in later) / n for i in range(4))
+        floor = max(flops / (speed["matmul_gflops"] * 1e9), nbytes / (speed["copy_gbps"] * 1e9))
+        rows.append({"stage": path[len("frame/"):] or "frame", "calls_per_frame": calls, "ms_per_frame": 1e3 * secs,
+                     "ms_per_iteration": 1e3 * secs / max(iters, 1e-9), "mflop_per_frame": flops / 1e6,
+                     "mb_per_frame": nbytes / 1e6, "floor_ms_per_frame": 1e3 * floor if flops or nbytes else None})
+    lm = sum(r["ms_per_frame"] for r in rows if r["stage"] == "iteration/lm")
+    return {"profiled_frames": n, "profiled_iterations_per_frame": iters, "lm_ms_per_frame": lm, "stages": rows}
+
+
+def print_table(title: str, table: dict) -> None:
+    print(f"\n{title}: {table['seconds_per_frame_after_first'] * 1e3:.1f} ms/frame after frame 0 (unprofiled), "
+          f"{table['profiled_iterations_per_frame']:.2f} iterations/frame, {table['mean_px']:.2f} px")
+    print(f"{'stage':<44} {'calls':>6} {'ms/frame':>9} {'ms/iter':>8} {'floor ms':>9}")
+    for r in table["stages"]:
+        floor = "" if r["floor_ms_per_frame"] is None else f"{r['floor_ms_per_frame']:.3f}"
+        print(f"{r['stage']:<44} {r['calls_per_frame']:>6.1f} {r['ms_per_frame']:>9.2f} {r['ms_per_iteration']:>8.2f} "
+              f"{floor:>9}")
 
 
 def within_targets(run: dict) -> bool:

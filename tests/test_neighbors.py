@@ -65,6 +65,31 @@ def test_point_index_finds_the_nearest_of_the_same_problem_and_group(backend):
 
 
 @needs_warp
+@pytest.mark.parametrize("cell", [0.7, 1.25, 3.0, 10.0])
+def test_point_index_cells_of_any_size_find_the_same_nearest(cell):
+    """The grid's cell only sets where a query's growing radius starts: the result is the
+    exact nearest for any cell (the labels use an eighth of their radius)."""
+    pts, problem, group, q, qgroup = _points()
+    problems = torch.tensor([2, 0, 1])
+    got = PointIndex(pts, problem, group, 3, 2, 10.0, "warp", cell=cell).nearest(q, problems, qgroup)
+    want = PointIndex(pts, problem, group, 3, 2, 10.0, "warp").nearest(q, problems, qgroup)
+    assert torch.equal(got, want) and int((got >= 0).sum()) > 300
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu", pytest.param("warp", marks=needs_warp)])
+def test_point_index_any_point_finds_a_point_where_the_nearest_is_found(backend):
+    pts, problem, group, q, qgroup = _points()
+    problems = torch.tensor([2, 0, 1])
+    index = PointIndex(pts, problem, group, 3, 2, 10.0, backend)
+    nearest, some = index.nearest(q, problems, qgroup), index.nearest(q, problems, qgroup, any_point=True)
+    assert torch.equal(some >= 0, nearest >= 0)
+    found = some >= 0
+    assert ((pts[some[found]] - q[found]).norm(dim=-1) <= 10.0 + 1e-5).all()
+    assert (group[some[found]] == qgroup[found]).all()
+    assert (problem[some[found]] == problems[:, None].expand_as(some)[found]).all()
+
+
+@needs_warp
 def test_point_index_radius_is_inclusive():
     pts = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 0.0, 10.5]])
     zero = torch.zeros(3, dtype=torch.int64)

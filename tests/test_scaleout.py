@@ -240,3 +240,36 @@ def test_ray_equals_the_sequential_run_and_retries_a_killed_worker(ray_cluster, 
     here = evaluate_pairs(pairs[:4], with_penetration=False, progress=False)
     assert scored["mean_mm"] == here["mean_mm"] and scored["frames"] == 4 * FRAMES
     assert [f["prediction"] for f in scored["failed"]] == [str((tmp_path / "nothing").resolve())]
+
+
+def test_tasks_are_submitted_longest_first(tmp_path, monkeypatch):
+    """Workers start the longest sequences first (equal lengths keep their order); the
+    summary keeps the order of the given folders."""
+    import torchhand.app.scaleout as scaleout
+
+    demo = demo_motion()
+    scene = Scene.from_names(["hand_right"], dtype=demo.theta.dtype)
+    right = demo.scene.slices["hand_right"]
+    roots = [write_synthetic_sequence(SyntheticFrames(scene, demo.theta[:n, right], demo.cameras, f"n{k}",
+                                                      {"format": "test"}), tmp_path / f"n{k}", rgb=False)
+             for k, n in enumerate((1, 3, 2, 3))]
+    seen = []
+
+    def fake_run(fn, specs, *args, **kwargs):
+        seen.extend(name for spec in specs for name in spec["names"])
+        return [[{"sequence": n, "status": "ok", "frames": 0, "out": None} for n in spec["names"]] for spec in specs]
+
+    monkeypatch.setattr(scaleout, "run_tasks", fake_run)
+    run = track_many(roots, tmp_path / "out", JOB, batch=1, progress=False)
+    assert seen == ["n1", "n3", "n2", "n0"]
+    assert [s["sequence"] for s in run["sequences"]] == ["n0", "n1", "n2", "n3"]
+
+
+def test_the_workers_server_starts_only_for_local_workers():
+    from torchhand.app.workers import PRELOAD, start_server, worker_context
+
+    assert not start_server(1) and not start_server(4, ray="local")
+    ctx = worker_context("torchhand.app.dataset_eval")
+    if ctx.get_start_method() == "forkserver":
+        assert start_server(2)  # started now, or running already: the workers fork from it
+    assert "torch" in PRELOAD

@@ -556,7 +556,8 @@ class _SyncCounter:
         return counted
 
 
-def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
+@pytest.mark.parametrize("fused", [False, True], ids=["torch", "fused"])
+def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch, fused):
     """The Warp backends only (open3d and scipy are host libraries).
 
     Inside the outer iterations of Algorithm 1 (render, correspondences, LM step with
@@ -569,10 +570,12 @@ def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch):
     if default_backend() != "warp":
         pytest.skip("Warp cannot load here")
     scene, theta, cam, depth = hand_frame
-    tracker = Tracker(scene, TrackerConfig())
-    frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=F64)
+    dt = torch.float32 if fused else F64  # the fused objective runs in float32
+    scene, theta, cam = Scene.from_names(["hand_right"], dtype=dt), theta.to(dt), kinect_camera(dtype=dt)
+    tracker = Tracker(scene, TrackerConfig(fused=fused))
+    frame = preprocess_depth(depth, cam, tracker.config.preprocess, dtype=dt)
     start = theta.clone()
-    start[0, :3] += torch.tensor([3.0, -2.0, 2.0], dtype=F64)
+    start[0, :3] += torch.tensor([3.0, -2.0, 2.0], dtype=dt)
     counter = _SyncCounter(monkeypatch)
 
     def syncs(iterations):
@@ -648,3 +651,27 @@ def test_cuda_tracks_like_the_cpu(hand_frame):
         truth = scene(theta).keypoints
     assert (kc - kg).norm(dim=-1).mean() < 0.5
     assert (kg - truth).norm(dim=-1).mean(-1).max() < 1.5
+
+
+def test_proximity_labels_of_one_model_mark_the_pixels_near_any_vertex(hand_frame):
+    """With one model the labelling stops at the first vertex within the distance: the
+    labels are those of the brute-force test (a vertex within 30 mm or none)."""
+    from torchhand.tracking.labels import label_by_proximity
+    from torchhand.tracking.preprocess import preprocess_depth
+
+    scene, theta, cam, depth = hand_frame
+    frame = preprocess_depth(depth, cam, dtype=F64)
+    with torch.no_grad():
+        vertices = scene(theta).vertices
+    far = theta.clone()
+    far[0, 0] += 45.0  # part of the data farther than 30 mm from the moved hand
+    with torch.no_grad():
+        moved = scene(far).vertices
+    for verts in (vertices, moved):
+        labels = label_by_proximity([frame], [cam], verts, scene.vertex_model_id, 30.0)
+        pts = frame.points[frame.mask] @ cam.T_wc[:3, :3].T + cam.T_wc[:3, 3]
+        d = torch.cdist(pts.float(), verts[0].float()).amin(1)
+        want = torch.where(d <= 30.0, 0, -1)
+        assert torch.equal(labels[0][frame.mask], want)
+        assert (labels[0][~frame.mask] == -1).all()
+    assert int((want < 0).sum()) > 0 and int((want == 0).sum()) > 1000

@@ -372,6 +372,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "workers", 1) > 1:  # the workers' server imports while this process does
+        from torchhand.app.workers import start_server
+
+        start_server(args.workers, getattr(args, "ray", None))
     import torch
 
     torch.set_num_threads(args.threads)

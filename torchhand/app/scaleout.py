@@ -2,7 +2,8 @@
 cluster, with one progress bar, a summary, retries and resumable output.
 
 The unit of work is a *task*: up to ``batch`` same-scene sequences tracked as one
-batch by :func:`~torchhand.app.runner.track_sequences` (or one prediction scored). The
+batch by :func:`~torchhand.app.runner.track_sequences` (or one prediction scored),
+submitted longest first to workers started once per run. The
 tasks depend only on the sequence list and ``batch``, never on the number of workers,
 so a run with any worker count, local or on Ray, computes exactly what the sequential
 run computes (the same θ to the last bit on CPU with the same ``--threads``).
@@ -32,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import multiprocessing
 import os
 import queue as queue_lib
 import socket
@@ -49,6 +49,7 @@ from tqdm import tqdm
 
 from torchhand.core.check import check_int
 from torchhand.app.options import TrackOptions
+from torchhand.app.workers import worker_context
 from torchhand.core.errors import MissingExtra
 from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
 from torchhand.io.output_dir import remove_partials
@@ -163,12 +164,9 @@ def _drain(q, handle) -> None:
 
 def _run_processes(fn, args, workers, retries, threads, handle) -> List:
     # workers fork from a server process that imported torch and the task's module once
-    # (no fork of this process, which may hold torch threads; no import per worker)
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["torch", fn.__module__, "torchhand.app.runner"])
-    else:
-        ctx = multiprocessing.get_context("spawn")
+    # (no fork of this process, which may hold torch threads; no import per worker); the
+    # command line starts it when it parses --workers (torchhand.app.workers)
+    ctx = worker_context(fn.__module__)
     results: Dict[int, object] = {}
     attempts = {i: 0 for i in range(len(args))}
     with ctx.Manager() as manager:
@@ -460,6 +458,10 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
         if k not in done:
             groups.setdefault(tuple(info.models), []).append(k)
     tasks = [members[j : j + batch] for members in groups.values() for j in range(0, len(members), batch)]
+    # the longest tasks first (stable: equal ones keep their order), so that no worker
+    # starts a long sequence while the others finish: the run ends sooner, whatever
+    # the number of workers, and each task still computes the same
+    tasks.sort(key=lambda t: -max(infos[k].frames for k in t))
     specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job,
               "settings": settings, "before": [_signature(out / names[k]) for k in t]} for t in tasks]
     total = sum(infos[k].frames for t in tasks for k in t)

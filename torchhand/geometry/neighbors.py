@@ -69,12 +69,14 @@ class PointIndex:
         group: (N,) int64 its group in [0, num_groups).
         radius: the largest query radius (the hash grid's cell size).
         backend: ``"warp"`` or ``"torch"`` (None: Warp when installed).
+        cell: mm, the Warp grid's cells and the first radius of a query (default: a
+            quarter of ``radius``); any value gives the same, exact nearest points.
 
     Build it once for a set of points (a frame's labelled data) and query it many times.
     """
 
     def __init__(self, points: torch.Tensor, problem: torch.Tensor, group: torch.Tensor, num_problems: int,
-                 num_groups: int, radius: float, backend: Optional[str] = None):
+                 num_groups: int, radius: float, backend: Optional[str] = None, cell: Optional[float] = None):
         check_tensor(points, "points", (None, 3), floating=True)
         check_tensor(problem, "problem", (points.shape[0],), integer=True)
         check_tensor(group, "group", (points.shape[0],), integer=True)
@@ -87,8 +89,10 @@ class PointIndex:
         if self.backend == "warp":
             from torchhand.geometry import warp_neighbors
 
-            # cells of a quarter of the radius: the queries grow their radius from there
-            self._grid = warp_neighbors.build_grid(self.points, self.key, self.radius / 4)
+            # cells of a quarter of the radius (or ``cell``): the queries start at a radius of
+            # about a cell and double it (exact at every size; small cells suit queries that
+            # mostly lie near their nearest point)
+            self._grid = warp_neighbors.build_grid(self.points, self.key, self.radius / 4 if cell is None else cell)
             self._grid.radius = self.radius
         elif self.backend == "cpu":
             from scipy.spatial import cKDTree
@@ -103,7 +107,7 @@ class PointIndex:
                 self._trees[k] = (cKDTree(pts[idx.numpy()], balanced_tree=False), idx)
 
     def nearest(self, queries: torch.Tensor, problems: torch.Tensor, groups: torch.Tensor,
-                radius: Optional[float] = None) -> torch.Tensor:
+                radius: Optional[float] = None, any_point: bool = False) -> torch.Tensor:
         """The nearest point of the same problem and group within ``radius`` (inclusive).
 
         Args:
@@ -111,6 +115,9 @@ class PointIndex:
             problems: (B,) int64 the problem of each row of queries.
             groups: (B, n) int64 the group of each query; -1 skips it.
             radius: at most the index's radius (default: it).
+            any_point: any point within ``radius`` will do (whether there is one, not
+                which: the Warp search stops at the first it finds; the others give the
+                nearest).
         Returns:
             (B, n) int64 index into ``points``, -1 where none.
         """
@@ -122,7 +129,7 @@ class PointIndex:
         if self.backend == "warp":
             from torchhand.geometry import warp_neighbors
 
-            return warp_neighbors.nearest_in_grid(self._grid, queries, key, radius)
+            return warp_neighbors.nearest_in_grid(self._grid, queries, key, radius, any_point)
         if self.backend == "cpu":
             return self._nearest_kdtree(queries, key, radius)
         return _nearest_brute_force(self.points, self.key, queries, key, radius)
@@ -252,21 +259,30 @@ def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[t
         no pixel; distance (B, G, h, w) float32 px, inf there), on marks' device.
     """
     import numpy as np
+    from scipy.ndimage import distance_transform_edt
 
     B, H, W = marks.shape
     r0, r1, c0, c1 = (0, H, 0, W) if box is None else box
-    m = marks.cpu().numpy()
-    nearest = np.full((B, num_groups, r1 - r0, c1 - c0, 2), -1, np.int64)
-    distance = np.full((B, num_groups, r1 - r0, c1 - c0), np.inf, np.float32)
+    nearest = np.empty((B, num_groups, r1 - r0, c1 - c0, 2), np.int64)
+    distance = np.empty((B, num_groups, r1 - r0, c1 - c0), np.float32)
+    # the marked pixels, found in one pass over the images (row-major, as argwhere)
+    found = torch.nonzero(marks >= 0)
+    group = marks[found[:, 0], found[:, 1], found[:, 2]].cpu().numpy()
+    found = found.cpu().numpy()
     for b in range(B):
         for g in range(num_groups):
-            pix = np.argwhere(m[b] == g)
+            pix = found[(found[:, 0] == b) & (group == g), 1:]
             if len(pix) == 0:
+                nearest[b, g], distance[b, g] = -1, np.inf
                 continue
             lo = np.minimum(pix.min(0), [r0, c0])  # the box holding the group and the answers
-            dist, near = _feature_transform(pix, lo, np.maximum(pix.max(0) + 1, [r1, c1]))
+            hi = np.maximum(pix.max(0) + 1, [r1, c1])
+            feature = np.ones(hi - lo, bool)
+            feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
+            dist, (ri, ci) = distance_transform_edt(feature, return_indices=True)
             sr, sc = slice(r0 - lo[0], r1 - lo[0]), slice(c0 - lo[1], c1 - lo[1])
-            nearest[b, g], distance[b, g] = near[sr, sc], dist[sr, sc]
+            nearest[b, g, ..., 0], nearest[b, g, ..., 1] = ri[sr, sc] + lo[0], ci[sr, sc] + lo[1]
+            distance[b, g] = dist[sr, sc]
     return torch.as_tensor(nearest, device=marks.device), torch.as_tensor(distance, device=marks.device)
 
 

@@ -137,7 +137,8 @@ def _kernels():
 
     @wp.kernel(enable_backward=False)
     def nearest_grid_kernel(grid: wp.uint64, points: wp.array(dtype=wp.vec3), queries: wp.array2d(dtype=wp.vec3),
-                            groups: wp.array2d(dtype=wp.int32), radius: float, index_out: wp.array2d(dtype=wp.int32)):
+                            groups: wp.array2d(dtype=wp.int32), radius: float, first: float, any_point: int,
+                            index_out: wp.array2d(dtype=wp.int32)):
         b, k = wp.tid()
         index_out[b, k] = -1
         g = groups[b, k]
@@ -145,16 +146,20 @@ def _kernels():
             return
         x = queries[b, k]
         best = int(-1)
-        # growing radii, radius / 4, / 2, / 1: every point within rho lies in the cells
-        # the query at rho visits, so a point found within rho is the exact nearest; most
-        # queries (vertices near their data) stop at the first, cheap radius
-        rho = radius * 0.25
+        # growing radii, first, 2 first, ... up to radius: every point within rho lies in
+        # the cells the query at rho visits, so a point found within rho is the exact
+        # nearest; most queries (vertices near their data) stop at the first, cheap radius
+        # (any_point: the first point found within radius, wherever it lies)
+        rho = first
         while best < 0 and rho <= radius * 1.0001:
             best_d2 = rho * rho
             query = wp.hash_grid_query(grid, x, rho, g)
             j = int(0)
             while wp.hash_grid_query_next(query, j):
                 d2 = wp.length_sq(points[j] - x)
+                if any_point != 0 and d2 <= radius * radius:
+                    best = j
+                    break
                 if d2 < best_d2 or (d2 == best_d2 and (best < 0 or j < best)):
                     best_d2 = d2
                     best = j

@@ -26,6 +26,7 @@ class Grid:
 
     def __init__(self, points: torch.Tensor, groups: torch.Tensor, radius: float, dims: int = 64):
         wp = require_warp()
+        self.cell = float(radius)  # the cells' size, the first radius of a query
         self.device = points.device
         self.points = points.detach().to(torch.float32).contiguous()
         self.groups = groups.to(torch.int32).contiguous()
@@ -42,9 +43,11 @@ def build_grid(points: torch.Tensor, groups: torch.Tensor, radius: float) -> Gri
     return Grid(points, groups, radius)
 
 
-def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, radius: float) -> torch.Tensor:
+def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, radius: float,
+                    any_point: bool = False) -> torch.Tensor:
     """(B, n) int64 index of the nearest grid point of the query's group within
-    ``radius`` (<= radius, ties to the smaller index), -1 where none or ``groups < 0``.
+    ``radius`` (<= radius, ties to the smaller index), -1 where none or ``groups < 0``;
+    with ``any_point``, of the first point found within ``radius``.
 
     queries: (B, n, 3); groups: (B, n) int.
     """
@@ -60,9 +63,19 @@ def nearest_in_grid(grid: Grid, queries: torch.Tensor, groups: torch.Tensor, rad
         wp.launch(kernel, dim=(B, n),
                   inputs=[grid.grid.id, grid._wp_points,
                           wp.from_torch(queries.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
-                          wp.from_torch(groups.to(torch.int32).contiguous()), float(radius)],
+                          wp.from_torch(groups.to(torch.int32).contiguous()), float(radius),
+                          _first_radius(grid.cell, float(radius)), int(bool(any_point))],
                   outputs=[wp.from_torch(out)], device=wp_device(queries.device))
     return out.long()
+
+
+def _first_radius(cell: float, radius: float) -> float:
+    """The first radius of a query up to ``radius`` on a grid of ``cell`` mm: ``radius``
+    halved while it stays at least a cell, so that the radii double up to ``radius``."""
+    first = radius
+    while first / 2 >= cell * (1 - 1e-6):
+        first /= 2
+    return first
 
 
 def nearest_marked_pixel(marks: torch.Tensor, boxes: torch.Tensor, queries: torch.Tensor, groups: torch.Tensor,

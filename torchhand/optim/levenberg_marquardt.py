@@ -19,9 +19,29 @@ from typing import Callable, NamedTuple, Optional, Tuple, Union
 
 import torch
 
-__all__ = ["LMResult", "LeastSquaresProblem", "FunctionProblem", "levenberg_marquardt", "solve_damped"]
+from torchhand.core.profiling import stage
+
+__all__ = ["LMResult", "LeastSquaresProblem", "FunctionProblem", "levenberg_marquardt", "solve_damped", "solve_normal",
+           "NormalEquations", "normal_equations"]
 
 ResidualFn = Callable[[torch.Tensor, bool], Tuple[torch.Tensor, Optional[torch.Tensor]]]
+
+
+class NormalEquations(NamedTuple):
+    """A linearisation as the LM step reads it: ``H`` (B, D, D) = J^T J, ``g`` (B, D) =
+    J^T r and ``cost`` (B,) = |r|^2. A problem whose :meth:`LeastSquaresProblem.linearize`
+    returns these (a fused objective that accumulates them itself) never hands the
+    solver its (B, m, D) Jacobian."""
+
+    H: torch.Tensor
+    g: torch.Tensor
+    cost: torch.Tensor
+
+
+def normal_equations(r: torch.Tensor, J: torch.Tensor) -> NormalEquations:
+    """:class:`NormalEquations` of residuals r (B, m) and their Jacobian J (B, m, D)."""
+    Jt = J.transpose(1, 2)
+    return NormalEquations(Jt @ J, (Jt @ r[..., None])[..., 0], (r * r).sum(-1))
 
 
 class LeastSquaresProblem:
@@ -34,8 +54,9 @@ class LeastSquaresProblem:
     without recomputing it.
     """
 
-    def linearize(self, theta: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:  # pragma: no cover - interface
-        """(r (B, m), J (B, m, D)) at the solver's current iterate ``theta`` (B, D)."""
+    def linearize(self, theta: torch.Tensor):  # pragma: no cover - interface
+        """(r (B, m), J (B, m, D)), or their :class:`NormalEquations`, at the solver's
+        current iterate ``theta`` (B, D)."""
         raise NotImplementedError
 
     def evaluate(self, theta: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
@@ -99,6 +120,12 @@ def solve_damped(J: torch.Tensor, r: torch.Tensor, damping: torch.Tensor) -> tor
     """
     JtJ = J.transpose(1, 2) @ J
     g = (J.transpose(1, 2) @ r[..., None])[..., 0]
+    return solve_normal(JtJ, g, damping)
+
+
+def solve_normal(JtJ: torch.Tensor, g: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
+    """:func:`solve_damped` from the normal equations: JtJ (B, D, D), g (B, D) = J^T r,
+    damping (B,) -> delta (B, D)."""
     lam = damping[:, None]
     diag = torch.diagonal(JtJ, dim1=1, dim2=2)
     A = JtJ + torch.diag_embed(lam * diag + lam)
@@ -147,15 +174,16 @@ def levenberg_marquardt(
     iters, rejected = torch.zeros(B, dtype=torch.int64, device=dev), torch.zeros(B, dtype=torch.int64, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     problem = problem if isinstance(problem, LeastSquaresProblem) else FunctionProblem(problem)
-    r, J = problem.linearize(theta)
-    evaluations, cost, host_status = 1, (r * r).sum(-1), None
+    ne = _linearize(problem, theta)
+    evaluations, cost, host_status = 1, ne.cost, None
     for it in range(max_iterations):
         host_status = None
         if lower is not None or upper is not None:
-            J = _freeze_active_bounds(J, r, theta, lower, upper)
+            ne = _freeze_active_bounds(ne, theta, lower, upper)
         todo = ~done  # problems still looking for an acceptable step in this iteration
         for attempt in range(retries + 1):
-            delta = solve_damped(J, r, lam)
+            with stage("solve", work=lambda: _solve_work(ne.H)):
+                delta = solve_normal(ne.H, ne.g, lam)
             cand = _clamp(theta + delta, lower, upper)
             r_new = problem.evaluate(cand)
             evaluations += 1
@@ -174,31 +202,57 @@ def levenberg_marquardt(
                     if not bool(todo.any()):
                         break
                     continue
-                flags = torch.cat([todo.any()[None], keep_going(theta, iters).bool()]).tolist()  # one transfer
+                with stage("host sync"):
+                    flags = torch.cat([todo.any()[None], keep_going(theta, iters).bool()]).tolist()  # one transfer
                 if not flags[0]:
                     host_status = flags[1:]
                     break
         if (it + 1) % check_every == 0 and bool(done.all()):
             break
         if it + 1 < max_iterations:
-            r, J = problem.linearize(theta)
+            ne = _linearize(problem, theta)
             evaluations += 1
     return LMResult(theta, cost, iters, done, lam, rejected, evaluations, host_status)
 
 
-def _freeze_active_bounds(J, r, theta, lower, upper):
-    """Zero the Jacobian columns of variables held at a bound by the gradient.
+def _linearize(problem: LeastSquaresProblem, theta: torch.Tensor) -> NormalEquations:
+    """The problem's linearisation at ``theta`` as normal equations (formed once, shared
+    by the retries of a step)."""
+    lin = problem.linearize(theta)
+    if isinstance(lin, NormalEquations):
+        return lin
+    r, J = lin
+    with stage("normal equations", work=lambda: _normal_work(J)):
+        return normal_equations(r, J)
+
+
+def _normal_work(J: torch.Tensor) -> tuple:
+    """(flops, bytes) of J^T J and J^T r (2 m D^2 + 2 m D), J read once."""
+    B, m, D = J.shape
+    return B * 2.0 * m * D * (D + 1), 4.0 * B * m * D
+
+
+def _solve_work(H: torch.Tensor) -> tuple:
+    """(flops, bytes) of the damped Cholesky solve: D^3 / 3 + 2 D^2, H read once."""
+    B, D = H.shape[:2]
+    return B * (D ** 3 / 3.0 + 2.0 * D * D), 4.0 * B * D * D
+
+
+def _freeze_active_bounds(ne: NormalEquations, theta, lower, upper) -> NormalEquations:
+    """Zero the Jacobian columns of variables held at a bound by the gradient (their rows
+    and columns of J^T J and their entries of J^T r).
 
     Without this, clamping the full step moves the free variables by a step computed
     as if the held ones could move too; that step is rejected and the damping crawls.
     """
-    g = (J.transpose(1, 2) @ r[..., None])[..., 0]  # gradient of 0.5 |r|^2
+    g = ne.g  # gradient of 0.5 |r|^2
     held = torch.zeros_like(theta, dtype=torch.bool)
     if lower is not None:
         held |= (theta <= lower) & (g > 0)
     if upper is not None:
         held |= (theta >= upper) & (g < 0)
-    return J * (~held)[:, None, :]
+    free = (~held).to(ne.H.dtype)
+    return NormalEquations(ne.H * free[:, :, None] * free[:, None, :], g * free, ne.cost)
 
 
 def _clamp(theta, lower, upper):

@@ -54,6 +54,14 @@ class TrackerConfig:
         solver: ``"lm"`` (Algorithm 1) or ``"pso"`` (HOPE: ``particles`` particles over
             ``generations`` generations, drawn about the start with ``swarm_spread``:
             global translation mm, global rotation rad, joint angles rad).
+        fused: the LM steps of Algorithm 1 take the depth terms' rows and Jacobians from
+            the fused Warp kernels and solve the normal equations they accumulate
+            (:mod:`~torchhand.tracking.fused`; float32 and one view per problem, else the
+            torch objective); False: the torch objective, the reference.
+        threads: torch intra-op threads of the frame loop (reading a frame, preprocessing,
+            solving, the ``revise`` callback; at most torch's own count): 1, because the
+            loop's many small operations gain nothing from more and lose much on a busy
+            machine (:mod:`torchhand.core.threads`); None: torch's setting.
         limit_slack: rad; the solvers keep each sequence's θ within the joint limits
             widened by this and grown to hold its initial pose; None: no box, only the
             soft limits of E_anatomy (Eq. 4.17).
@@ -84,8 +92,12 @@ class TrackerConfig:
     generations: int = 40
     swarm_spread: Tuple[float, float, float] = (5.0, 0.05, 0.1)
     limit_slack: Optional[float] = 0.0
+    fused: bool = False
+    threads: Optional[int] = 1
 
     def __post_init__(self) -> None:
+        if not isinstance(self.fused, bool):
+            raise ValueError(f"fused must be True or False, got {self.fused!r}")
         check_number(self.prediction, "prediction", low=0, inclusive=True, none=True)
         if not isinstance(self.prediction_limiter, bool):
             raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")
@@ -106,6 +118,8 @@ class TrackerConfig:
         check_int(self.step_retries, "step_retries", low=0)
         check_int(self.recover_tries, "recover_tries", low=0)
         check_int(self.render_margin, "render_margin", low=0)
+        if self.threads is not None:
+            check_int(self.threads, "threads", low=1)
 
     @property
     def motion_prediction(self) -> float:

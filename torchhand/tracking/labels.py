@@ -82,7 +82,8 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     B, V = vertices.shape[:2]
     dev, dt = vertices.device, vertices.dtype
     index = PointIndex(vertices.detach().reshape(-1, 3), torch.arange(B, device=dev).repeat_interleave(V),
-                       torch.zeros(B * V, dtype=torch.int64, device=dev), B, 1, distance, backend)
+                       torch.zeros(B * V, dtype=torch.int64, device=dev), B, 1, distance, backend,
+                       cell=distance / 8)  # data lies within a few mm of its nearest vertex
     H, W = frames[0].mask.shape
     labels = torch.full((B, H, W), -1, dtype=torch.int64, device=dev)
     pts: List[torch.Tensor] = []
@@ -99,7 +100,9 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     groups = torch.full((B, n), -1, dtype=torch.int64, device=dev)
     for b, p in enumerate(pts):
         queries[b, :len(p)], groups[b, :len(p)] = p, 0
-    nearest = index.nearest(queries, torch.arange(B, device=dev), groups, distance)  # (B, n) into B*V
+    # with one model any vertex within the distance gives the label: the search stops there
+    one_model = bool((vertex_model == vertex_model[0]).all())
+    nearest = index.nearest(queries, torch.arange(B, device=dev), groups, distance, any_point=one_model)  # into B*V
     model = torch.where(nearest >= 0, vertex_model.to(dev)[(nearest % V).clamp(min=0)], -1)
     flat = labels.view(B, -1)
     for b, s in enumerate(sel):

@@ -13,6 +13,7 @@ from typing import List, NamedTuple, Sequence
 
 import torch
 
+from torchhand.core.profiling import stage
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.optim.levenberg_marquardt import LeastSquaresProblem
 from torchhand.tracking.energies import EnergyTerm, Prepared, TrackState
@@ -45,9 +46,11 @@ def prepare_terms(terms: Sequence[EnergyTerm], view: TrackState, pose: TrackStat
         if t.prior:
             continue
         if t.needs is None:
-            prepared[k] = t.prepare(pose)
+            with stage(f"prepare:{t.name}"):
+                prepared[k] = t.prepare(pose)
         else:
-            p = t.prepare(view)
+            with stage(f"prepare:{t.name}", work=lambda: _prepare_work(prepared[k])):
+                p = prepared[k] = t.prepare(view)
             c = p.counts
             prepared[k] = p.recounted(correspondences=summed(c.correspondences), candidates=summed(c.candidates),
                                       unmatched=summed(c.unmatched),
@@ -56,7 +59,8 @@ def prepare_terms(terms: Sequence[EnergyTerm], view: TrackState, pose: TrackStat
     pose.correspondences = sum(c.correspondences for c in data)
     for k, t in enumerate(terms):
         if t.prior:
-            prepared[k] = t.prepare(pose)
+            with stage(f"prepare:{t.name}"):
+                prepared[k] = t.prepare(pose)
     found = [p.counts for p in prepared]
     return PreparedTerms(prepared, pose.correspondences, sum(c.candidates for c in found),
                          sum(c.unmatched for c in found))
@@ -97,11 +101,14 @@ class Objective(LeastSquaresProblem):
         th_v, posed_v = (theta[self._rep], posed.select(self._rep)) if per_view else (None, None)
         parts = []
         for t, p in zip(self.terms, self.prepared):
-            if t.needs is None:
-                parts.append(t.residuals(theta, posed, p, jacobian))
-                continue
-            res = t.residuals(th_v, posed_v, p, jacobian)  # the view problems' rows, stacked per problem
-            parts.append(res._replace(r=res.r.reshape(B, -1), J=None if res.J is None else res.J.reshape(B, -1, D)))
+            with stage(f"{'rows+J' if jacobian else 'rows'}:{t.name}",
+                       work=lambda: _rows_work(parts[-1], self.scene, jacobian)):
+                if t.needs is None:
+                    parts.append(t.residuals(theta, posed, p, jacobian))
+                    continue
+                res = t.residuals(th_v, posed_v, p, jacobian)  # the view problems' rows, stacked per problem
+                parts.append(res._replace(r=res.r.reshape(B, -1),
+                                          J=None if res.J is None else res.J.reshape(B, -1, D)))
         r = torch.cat([p.r for p in parts], 1)
         J = torch.cat([p.J for p in parts], 1) if jacobian else None
         return r, J
@@ -110,7 +117,8 @@ class Objective(LeastSquaresProblem):
         return self.residuals(theta, self.current, True)
 
     def evaluate(self, theta: torch.Tensor) -> torch.Tensor:
-        self.candidate = self.scene(theta, validate=False)
+        with stage("pose", work=lambda: _pose_work(self.scene, theta.shape[0])):
+            self.candidate = self.scene(theta, validate=False)
         return self.residuals(theta, self.candidate, False)[0]
 
     def accept(self, mask: torch.Tensor) -> None:
@@ -124,3 +132,38 @@ def _where(mask: torch.Tensor, a, b):
     if not isinstance(a, torch.Tensor):
         return a
     return torch.where(mask.view(-1, *([1] * (a.dim() - 1))), a, b)
+
+
+# Floors of the stages (core.profiling): what the work cannot avoid, in flops and bytes.
+# K = 4 skinning influences per vertex: the thesis hands' vertices have 9 non-zero weights
+# on average but 3.5 above 0.01; a floor counts what a lean skinning would need.
+_K = 4
+
+
+def _prepare_work(prepared: Prepared) -> tuple:
+    """A data term's preparation: per candidate a neighbour query of ~27 points (~250
+    flops), the normal or ray of the pair (~100 flops), 64 bytes read and written."""
+    n = float(prepared.counts.candidates.sum())
+    return 350.0 * n, 64.0 * n
+
+
+def _rows_work(res, scene: Scene, jacobian: bool) -> tuple:
+    """A term's residual rows (at ``dim`` rows per pair): per pair its vertex skinned
+    (K x 24 flops, K x 8 + 12 bytes of skinning data read) and 28 bytes of pair data;
+    with the Jacobian, per DoF of the pair's model (~D / models of the scene) the
+    DoF's motion of the vertex (24 flops) and its projection on the rows (6 x dim);
+    the Jacobian's normal equations are counted in the solve."""
+    m = res.r.shape[0] * res.r.shape[1]
+    pairs = m / max(res.dim, 1)
+    D = scene.num_dofs / max(len(scene.models), 1)
+    flops = pairs * _K * 24 + (pairs * D * (24 + 6 * res.dim) if jacobian else 0.0)
+    return flops, pairs * (_K * 8 + 12 + 28) + 4.0 * m
+
+
+def _pose_work(scene: Scene, B: int) -> tuple:
+    """Posing the scene: forward kinematics (~200 flops per bone) and every vertex
+    skinned from its K influences (K x 24 flops; rest vertex, K ids and weights read,
+    the posed vertex written)."""
+    V = scene.num_vertices
+    bones = sum(m.num_bones for m in scene.models)
+    return B * (200.0 * bones + _K * 24.0 * V), B * V * (12.0 + _K * 8 + 12)

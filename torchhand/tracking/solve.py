@@ -13,8 +13,10 @@ from typing import List, NamedTuple, Optional, Sequence
 
 import torch
 
+from torchhand.core.profiling import stage
 from torchhand.geometry.camera import Camera
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
+from torchhand.tracking.fused import FusedObjective, supports
 from torchhand.tracking.objective import Objective, prepare_terms
 from torchhand.tracking.views import same_camera
 
@@ -89,7 +91,7 @@ class Algorithm1:
             box = tracker.frame_states.box(posed.vertices.repeat_interleave(V, 0), cameras, shared)
         for _ in range(iterations):
             vsub = [b * V + v for b in sub for v in range(V)]
-            with torch.no_grad():
+            with stage("iteration"), torch.no_grad():
                 view, state = tracker.frame_states.states(
                     theta[idx], previous[idx], [frames[j] for j in vsub], [cameras[j] for j in vsub], views=V,
                     colours=None if colours is None else [colours[j] for j in vsub],
@@ -98,7 +100,8 @@ class Algorithm1:
                 labels = view.data_labels  # labelled once per frame, at its start pose
                 prep = prepare_terms(tracker.terms, view, state, V)
                 counts[idx] = prep.correspondences.to(counts.device)
-                objective = Objective(scene, tracker.terms, prep.prepared, state.posed, V)
+                kind = FusedObjective if cfg.fused and supports(theta, V) else Objective
+                objective = kind(scene, tracker.terms, prep.prepared, state.posed, V)
 
                 def going(th, steps, objective=objective, state=state):
                     # a problem goes on while its joints move; one whose step was rejected
@@ -106,15 +109,17 @@ class Algorithm1:
                     return (scene.joint_motion(state.posed, objective.current) >= min_motion) & (steps > 0)
 
                 lo, hi = box_rows((lower, upper), idx)
-                res = levenberg_marquardt(objective, state.theta, lo, hi, max_iterations=cfg.inner_iterations,
-                                          damping=damping[idx], retries=cfg.step_retries, keep_going=going)
+                with stage("lm"):
+                    res = levenberg_marquardt(objective, state.theta, lo, hi, max_iterations=cfg.inner_iterations,
+                                              damping=damping[idx], retries=cfg.step_retries, keep_going=going)
                 posed = objective.current
-            theta[idx], damping[idx] = res.theta, res.damping
-            energy[idx] = (res.cost + prep.unmatched.to(theta)) / prep.candidates.to(theta).clamp_min(1)
-            iters[idx] += 1
-            # the stopping rule: one host sync per outer iteration, read with the solver's
-            # retry check when there is one
-            flags = res.going if res.going is not None else going(res.theta, res.iterations).tolist()
+                theta[idx], damping[idx] = res.theta, res.damping
+                energy[idx] = (res.cost + prep.unmatched.to(theta)) / prep.candidates.to(theta).clamp_min(1)
+                iters[idx] += 1
+                # the stopping rule: one host sync per outer iteration, read with the solver's
+                # retry check when there is one
+                with stage("host sync"):
+                    flags = res.going if res.going is not None else going(res.theta, res.iterations).tolist()
             if not any(flags):
                 break
             if not all(flags):

@@ -22,6 +22,8 @@ from typing import Callable, Iterable, Iterator, List, NamedTuple, Optional, Seq
 import numpy as np
 import torch
 
+from torchhand.core.profiling import stage
+from torchhand.core.threads import intra_op_threads
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.geometry.raycast import RayCaster
@@ -294,8 +296,9 @@ class Tracker:
                 if depth_views is not None:
                     if depth_views[b] is None:
                         raise EmptyFrameError("missing depth frame")
-                    fr = [preprocess_depth(d, rigs[b][v], cfg.preprocess, device=previous.device, dtype=previous.dtype)
-                          for v, d in enumerate(depth_views[b])]
+                    with stage("preprocess", work=lambda: _preprocess_work(depth_views[b])):
+                        fr = [preprocess_depth(d, rigs[b][v], cfg.preprocess, device=previous.device,
+                                               dtype=previous.dtype) for v, d in enumerate(depth_views[b])]
                 if colour_views is not None:
                     if colour_views[b] is None:
                         raise EmptyFrameError("missing colour frame")
@@ -350,17 +353,27 @@ class Tracker:
         depth_frames = None if depths is None else iter(depths)
         colour_frames = None if colours is None else iter(colours)
         for f in itertools.count():
-            try:
-                frame = None if depth_frames is None else next(depth_frames)
-                colour = None if colour_frames is None else next(colour_frames)
-            except StopIteration:
-                return
-            start = predicted_start(list(history), cfg.motion_prediction, cfg.prediction_limiter)
-            res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
-                                   colours=colour)
-            if revise is not None:
-                res = revise(f, res)
+            with intra_op_threads(cfg.threads):  # restored before yielding to the caller
+                try:
+                    frame = None if depth_frames is None else next(depth_frames)
+                    colour = None if colour_frames is None else next(colour_frames)
+                except StopIteration:
+                    return
+                start = predicted_start(list(history), cfg.motion_prediction, cfg.prediction_limiter)
+                with stage("frame"):
+                    res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
+                                           colours=colour)
+                if revise is not None:
+                    res = revise(f, res)
             theta = res.theta
             history.append((theta, res.valid.to(theta.device)))
             yield res
 
+
+def _preprocess_work(depths) -> tuple:
+    """(flops, bytes) floor of preprocessing depth maps: every pixel read once; on the
+    valid pixels the 5 x 5 bilateral filter, the Sobel normals and the edge test (about
+    150 flops) and the points, normals and mask written (28 bytes)."""
+    valid = sum(int((torch.as_tensor(np.asarray(d)) > 0).sum()) for d in depths)
+    pixels = sum(int(np.prod(np.shape(d))) for d in depths)
+    return 150.0 * valid, 4.0 * pixels + 28.0 * valid

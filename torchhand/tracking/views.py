@@ -14,6 +14,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 import torch
 
 from torchhand.core.check import skip_checks
+from torchhand.core.profiling import stage
 from torchhand.geometry.camera import Camera
 from torchhand.geometry.render import Renderer, RenderResult, window_map
 from torchhand.model.scene import Scene, SceneOutput
@@ -119,9 +120,11 @@ class StateBuilder:
         posed = posed if posed is not None else self.scene(theta, validate=False)
         rep = torch.arange(nb, device=theta.device).repeat_interleave(V)
         th_v, prev_v, posed_v = theta[rep], previous[rep], posed.select(rep)
-        rend = self.render(posed_v.vertices.detach(), cameras, problems, shared, box)
+        with stage("render", work=lambda: _render_work(self.scene, posed_v.vertices.shape[0], rend)):
+            rend = self.render(posed_v.vertices.detach(), cameras, problems, shared, box)
         if labels is None:  # once per frame, at its start pose
-            labels = self.label(frames, cameras, posed_v, rend)
+            with stage("labels", work=lambda: _label_work(frames, posed_v.vertices)):
+                labels = self.label(frames, cameras, posed_v, rend)
         view = TrackState(self.scene, th_v, prev_v, posed_v, frames, cameras, rend, labels, problems=problems,
                           frame_data=frame_data, box=box, colours=colours)
         first = slice(0, None, V)  # each problem seen by its first view
@@ -130,6 +133,24 @@ class StateBuilder:
                           problems=problems[first] // V, frame_data=frame_data, box=box,
                           colours=None if colours is None else colours[first])
         return FrameStates(view, pose)
+
+
+def _render_work(scene: Scene, views: int, rend: RenderResult) -> tuple:
+    """(flops, bytes) floor of a render: every vertex projected (20 flops, 12 bytes read),
+    every face set up (40 flops, 12 bytes of indices), every pixel of the box resolved
+    (20 flops; an 8-byte z-buffer entry and the 16 bytes of face, depth and ids)."""
+    pixels = rend.model_id.numel()
+    nv, nf = views * scene.num_vertices, views * scene.faces.shape[0]
+    return 20.0 * nv + 40.0 * nf + 20.0 * pixels, 12.0 * nv + 12.0 * nf + 24.0 * pixels
+
+
+def _label_work(frames: list, vertices: torch.Tensor) -> tuple:
+    """(flops, bytes) floor of the proximity labels: a grid of the vertices (10 flops,
+    24 bytes each), every valid data pixel moved to the world and compared with the
+    ~27 vertices of its neighbourhood (230 flops, 20 bytes)."""
+    n = sum(int(f.mask.sum()) for f in frames if f is not None)
+    nv = vertices.shape[0] * vertices.shape[1]
+    return 10.0 * nv + 230.0 * n, 24.0 * nv + 20.0 * n
 
 
 class ColourHistory:

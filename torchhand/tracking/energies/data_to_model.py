@@ -23,7 +23,7 @@ import torch
 
 from torchhand.core.check import check_int, check_number
 from torchhand.geometry.camera import pixel_rays, unproject_pixels
-from torchhand.geometry.neighbors import nearest_marked_pixel
+from torchhand.geometry.neighbors import marked_boxes, nearest_marked_pixel
 from torchhand.geometry.render import window_map
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (ModelRows, RayRows, TrackState, VertexRayTerm, begin, bone_inliers,
@@ -134,10 +134,15 @@ class DataToModel(VertexRayTerm):
         _, vertex_bone, num_bones = self._bones
         # the nearest silhouette pixel of the data pixel's model (Eq. 4.8's pairs), searched
         # on whole images: the data pixels lie anywhere in them, the render may be a crop
-        marks = window_map(torch.where(rend.silhouette_edges, rend.model_id, -1), rend.origin,
-                           (0, state.cameras[0].height, 0, state.cameras[0].width), -1)
+        crop = torch.where(rend.silhouette_edges, rend.model_id, -1).to(torch.int32)
+        marks = window_map(crop, rend.origin, (0, state.cameras[0].height, 0, state.cameras[0].width), -1)
+        # the marks' boxes from the render's crop (inside the image): the same as from the
+        # whole image, without a pass over it per model
+        o_r, o_c = rend.origin or (0, 0)
+        boxes = marked_boxes(crop, K) + torch.tensor([o_r, o_r, o_c, o_c], dtype=torch.int32, device=dev)
         groups = torch.where(valid, torch.arange(K, device=dev)[None, :, None], -1).reshape(B, K * M)
-        px = nearest_marked_pixel(marks, rc.reshape(B, K * M, 2), groups, radius.reshape(B, K * M), K, self.backend)
+        px = nearest_marked_pixel(marks, rc.reshape(B, K * M, 2), groups, radius.reshape(B, K * M), K, self.backend,
+                                  boxes=boxes)
         found = px[..., 0] >= 0
         b = torch.arange(B, device=dev)[:, None]
         vid = seen_vertices(rend, scene.faces, px)  # (B, K M) the scene vertex seen at the model pixel

@@ -101,10 +101,13 @@ class FreeSpace(VertexPixelTerm):
         H, W = state.frames[0].mask.shape
         box = (0, H, 0, W) if state.box is None else state.box
         r0, r1, c0, c1 = box
-        # depth where seen, 0 where nothing was seen, -1 in the data's small holes (unknown)
-        depth = torch.stack([torch.where(f.mask, f.depth, torch.where(f.mask if f.covered is None else f.covered,
-                                                                      -1.0, 0.0).to(f.depth))[r0:r1, c0:c1]
-                             for f in state.frames]).to(dev)
+        # depth where seen, 0 where nothing was seen, -1 in the data's small holes (unknown);
+        # on the box only
+        def seen(f):
+            mask, covered = f.mask[r0:r1, c0:c1], (f.mask if f.covered is None else f.covered)[r0:r1, c0:c1]
+            return torch.where(mask, f.depth[r0:r1, c0:c1], torch.where(covered, -1.0, 0.0).to(f.depth))
+
+        depth = torch.stack([seen(f) for f in state.frames]).to(dev)
         nearest, distance = marked_pixel_transform(state.data_labels, len(state.scene.models), box)
         return _Data(depth.float(), nearest, distance, (r0, c0))
 
