@@ -310,6 +310,7 @@ def test_eval_scores_a_prediction_against_the_imported_joints(sample, tmp_path, 
     assert "standard 21 joints: MPJPE 5.00 mm" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # end to end: import, track and score a sequence, twice
 def test_eval_dataset_imports_tracks_scores_and_resumes(sample, tmp_path, capsys):
     from torchhand.app.dataset_eval import RESULTS_NAME
 
