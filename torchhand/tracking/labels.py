@@ -83,7 +83,7 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     dev, dt = vertices.device, vertices.dtype
     index = PointIndex(vertices.detach().reshape(-1, 3), torch.arange(B, device=dev).repeat_interleave(V),
                        torch.zeros(B * V, dtype=torch.int64, device=dev), B, 1, distance, backend,
-                       cell=distance / 8)  # data lies within a few mm of its nearest vertex
+                       cell=distance / 2)  # near data ends its search early, far data scans 5^3 cells
     H, W = frames[0].mask.shape
     labels = torch.full((B, H, W), -1, dtype=torch.int64, device=dev)
     pts: List[torch.Tensor] = []
