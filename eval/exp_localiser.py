@@ -209,6 +209,8 @@ def sr305(loc: HandLocaliser, root: Path, figure: Path | None) -> dict:
 
 
 def _tile(depth: np.ndarray, seg, label: str, size: int = 240) -> np.ndarray:
+    from torchhand.app.drawing import draw_skeleton
+
     v = np.clip((depth - 300) / 1200 * 255, 0, 255).astype(np.uint8)
     img = cv2.cvtColor(255 - v, cv2.COLOR_GRAY2BGR)
     img[depth == 0] = 0
@@ -216,11 +218,8 @@ def _tile(depth: np.ndarray, seg, label: str, size: int = 240) -> np.ndarray:
         body = seg.labels == 3
         img[body] = (0.5 * img[body] + [110, 40, 0]).astype(np.uint8)
     img[seg.mask] = (0.4 * img[seg.mask] + [0, 150, 0]).astype(np.uint8)
-    for h in seg.located:
-        pts = h.uv.round().astype(int)
-        for a, b in [(0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11),
-                     (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18), (18, 19), (19, 20)]:
-            cv2.line(img, tuple(pts[a]), tuple(pts[b]), (0, 220, 255), 2)
+    for h in seg.located:  # the standard 21 joints share the 21-keypoint skeleton's order
+        draw_skeleton(img, h.uv)
     img = cv2.resize(img, (size * 4 // 3, size))
     cv2.putText(img, label, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
     return img
