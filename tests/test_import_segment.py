@@ -244,6 +244,18 @@ def test_automatic_initialisation_of_a_rendered_hand():
     with torch.no_grad():
         err = (scene(res.theta[None]).keypoints - scene(truth).keypoints).norm(dim=-1).mean()
     assert err < 10.0 and res.cost < 0.2
+    # a refine that diverges (LM thrown off the data) is not taken: the swarm's pick is
+    solve = tracker.solve
+
+    def diverging(starts, *args, **kwargs):
+        out = solve(starts, *args, **kwargs)
+        return out._replace(theta=out.theta + torch.tensor([5000.0, 0.0, 9000.0] + [0.0] * (scene.num_dofs - 3)))
+
+    tracker.solve = diverging
+    res = initialize_hands(tracker, depth, cam, seg)
+    with torch.no_grad():
+        err = (scene(res.theta[None]).keypoints - scene(truth).keypoints).norm(dim=-1).mean()
+    assert err < 40.0 and res.cost < 0.5
 
 
 def test_detected_fingertips_seed_the_hand_axis():

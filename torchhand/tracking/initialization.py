@@ -63,10 +63,12 @@ __all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth
            "search_box", "keypoint_pose", "KEYPOINT_SEED_CONFIDENCE"]
 
 #: A located hand seeds the search from its joints when their mean confidence reaches this.
-KEYPOINT_SEED_CONFIDENCE = 0.3
+KEYPOINT_SEED_CONFIDENCE = 0.1
 #: A seed from the joints is dropped when its mesh centre lies farther than this (mm)
 #: from the located palm centre (a fit thrown off by misplaced joints).
 KEYPOINT_SEED_REACH = 150.0
+#: Scale (mm) of the robust weights of :func:`keypoint_pose`'s second fit.
+ROBUST_JOINT_MM = 20.0
 #: The palm's joints among the standard 21 (wrist, thumb CMC, the four knuckles).
 _PALM_JOINTS = [0, 1, 5, 9, 13, 17]
 
@@ -313,10 +315,12 @@ class Initializer:
         frame = preprocess_depth(data_full, camera, tracker.config.preprocess, device=dev, dtype=dt)
         refined = tracker.solve(starts, starts, [frame] * len(pick), [camera] * len(pick), config.refine_iterations,
                                 0.0).theta
-        final = cost(refined[None].double(), camera, torch.as_tensor(data_full, device=dev), scene,
+        # the swarm's picks stay candidates: a refine that diverged (off the data) is not taken
+        cands = torch.cat([refined.detach(), starts])
+        final = cost(cands[None].double(), camera, torch.as_tensor(data_full, device=dev), scene,
                      tracker.renderer)[0]
         k = int(torch.argmin(final))
-        return InitResult(refined[k].detach(), float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
+        return InitResult(cands[k], float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
 
 
 def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Camera, iterations: int = 30
@@ -356,6 +360,12 @@ def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Cam
         return r[:1], J
 
     res = levenberg_marquardt(residuals, theta0, m.lower, m.upper, max_iterations=iterations)
+    # then robustly: joints the fit leaves far off (misplaced detections) are down-weighted
+    # (Cauchy weights, scale ROBUST_JOINT_MM) and the fit is run again from there
+    with torch.no_grad(), skip_checks():
+        off = (standard_joints(m(res.theta, validate=False), m, src)[0] - target).norm(dim=-1)
+    w = w * (1.0 + (off / ROBUST_JOINT_MM) ** 2).rsqrt()
+    res = levenberg_marquardt(residuals, res.theta, m.lower, m.upper, max_iterations=iterations)
     return res.theta[0].detach().double()
 
 
