@@ -147,6 +147,26 @@ def test_segmentation_takes_the_models_side_and_reports_the_other():
     assert (seg.blobs[0] == left).all() and "right hand (score 0.60)" in seg.note
 
 
+def test_segmentation_reads_the_forearm_from_the_pixels_not_the_joints():
+    """The seeds' forearm direction: towards arm pixels that continue the hand's depth,
+    none for a torso behind the hand, whatever the located wrist says."""
+    depth = np.full((480, 640), 0.0, np.float32)
+    hand = np.zeros((480, 640), bool)
+    hand[180:260, 280:360] = True
+    arm = np.zeros((480, 640), bool)
+    arm[260:400, 300:340] = True  # below the hand in the image
+    depth[hand], depth[arm] = 500.0, 520.0
+    labels = np.where(hand, 2, np.where(arm, 3, 0)).astype(np.uint8)
+    located = _located(hand, "right")  # its joints run top-left to bottom-right: the wrist at the top
+    seg = segment_hands(depth, kinect_camera(), SegmentConfig(), sides=("right",),
+                        localiser=_Fixed([located], labels))
+    assert seg.forearm[0][1] > 0.9  # +y: down the image, to the arm
+    depth[arm] = 900.0  # a body 400 mm behind the hand is no forearm
+    seg = segment_hands(depth, kinect_camera(), SegmentConfig(), sides=("right",),
+                        localiser=_Fixed([located], labels))
+    assert not seg.forearm[0].any()
+
+
 def test_segmentation_falls_back_to_the_blob_rules_and_says_so():
     from torchhand.tracking.segmentation import SegmentationError
 

@@ -50,7 +50,7 @@ from torchhand.geometry.camera import Camera
 from torchhand.geometry.mesh import is_closed_outward
 from torchhand.geometry.render import Renderer
 from torchhand.geometry.rigid import kabsch
-from torchhand.model.joints21 import joint_sources, standard_joints
+from torchhand.model.joints21 import joint_sources, standard_joint_jacobian, standard_joints
 from torchhand.optim.levenberg_marquardt import levenberg_marquardt
 from torchhand.model.kinematics import so3_log
 from torchhand.model.proxy import coarse_model
@@ -323,13 +323,14 @@ class Initializer:
         return InitResult(cands[k], float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
 
 
-def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Camera, iterations: int = 30
+def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Camera, iterations: int = 15
                   ) -> torch.Tensor:
     """(D,) float64 the pose of hand ``model`` whose standard 21 joints
     (:mod:`torchhand.model.joints21`) best fit ``joints`` (21, 3) mm in ``camera``'s
     frame, weighted by ``confidence`` (21,): the global pose by a rigid fit of the palm's
     joints (wrist, thumb base, knuckles), then every DoF within its limits by LM on all
-    21 joints (``iterations``)."""
+    21 joints (``iterations``, the joints' analytic Jacobian), then once more with the
+    joints that fit leaves far off down-weighted (:data:`ROBUST_JOINT_MM`)."""
     m = model
     dt = m.vertices_rest.dtype
     src = joint_sources(m)
@@ -344,20 +345,14 @@ def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Cam
     theta0[0, 3:6] = so3_log(T[None, :3, :3])[0]
     theta0[0, :3] = T[:3, 3] + T[:3, :3] @ rc - rc
 
-    D = m.num_dofs
-    eps = 1e-3
-
     def residuals(theta: torch.Tensor, with_jacobian: bool) -> tuple:
-        # one batched forward: theta and its central differences (LBS of 75 poses is
-        # cheaper than 37 backward passes)
-        th = theta if not with_jacobian else torch.cat(
-            [theta, theta + eps * torch.eye(D, dtype=dt), theta - eps * torch.eye(D, dtype=dt)])
         with torch.no_grad(), skip_checks():
-            r = ((standard_joints(m(th, validate=False), m, src) - target) * w[:, None]).reshape(len(th), -1)
-        if not with_jacobian:
-            return r, None
-        J = ((r[1:D + 1] - r[D + 1:]) / (2 * eps)).T[None]
-        return r[:1], J
+            posed = m(theta, validate=False)
+            r = ((standard_joints(posed, m, src) - target) * w[:, None]).reshape(len(theta), -1)
+            if not with_jacobian:
+                return r, None
+            J = (standard_joint_jacobian(posed, m, src) * w[:, None, None]).reshape(len(theta), r.shape[1], -1)
+        return r, J
 
     res = levenberg_marquardt(residuals, theta0, m.lower, m.upper, max_iterations=iterations)
     # then robustly: joints the fit leaves far off (misplaced detections) are down-weighted

@@ -413,6 +413,23 @@ def _cut_forearm(mask: np.ndarray, points: np.ndarray, palm: np.ndarray, arm: np
     return keep
 
 
+def _forearm_direction(blob: np.ndarray, cut: np.ndarray, labels: np.ndarray, d: np.ndarray, points: np.ndarray,
+                       palm: np.ndarray, min_pixels: int = 30) -> np.ndarray:
+    """(3,) unit direction from the palm centre to the forearm, or zeros without
+    evidence: the pixels cut off the hand as forearm, else the arm-and-body pixels next
+    to the hand (within 15 px) whose depth continues the hand's (within 80 mm of the
+    palm's, so a torso behind the hand is no forearm)."""
+    arm = cut & (d > 0)
+    if arm.sum() < min_pixels:
+        ring = cv2.dilate(blob.astype(np.uint8), np.ones((31, 31), np.uint8)).astype(bool) & ~blob
+        arm = ring & (labels == 3) & (d > 0) & (np.abs(d - palm[2]) < 80.0)
+    if arm.sum() < min_pixels:
+        return np.zeros(3)
+    a = points[arm].astype(np.float64).mean(0) - palm
+    n = np.linalg.norm(a)
+    return a / n if n > 30.0 else np.zeros(3)
+
+
 def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Sequence[str] = (),
                  localiser=None, where: str = "") -> Segmentation:
     """The localiser's segmentation of a range-clipped depth map ``d`` (see the module).
@@ -464,12 +481,16 @@ def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Se
     points = _points(d, camera)
     for h in picked:
         j = _back_project(h.uv.astype(np.float64), h.z.astype(np.float64), camera)
-        palm = j[[0, 5, 9, 13, 17]].mean(0)
         arm = j[0] - j[[5, 9, 13, 17]].mean(0)
-        arm = arm / max(np.linalg.norm(arm), 1e-9)
+        blob = _cut_forearm(h.mask, points, j[[0, 5, 9, 13, 17]].mean(0), arm / max(np.linalg.norm(arm), 1e-9),
+                            config)
+        # the seeds' palm and forearm come from the pixels, as the blob rules' do: the
+        # located joints seed a search of their own (tracking.initialization), and a
+        # misplaced wrist must not turn the blob's seeds around
+        palm, _ = _palm_centre(blob, d, points, camera.fx)
         palms.append(palm)
-        arms.append(arm)
-        blobs.append(_cut_forearm(h.mask, points, palm, arm, config))
+        arms.append(_forearm_direction(blob, h.mask & ~blob, labels, d, points, palm))
+        blobs.append(blob)
     for h, blob in zip(picked, blobs):
         cut |= h.mask & ~blob
     return Segmentation(np.any(blobs, 0), blobs, np.array(palms).reshape(-1, 3), np.array(arms).reshape(-1, 3),
