@@ -67,6 +67,9 @@ KEYPOINT_SEED_CONFIDENCE = 0.1
 #: A seed from the joints is dropped when its mesh centre lies farther than this (mm)
 #: from the located palm centre (a fit thrown off by misplaced joints).
 KEYPOINT_SEED_REACH = 150.0
+#: A refined pose is kept unless its depth discrepancy exceeds the best unrefined swarm
+#: pick's by more than this (0 .. 1: a diverged refinement scores ~1).
+REFINE_SLACK = 0.05
 #: Scale (mm) of the robust weights of :func:`keypoint_pose`'s second fit.
 ROBUST_JOINT_MM = 20.0
 #: The palm's joints among the standard 21 (wrist, thumb CMC, the four knuckles).
@@ -315,11 +318,16 @@ class Initializer:
         frame = preprocess_depth(data_full, camera, tracker.config.preprocess, device=dev, dtype=dt)
         refined = tracker.solve(starts, starts, [frame] * len(pick), [camera] * len(pick), config.refine_iterations,
                                 0.0).theta
-        # the swarm's picks stay candidates: a refine that diverged (off the data) is not taken
+        # the swarm's picks stay candidates: a refinement that went off the data (a
+        # diverged LM) is not taken, though one that fits a little worse by this coarse
+        # measure is (LM's own objective is the finer one)
         cands = torch.cat([refined.detach(), starts])
         final = cost(cands[None].double(), camera, torch.as_tensor(data_full, device=dev), scene,
                      tracker.renderer)[0]
-        k = int(torch.argmin(final))
+        n = len(pick)
+        k = int(torch.argmin(final[:n]))
+        if final[k] > final[n:].min() + REFINE_SLACK:
+            k = n + int(torch.argmin(final[n:]))
         return InitResult(cands[k], float(final[k]), float(res.cost.min()), time.perf_counter() - t0)
 
 
