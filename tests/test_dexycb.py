@@ -20,7 +20,8 @@ from scipy.ndimage import distance_transform_edt
 
 from torchhand.app.cli import DATASET_FORMATS, main
 from torchhand.data.datasets import FORMATS
-from torchhand.data.datasets.dexycb import DEXYCB_JOINT_NAMES, DEXYCB_TO_STANDARD, STANDARD_FROM_DEXYCB, import_dexycb
+from torchhand.data.datasets.dexycb import (DEXYCB_JOINT_NAMES, DEXYCB_TO_STANDARD, STANDARD_FROM_DEXYCB,
+                                           import_dexycb, write_dexycb)
 from torchhand.data.layout import (SequenceError, SequenceLayout, read_depth, read_joints21, read_joints21_valid,
                                    read_sequence_info)
 from torchhand.geometry.camera import Camera
@@ -66,23 +67,6 @@ class Sample:
         return Sample(dest, self.joints)
 
 
-def _write_calibration(root: Path, cams) -> None:
-    (root / "calibration" / "intrinsics").mkdir(parents=True)
-    for s, (_, fx, fy, ppx, ppy) in cams.items():
-        intr = {"color": {"fx": fx, "fy": fy, "ppx": ppx, "ppy": ppy},
-                "depth": {"fx": 380.0, "fy": 380.0, "ppx": 320.0, "ppy": 240.0}}
-        (root / "calibration" / "intrinsics" / f"{s}_640x480.yml").write_text(yaml.safe_dump(intr))
-    table = {}
-    for s, (cam, *_) in cams.items():
-        T = np.linalg.inv(cam.T_cw.numpy())  # camera -> master, mm
-        T[:3, 3] /= 1000.0
-        table[s] = [float(v) for v in T[:3].ravel()]
-    table["apriltag"] = [1.0, 0, 0, 0.1, 0, 1.0, 0, 0.2, 0, 0, 1.0, 0.9]
-    d = root / "calibration" / "extrinsics_20200702-afternoon"
-    d.mkdir(parents=True)
-    (d / "extrinsics.yml").write_text(yaml.safe_dump({"extrinsics": table, "master": MASTER}))
-
-
 @pytest.fixture(scope="module")
 def sample(tmp_path_factory) -> Sample:
     scene = Scene.from_names(["hand_right"], dtype=torch.float64)
@@ -94,31 +78,24 @@ def sample(tmp_path_factory) -> Sample:
         posed = scene(theta)
         joints = scene_standard_joints(scene, posed).numpy()  # (N, 21, 3) master frame, mm
     s = Sample(tmp_path_factory.mktemp("dexycb"), joints)
-    cams = _cameras()
-    _write_calibration(s.root, cams)
-    s.src.mkdir(parents=True)
-    meta = {"serials": SERIALS, "num_frames": FRAMES, "mano_sides": ["right"], "mano_calib": ["20200709-weiy"],
-            "extrinsics": "20200702-afternoon", "ycb_ids": [2, 5, 11], "ycb_grasp_ind": 0}
-    (s.src / "meta.yml").write_text(yaml.safe_dump(meta))
+    cams = {ser: cam for ser, (cam, *_) in _cameras().items()}
     renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id)
-    for ser, (cam, *_) in cams.items():
-        d = s.src / ser
-        d.mkdir()
-        with torch.no_grad():
-            depth = renderer(posed.vertices, cam).depth.numpy()
-        T = cam.T_cw.numpy()
-        j3 = joints @ T[:3, :3].T + T[:3, 3]  # (N, 21, 3) mm in this camera
-        j2 = cam.project(torch.from_numpy(joints)).numpy()
-        for k in range(FRAMES):
-            img = np.round(np.nan_to_num(depth[k])).astype(np.uint16)
-            assert cv2.imwrite(str(d / f"aligned_depth_to_color_{k:06d}.png"), img)
-            assert cv2.imwrite(str(d / f"color_{k:06d}.jpg"), np.where(img[..., None] > 0, 200, 40).astype(np.uint8)
-                               .repeat(3, -1))
-            lab3, lab2 = j3[k][None].astype(np.float32) / 1000.0, j2[k][None].astype(np.float32)
-            if k == FRAMES - 1:  # no hand pose in this frame
-                lab3, lab2 = -np.ones_like(lab3), -np.ones_like(lab2)
-            np.savez(d / f"labels_{k:06d}.npz", joint_3d=lab3, joint_2d=lab2, seg=np.zeros((480, 640), np.uint8),
-                     pose_y=np.zeros((3, 3, 4), np.float32), pose_m=np.zeros((1, 51), np.float32))
+    with torch.no_grad():
+        depth = {ser: renderer(posed.vertices, cam).depth.numpy() for ser, cam in cams.items()}
+    labelled = joints.copy()
+    labelled[-1] = np.nan  # no hand pose in the last frame
+    write_dexycb(s.root, "20200709-weiy", "20200709_141754", cams, MASTER, depth, labelled,
+                 extrinsics="20200702-afternoon")
+    # what the published files hold besides what the reader reads
+    ext = s.root / "calibration" / "extrinsics_20200702-afternoon" / "extrinsics.yml"
+    table = yaml.safe_load(ext.read_text())
+    table["extrinsics"]["apriltag"] = [1.0, 0, 0, 0.1, 0, 1.0, 0, 0.2, 0, 0, 1.0, 0.9]
+    ext.write_text(yaml.safe_dump(table))
+    for f in (s.root / "calibration" / "intrinsics").iterdir():
+        f.write_text(yaml.safe_dump({**yaml.safe_load(f.read_text()),
+                                     "depth": {"fx": 380.0, "fy": 380.0, "ppx": 320.0, "ppy": 240.0}}))
+    meta = yaml.safe_load((s.src / "meta.yml").read_text())
+    (s.src / "meta.yml").write_text(yaml.safe_dump({**meta, "ycb_ids": [2, 5, 11], "ycb_grasp_ind": 0}))
     return s
 
 

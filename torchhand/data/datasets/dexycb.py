@@ -63,7 +63,7 @@ from torchhand.model.joints21 import STANDARD_JOINT_NAMES
 
 __all__ = ["DEXYCB_JOINT_NAMES", "STANDARD_FROM_DEXYCB", "DEXYCB_TO_STANDARD", "AGREE_MM", "DexYCBMeta",
            "DexYCBCamera", "read_dexycb_meta", "read_dexycb_calibration", "dexycb_files", "read_dexycb_labels",
-           "dexycb_rig", "import_dexycb"]
+           "dexycb_rig", "import_dexycb", "write_dexycb"]
 
 WIDTH, HEIGHT, FPS = 640, 480, 30.0
 COLOR, DEPTH, LABELS = "color_{:06d}.jpg", "aligned_depth_to_color_{:06d}.png", "labels_{:06d}.npz"
@@ -333,3 +333,71 @@ def import_dexycb(src, out, force: bool = False, segmentation: Optional[Dict] = 
     write_imported(out, info, force, write_frames, joints, pixels, valid)
     return info
 
+
+
+def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], master: str, depth: Dict[str, np.ndarray],
+                 joints: np.ndarray, side: str = "right", extrinsics: str = "torchhand") -> Path:
+    """Write one sequence in DexYCB's published layout (module docstring), e.g. renders
+    to run a DexYCB pipeline on, or this reader's tests: ``<root>/calibration/`` (each
+    camera's intrinsics file and an extrinsics file named ``extrinsics``; a calibration
+    already there is kept, so several sequences share one root) and
+    ``<root>/<subject>/<sequence>/`` with ``meta.yml`` and, per camera, colour (a grey
+    picture of where there is depth), depth (uint16 mm) and labels.
+
+    Args:
+        cameras: serial -> camera, ``T_cw`` in the master camera's frame (mm).
+        master: the master's serial (its ``T_cw`` the identity).
+        depth: serial -> (N, 480, 640) depth in mm (NaN or 0: none).
+        joints: (N, 21, 3) the standard joints in the master's frame, mm; a frame of
+            NaN has no hand pose (labels -1, as DexYCB marks them).
+    Returns:
+        the sequence folder. Refuses one that exists.
+    """
+    import cv2
+    import yaml
+
+    root = Path(root)
+    src = root / subject / sequence
+    if src.exists():
+        raise FileExistsError(f"{src} exists: choose another sequence name")
+    serials = list(cameras)
+    if master not in cameras:
+        raise ValueError(f"master {master!r} is not one of the cameras {serials}")
+    joints = np.asarray(joints, np.float64)
+    N = len(joints)
+    if joints.shape != (N, 21, 3) or any(np.shape(depth[s]) != (N, HEIGHT, WIDTH) for s in serials):
+        raise ValueError(f"joints (N, 21, 3) and one (N, {HEIGHT}, {WIDTH}) depth per camera expected, got "
+                         f"{joints.shape} and {[np.shape(depth[s]) for s in serials]}")
+    calib = root / "calibration"
+    ext = calib / f"extrinsics_{extrinsics}" / "extrinsics.yml"
+    if not ext.is_file():
+        (calib / "intrinsics").mkdir(parents=True, exist_ok=True)
+        ext.parent.mkdir(parents=True, exist_ok=True)
+        table = {}
+        for s, cam in cameras.items():
+            intr = {"color": {"fx": float(cam.fx), "fy": float(cam.fy), "ppx": float(cam.cx), "ppy": float(cam.cy)}}
+            (calib / "intrinsics" / f"{s}_{WIDTH}x{HEIGHT}.yml").write_text(yaml.safe_dump(intr))
+            T = np.linalg.inv(cam.T_cw.double().cpu().numpy())  # camera -> master
+            T[:3, 3] /= 1000.0
+            table[s] = [float(v) for v in T[:3].ravel()]
+        ext.write_text(yaml.safe_dump({"extrinsics": table, "master": master}))
+    src.mkdir(parents=True)
+    meta = {"serials": serials, "num_frames": N, "mano_sides": [side], "mano_calib": [subject],
+            "extrinsics": extrinsics}
+    (src / "meta.yml").write_text(yaml.safe_dump(meta))
+    absent = ~np.isfinite(joints).all(axis=(1, 2))
+    for s, cam in cameras.items():
+        d = src / s
+        d.mkdir()
+        T = cam.T_cw.double().cpu().numpy()
+        j3 = joints @ T[:3, :3].T + T[:3, 3]
+        j2 = cam.project(torch.from_numpy(np.nan_to_num(joints)).to(cam.T_cw.dtype)).double().cpu().numpy()
+        for k in range(N):
+            img = np.round(np.nan_to_num(np.asarray(depth[s][k], np.float64))).astype(np.uint16)
+            cv2.imwrite(str(d / DEPTH.format(k)), img)
+            cv2.imwrite(str(d / COLOR.format(k)), np.where(img[..., None] > 0, 200, 40).astype(np.uint8).repeat(3, -1))
+            lab3, lab2 = j3[k][None].astype(np.float32) / 1000.0, j2[k][None].astype(np.float32)
+            if absent[k]:
+                lab3, lab2 = -np.ones((1, 21, 3), np.float32), -np.ones((1, 21, 2), np.float32)
+            np.savez(d / LABELS.format(k), joint_3d=lab3, joint_2d=lab2)
+    return src
