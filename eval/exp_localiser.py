@@ -13,7 +13,9 @@ seeds, its speed, and the real SR305 frames.
    localiser and for the blob rules (``--segment blobs``, nearest hand-sized blob cut at
    the wrist; frames with one hand), the median 2D joint error (px at 640x480) and the
    3D error of the lifted joints (mm) of the hands found, handedness accuracy and the
-   share of hands found.
+   share of hands found (joints within 60 px on average), of all rendered hands and of
+   those in view (``IN_VIEW_PX`` measured pixels or more: a hand hidden behind an object
+   or outside the image cannot be found).
 2. **Initialisation**: ``--init-frames`` one-hand frames (right hand, shipped size) are
    segmented and initialised as ``torchhand track`` does without ``init_pose.json``;
    success = mean error of the 21 joints <= 10 mm; the time per hand. With
@@ -43,6 +45,8 @@ REPO = Path(__file__).resolve().parents[1]
 HIA = REPO.parent / "shared" / "data" / "hands_in_action"
 TEST_SEED = 9001
 HELD_OUT = ["03", "10", "20"]
+#: A hand with fewer measured pixels than this (occluded, out of the image) is not in view.
+IN_VIEW_PX = 500
 
 
 def _motions() -> dict:
@@ -58,6 +62,7 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
 
     fr = render_context_frames(n, TEST_SEED, ContextConfig(noise="stereo"), _motions(), name="test")
     ious, blob_ious, single_ious, e2, e3, right, found, total = [], [], [], [], [], 0, 0, 0
+    in_view, found_in_view = 0, 0
     for f in range(n):
         res = loc.locate(fr.depth[f].astype(np.float32))
         known = fr.labels[f] != IGNORE
@@ -79,12 +84,15 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
             if not hands[k]:
                 continue
             total += 1
+            seen = (fr.labels[f] == 1 + k).sum() >= IN_VIEW_PX
+            in_view += seen
             uv_gt, z_gt = fr.joints_uv[f, k], fr.joints_z[f, k]
             cand = [h for h in res.hands if np.mean(np.linalg.norm(h.uv - uv_gt, axis=1)) < 60]
             if not cand:
                 continue
             h = cand[0]
             found += 1
+            found_in_view += seen
             right += h.side == side
             e2.append(np.linalg.norm(h.uv - uv_gt, axis=1))
             K = fr.K[f]
@@ -97,7 +105,8 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
             "localiser_hand_iou_mean_one_hand_frames": float(np.mean(single_ious)) if single_ious else None,
             "keypoints_2d_median_px": float(np.median(e2)), "keypoints_2d_mean_px": float(np.mean(e2)),
             "keypoints_3d_median_mm": float(np.median(e3)), "keypoints_3d_mean_mm": float(np.mean(e3)),
-            "handedness_accuracy": right / max(found, 1), "hands_found": found / max(total, 1)}
+            "handedness_accuracy": right / max(found, 1), "hands_found": found / max(total, 1),
+            "hands_in_view": in_view, "hands_found_in_view": found_in_view / max(in_view, 1)}
 
 
 def initialisation(n: int, compare_blobs: bool) -> dict:
