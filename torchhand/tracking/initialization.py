@@ -62,7 +62,9 @@ from torchhand.tracking.segmentation import Segmentation
 __all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth_discrepancy", "crop_camera",
            "search_box", "keypoint_pose", "KEYPOINT_SEED_CONFIDENCE"]
 
-#: A located hand seeds the search from its joints when their mean confidence reaches this.
+#: A located hand seeds the search from its joints when their mean confidence reaches this
+#: (the shipped localiser's peaks average 0.1-0.3 and do not track the joints' error;
+#: docs/localiser.md).
 KEYPOINT_SEED_CONFIDENCE = 0.1
 #: A seed from the joints is dropped when its mesh centre lies farther than this (mm)
 #: from the located palm centre (a fit thrown off by misplaced joints).
