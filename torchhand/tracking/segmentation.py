@@ -451,10 +451,8 @@ def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Se
                             labels=labels, source="none")
     want = list(sides)[: config.hands] if sides else []
     picked, notes = [], []
-    for side in want:  # the scene's sides first, each its most confident hand (one whose
-        # handedness is unclear may be either side: the votes are often near 0.5)
-        h = next((h for h in good if (h.side == side or h.handedness < CLEAR_HANDEDNESS)
-                  and not any(h is p for p in picked)), None)
+    for side in want:  # the scene's sides first, each its most confident hand
+        h = next((h for h in good if h.side == side and not any(h is p for p in picked)), None)
         if h is not None:
             picked.append(h)
     for h in good:  # then any other hand, up to the number asked for
