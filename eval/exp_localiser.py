@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -42,6 +43,7 @@ from torchhand.salient.localiser import HandLocaliser
 from torchhand.salient.localiser_data import IGNORE, ContextConfig, render_context_frames
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # train.hand_localiser's motions, run from any folder
 HIA = REPO.parent / "shared" / "data" / "hands_in_action"
 TEST_SEED = 9001
 HELD_OUT = ["03", "10", "20"]
@@ -84,7 +86,7 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
             if not hands[k]:
                 continue
             total += 1
-            seen = (fr.labels[f] == 1 + k).sum() >= IN_VIEW_PX
+            seen = int((fr.labels[f] == 1 + k).sum() >= IN_VIEW_PX)
             in_view += seen
             uv_gt, z_gt = fr.joints_uv[f, k], fr.joints_z[f, k]
             cand = [h for h in res.hands if np.mean(np.linalg.norm(h.uv - uv_gt, axis=1)) < 60]
