@@ -51,6 +51,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
+import torch
 
 from torchhand.geometry.camera import Camera
 
@@ -386,12 +387,13 @@ CLEAR_HANDEDNESS = 0.8
 
 def shared_localiser():
     """The shipped :class:`~torchhand.salient.localiser.HandLocaliser` (ONNX Runtime),
-    loaded once per process."""
+    loaded once per process with as many threads as torch has then (a scale-out worker
+    runs with one: two workers of two threads each on two cores wait on each other)."""
     global _LOCALISER
     if _LOCALISER is None:
         from torchhand.salient.localiser import HandLocaliser
 
-        _LOCALISER = HandLocaliser.load()
+        _LOCALISER = HandLocaliser.load(threads=torch.get_num_threads())
     return _LOCALISER
 
 
