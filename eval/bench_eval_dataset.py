@@ -35,6 +35,7 @@ from _common import machine, write_json  # noqa: E402
 from torchhand.data.datasets.dexycb import write_dexycb  # noqa: E402
 from torchhand.data.layout import SequenceLayout, read_depth, read_joints21, read_sequence_info  # noqa: E402
 from torchhand.data.synth import thesis_motion, write_synthetic_sequence  # noqa: E402
+from torchhand.geometry.camera import Camera  # noqa: E402
 
 SERIAL = "840412060917"
 
@@ -52,9 +53,10 @@ def write_root(hia_root: Path, motion: str, sequences: int, frames: int, root: P
         depth = torch.stack([torch.as_tensor(read_depth(layout.depth(f), info.depth_unit_mm))
                              for f in range(info.frames)]).numpy()
         joints = read_joints21(layout.gt)[0][:, 0]  # (N, 21, 3) mm in camera 0
+        c = info.cameras[0]  # the master: the joints are in its frame
+        master = Camera.from_intrinsics(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
         name = f"20201022_{110000 + k:06d}"
-        write_dexycb(root / "dexycb", "bench-subject", name, {SERIAL: info.cameras[0]}, SERIAL, {SERIAL: depth},
-                     joints)
+        write_dexycb(root / "dexycb", "bench-subject", name, {SERIAL: master}, SERIAL, {SERIAL: depth}, joints)
         names.append(f"bench-subject/{name}")
     split = root / "split.txt"
     split.write_text("\n".join(names) + "\n")

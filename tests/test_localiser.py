@@ -156,7 +156,7 @@ def test_segmentation_reads_the_forearm_from_the_pixels_not_the_joints():
     located = _located(hand, "right")  # its joints run top-left to bottom-right: the wrist at the top
     seg = segment_hands(depth, kinect_camera(), SegmentConfig(), sides=("right",),
                         localiser=_Fixed([located], labels))
-    assert seg.forearm[0][1] > 0.9  # +y: down the image, to the arm
+    assert seg.forearm[0][1] > 0.8  # +y: down the image, to the arm (the joints' wrist: -y)
     depth[arm] = 900.0  # a body 400 mm behind the hand is no forearm
     seg = segment_hands(depth, kinect_camera(), SegmentConfig(), sides=("right",),
                         localiser=_Fixed([located], labels))

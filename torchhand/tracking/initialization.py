@@ -6,7 +6,8 @@ Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
 1. seeds: where the localiser found the hand's 21 joints (``segment auto``), first the
    pose whose standard joints best fit them (:func:`keypoint_pose`: the palm by a rigid
    fit of the wrist and knuckles, then every DoF by LM on all 21 joints weighted by
-   their confidence), so half-closed hands and fists start curled; and always the
+   their confidence, then again with the joints left far off down-weighted), so
+   half-closed hands and fists start curled; and always the
    blob's seeds: the model's palm centre on the blob's palm centre (12 mm behind the seen
    surface), the hand's length axis on the blob's first principal axis (pointing away
    from the forearm where one was seen; else towards the fingertips that the shipped
@@ -22,7 +23,9 @@ Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
    (a pixel in one silhouette only costs 1). All particles are rendered as one batch;
 3. the best ``refine`` distinct particles are refined by the tracker's own objective
    (Algorithm 1, ``refine_iterations`` iterations, one batch) and the one with the
-   lowest discrepancy at full resolution is kept.
+   lowest discrepancy at full resolution is kept, unless it is more than
+   :data:`REFINE_SLACK` worse than the best unrefined pick (a refinement that left the
+   data), which is kept then.
 
 The particles are rendered with a coarse proxy of each hand (:func:`~torchhand.model.
 proxy.coarse_model`, ``proxy_faces`` triangles: the same skeleton on a decimated mesh),
@@ -67,7 +70,7 @@ __all__ = ["InitConfig", "InitResult", "Initializer", "initialize_hands", "depth
 #: docs/localiser.md).
 KEYPOINT_SEED_CONFIDENCE = 0.1
 #: A seed from the joints is dropped when its mesh centre lies farther than this (mm)
-#: from the located palm centre (a fit thrown off by misplaced joints).
+#: from the segmentation's palm point (a fit thrown off by misplaced joints).
 KEYPOINT_SEED_REACH = 150.0
 #: A refined pose is kept unless its depth discrepancy exceeds the best unrefined swarm
 #: pick's by more than this (0 .. 1: a diverged refinement scores ~1).

@@ -484,9 +484,12 @@ def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Se
         arm = j[0] - j[[5, 9, 13, 17]].mean(0)
         blob = _cut_forearm(h.mask, points, j[[0, 5, 9, 13, 17]].mean(0), arm / max(np.linalg.norm(arm), 1e-9),
                             config)
-        # the seeds' palm and forearm come from the pixels, as the blob rules' do: the
-        # located joints seed a search of their own (tracking.initialization), and a
-        # misplaced wrist must not turn the blob's seeds around
+        if not blob.any():
+            blob = h.mask
+        # the seeds' palm and forearm direction come from the pixels, as the blob rules'
+        # do (the joints seed a search of their own, tracking.initialization): a
+        # misplaced wrist still decides where the forearm is cut, but no longer which way
+        # the blob's seeds point when nothing was cut
         palm, _ = _palm_centre(blob, d, points, camera.fx)
         palms.append(palm)
         arms.append(_forearm_direction(blob, h.mask & ~blob, labels, d, points, palm))

@@ -363,6 +363,8 @@ def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], 
     serials = list(cameras)
     if master not in cameras:
         raise ValueError(f"master {master!r} is not one of the cameras {serials}")
+    if not np.allclose(cameras[master].T_cw.double().cpu().numpy(), np.eye(4), atol=1e-9):
+        raise ValueError(f"the master camera {master}'s T_cw must be the identity (the cameras in its frame)")
     joints = np.asarray(joints, np.float64)
     N = len(joints)
     if joints.shape != (N, 21, 3) or any(np.shape(depth[s]) != (N, HEIGHT, WIDTH) for s in serials):
@@ -370,7 +372,12 @@ def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], 
                          f"{joints.shape} and {[np.shape(depth[s]) for s in serials]}")
     calib = root / "calibration"
     ext = calib / f"extrinsics_{extrinsics}" / "extrinsics.yml"
-    if not ext.is_file():
+    if ext.is_file():  # shared by the root's sequences: it must hold these cameras
+        held = yaml.safe_load(ext.read_text()).get("extrinsics", {})
+        missing = [s for s in serials if s not in held or not (calib / "intrinsics" / f"{s}_{WIDTH}x{HEIGHT}.yml").is_file()]
+        if missing:
+            raise ValueError(f"{ext} exists without cameras {missing}: give another extrinsics name")
+    else:
         (calib / "intrinsics").mkdir(parents=True, exist_ok=True)
         ext.parent.mkdir(parents=True, exist_ok=True)
         table = {}
