@@ -69,7 +69,9 @@ def run(root: Path, split: Path, out: Path, workers: int) -> tuple:
     cmd = [str(exe), "eval-dataset", "dexycb", str(root), "--split", str(split), "--out", str(out),
            "--workers", str(workers)]
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} exited {done.returncode}:\n{done.stderr[-2000:]}")
     return time.perf_counter() - t0, json.loads((out / "results.json").read_text())
 
 
@@ -92,8 +94,8 @@ def main(argv=None) -> None:
                 secs, res = run(tmp / "dexycb", split, tmp / f"out_{w}_{r}", w)
                 times[w].append(secs)
                 overall[w] = res["overall"]
-                print(f"workers {w}, repeat {r}: {secs:.1f} s, MPJPE {res['overall'].get('mpjpe_mm', float('nan')):.2f} mm",
-                      flush=True)
+                mpjpe = res["overall"].get("mpjpe_mm", float("nan"))
+                print(f"workers {w}, repeat {r}: {secs:.1f} s, MPJPE {mpjpe:.2f} mm", flush=True)
     med = {w: statistics.median(t) for w, t in times.items()}
     write_json(args.json, {"machine": machine(), "sequences": args.sequences, "frames": args.frames,
                            "motion": args.motion, "seconds": times, "median_seconds": med,

@@ -15,10 +15,13 @@ seeds, its speed, and the real SR305 frames.
    3D error of the lifted joints (mm) of the hands found, handedness accuracy and the
    share of hands found (joints within 60 px on average), of all rendered hands and of
    those in view (``IN_VIEW_PX`` measured pixels or more: a hand hidden behind an object
-   or outside the image cannot be found).
+   or outside the image cannot be found), and the correlation of the joints' confidence
+   with their 2D error.
 2. **Initialisation**: ``--init-frames`` one-hand frames (right hand, shipped size) are
    segmented and initialised as ``torchhand track`` does without ``init_pose.json``;
-   success = mean error of the 21 joints <= 10 mm; the time per hand. With
+   success = mean error of the 21 joints <= 10 mm; the time per hand.
+   ``auto_true_joints``: the same frames and segmentation with the true joints in place
+   of the localiser's (what the search does given perfect joints). With
    ``--compare-blobs``, the same frames with the blob rules' seeds.
 3. **Speed**: the network at its input size (128 px crop, 160x120 frame) and the whole
    ``locate`` of a 640x480 frame, ONNX Runtime on 2 threads.
@@ -63,7 +66,7 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
     from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 
     fr = render_context_frames(n, TEST_SEED, ContextConfig(noise="stereo"), _motions(), name="test")
-    ious, blob_ious, single_ious, e2, e3, right, found, total = [], [], [], [], [], 0, 0, 0
+    ious, blob_ious, single_ious, e2, e3, conf, right, found, total = [], [], [], [], [], [], 0, 0, 0
     in_view, found_in_view = 0, 0
     for f in range(n):
         res = loc.locate(fr.depth[f].astype(np.float32))
@@ -97,6 +100,7 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
             found_in_view += seen
             right += h.side == side
             e2.append(np.linalg.norm(h.uv - uv_gt, axis=1))
+            conf.append(h.confidence)
             K = fr.K[f]
             p = lambda uv, z: np.stack([(uv[:, 0] - K[0, 2]) * z / K[0, 0], (uv[:, 1] - K[1, 2]) * z / K[1, 1], z], 1)
             e3.append(np.linalg.norm(p(h.uv, h.z) - p(uv_gt, z_gt), axis=1))
@@ -108,7 +112,8 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
             "keypoints_2d_median_px": float(np.median(e2)), "keypoints_2d_mean_px": float(np.mean(e2)),
             "keypoints_3d_median_mm": float(np.median(e3)), "keypoints_3d_mean_mm": float(np.mean(e3)),
             "handedness_accuracy": right / max(found, 1), "hands_found": found / max(total, 1),
-            "hands_in_view": in_view, "hands_found_in_view": found_in_view / max(in_view, 1)}
+            "hands_in_view": in_view, "hands_found_in_view": found_in_view / max(in_view, 1),
+            "confidence_error_correlation": float(np.corrcoef(np.concatenate(conf), e2)[0, 1])}
 
 
 def initialisation(n: int, compare_blobs: bool) -> dict:
@@ -127,7 +132,7 @@ def initialisation(n: int, compare_blobs: bool) -> dict:
     scene = Scene.from_names(["hand_right"])
     init = Initializer(Tracker(scene, TrackerConfig()))
     out = {}
-    for mode in ("auto",) + (("blobs",) if compare_blobs else ()):
+    for mode in ("auto", "auto_true_joints") + (("blobs",) if compare_blobs else ()):
         errs, secs, fails = [], [], 0
         for f in keep:
             K = fr.K[f]
@@ -135,7 +140,12 @@ def initialisation(n: int, compare_blobs: bool) -> dict:
             depth = fr.depth[f].astype(np.float32)
             t0 = time.perf_counter()
             try:
-                seg = segment_hands(depth, cam, SegmentConfig(mode=mode, far=4000.0), sides=("right",))
+                segment = SegmentConfig(mode=mode.split("_")[0], far=4000.0)
+                seg = segment_hands(depth, cam, segment, sides=("right",))
+                if mode == "auto_true_joints" and seg.located:  # the search given the true joints
+                    seg = seg._replace(located=(seg.located[0]._replace(
+                        uv=fr.joints_uv[f, 1].astype(np.float32), z=fr.joints_z[f, 1].astype(np.float32),
+                        confidence=np.ones(21, np.float32)),) + tuple(seg.located[1:]))
                 res = init(depth, cam, seg)
             except (SegmentationError, ValueError):
                 fails += 1

@@ -334,9 +334,9 @@ def import_dexycb(src, out, force: bool = False, segmentation: Optional[Dict] = 
     return info
 
 
-
-def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], master: str, depth: Dict[str, np.ndarray],
-                 joints: np.ndarray, side: str = "right", extrinsics: str = "torchhand") -> Path:
+def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], master: str,
+                 depth: Dict[str, np.ndarray], joints: np.ndarray, side: str = "right",
+                 extrinsics: str = "torchhand") -> Path:
     """Write one sequence in DexYCB's published layout (module docstring), e.g. renders
     to run a DexYCB pipeline on, or this reader's tests: ``<root>/calibration/`` (each
     camera's intrinsics file and an extrinsics file named ``extrinsics``; a calibration
@@ -374,7 +374,8 @@ def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], 
     ext = calib / f"extrinsics_{extrinsics}" / "extrinsics.yml"
     if ext.is_file():  # shared by the root's sequences: it must hold these cameras
         held = yaml.safe_load(ext.read_text()).get("extrinsics", {})
-        missing = [s for s in serials if s not in held or not (calib / "intrinsics" / f"{s}_{WIDTH}x{HEIGHT}.yml").is_file()]
+        missing = [s for s in serials
+                   if s not in held or not (calib / "intrinsics" / f"{s}_{WIDTH}x{HEIGHT}.yml").is_file()]
         if missing:
             raise ValueError(f"{ext} exists without cameras {missing}: give another extrinsics name")
     else:
@@ -402,7 +403,8 @@ def write_dexycb(root, subject: str, sequence: str, cameras: Dict[str, Camera], 
         for k in range(N):
             img = np.round(np.nan_to_num(np.asarray(depth[s][k], np.float64))).astype(np.uint16)
             cv2.imwrite(str(d / DEPTH.format(k)), img)
-            cv2.imwrite(str(d / COLOR.format(k)), np.where(img[..., None] > 0, 200, 40).astype(np.uint8).repeat(3, -1))
+            grey = np.where(img[..., None] > 0, 200, 40).astype(np.uint8)
+            cv2.imwrite(str(d / COLOR.format(k)), grey.repeat(3, -1))
             lab3, lab2 = j3[k][None].astype(np.float32) / 1000.0, j2[k][None].astype(np.float32)
             if absent[k]:
                 lab3, lab2 = -np.ones((1, 21, 3), np.float32), -np.ones((1, 21, 2), np.float32)
