@@ -299,3 +299,22 @@ def test_shipped_localiser_finds_the_hand_of_every_real_frame():
         found += int(seg.source == "localiser" and np.median(z) < np.median(body) - 40)
         sized += int(6000 < area < 25000)
     assert found == len(files) and sized >= len(files) - 1
+
+
+def test_training_joins_extra_renders_each_cached_under_its_own_key(tmp_path):
+    from train.hand_localiser import LocaliserTask, LocaliserTrainConfig
+
+    cfg = LocaliserTrainConfig(train_frames=2, val_frames=1, data_seed=3,
+                               extra_train_data=[{"train_frames": 1, "data_seed": 4}])
+    task = LocaliserTask(cfg)
+    task.check_config(cfg)
+    train, val = task.datasets(tmp_path / "no_thesis", tmp_path / "cache")
+    assert len(train.depth) == 3 and len(val.depth) == 1
+    assert len(list((tmp_path / "cache").iterdir())) == 2  # the run's key and the extra's
+    alone = LocaliserTask(LocaliserTrainConfig(train_frames=1, data_seed=4, val_frames=1))
+    extra, _ = alone.datasets(tmp_path / "no_thesis", tmp_path / "cache")  # read from the cache
+    assert np.array_equal(train.depth[2], extra.depth[0])
+    with pytest.raises(ValueError, match="unknown fields"):
+        task.check_config(LocaliserTrainConfig(extra_train_data=[{"lr": 1.0}]))
+    with pytest.raises(ValueError, match="overlap"):
+        task.check_config(LocaliserTrainConfig(extra_train_data=[{"train_sequences": ["03"]}]))

@@ -12,7 +12,9 @@ every detector of the project (:mod:`train.trainer`); this module is the task:
    hand), the rest random and curled; validation: ``val_frames`` renders of another
    seed with the independent active-stereo noise model and the thesis motions of
    ``val_sequences`` (the benchmark's test set uses a third seed,
-   ``eval/exp_localiser.py``). Rendered once, cached under a hash of the data fields.
+   ``eval/exp_localiser.py``). Rendered once, cached under a hash of the data fields;
+   ``extra_train_data`` adds the training frames of other data fields (e.g. an earlier
+   run's seed, read from its cache).
 2. batches: a share ``p_crop`` of the samples are a hand's box widened 1.3-2x (the
    crop pass), the rest a 128 px window of the frame reduced 4-6x (the frame pass);
    mirror flips swap the left and right hand (a mirrored right hand is a left hand).
@@ -28,7 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import List
 
@@ -77,11 +79,18 @@ class LocaliserTrainConfig(RunConfig):
     offset_weight: float = 0.5
     depth_weight: float = 0.5
     far_cut_mm: List[float] = field(default_factory=lambda: [900.0, 4000.0])  # random range cut-off (augmentation)
+    # --- more training renders: each entry overrides some of ``EXTRA_DATA_FIELDS`` (its
+    # own cache); its frames join the training set (e.g. an earlier run's renders)
+    extra_train_data: List[dict] = field(default_factory=list)
 
     def data_key(self) -> str:
         d = {"version": DATA_VERSION, **{k: getattr(self, k) for k in (
             "train_frames", "val_frames", "data_seed", "val_seed", "train_sequences", "val_sequences")}}
         return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
+
+
+#: The data fields an ``extra_train_data`` entry may set.
+EXTRA_DATA_FIELDS = ("train_frames", "data_seed", "train_sequences")
 
 
 def thesis_articulations(hia_root: Path, sequences: List[str], per_sequence: int = 48) -> dict:
@@ -262,6 +271,29 @@ def evaluate(net: LocaliserNet, data: LocaliserFrames) -> dict:
 # ------------------------------------------------------------------------ the task
 
 
+def _rendered(cfg: LocaliserTrainConfig, split: str, hia_root: Path, cache: Path) -> LocaliserFrames:
+    """The ``split`` frames of ``cfg``'s data fields: rendered (and cached under their
+    hash), or read from the cache."""
+    d = cache / f"localiser_{cfg.data_key()}"
+    d.mkdir(parents=True, exist_ok=True)
+    if (d / f"{split}.npz").is_file():  # each split is written whole (renamed into place)
+        print(f"reusing rendered {split} frames from {d}")
+        return load_localiser_frames(d / f"{split}.npz")
+    n, seed, seqs, noise = ((cfg.train_frames, cfg.data_seed, cfg.train_sequences, "kinect") if split == "train" else
+                            (cfg.val_frames, cfg.val_seed, cfg.val_sequences, "stereo"))
+    motions = thesis_articulations(hia_root, seqs)
+    parts = []
+    chunk = 200
+    for s in tqdm(range(0, n, chunk), desc=f"render {split}", unit="chunk"):
+        parts.append(render_context_frames(min(chunk, n - s), seed * 1000 + s, ContextConfig(noise=noise),
+                                           motions, progress=False, name=split))
+    frames = concat_localiser_frames(parts)
+    tmp = d / f"{split}.tmp.npz"
+    save_localiser_frames(frames, tmp)
+    tmp.rename(d / f"{split}.npz")
+    return frames
+
+
 class LocaliserTask(Task):
     name = "localiser"
     config_type = LocaliserTrainConfig
@@ -270,34 +302,23 @@ class LocaliserTask(Task):
         LocaliserConfig(**cfg.network)
         if not 0 <= cfg.p_crop <= 1:
             raise ValueError(f"p_crop must be in [0, 1], got {cfg.p_crop}")
-        if sorted(set(cfg.train_sequences) & set(cfg.val_sequences)):
-            raise ValueError("train_sequences and val_sequences overlap")
+        for extra in [{}] + list(cfg.extra_train_data):
+            unknown = sorted(set(extra) - set(EXTRA_DATA_FIELDS))
+            if unknown:
+                raise ValueError(f"extra_train_data: unknown fields {unknown}; expected some of {list(EXTRA_DATA_FIELDS)}")
+            if sorted(set(extra.get("train_sequences", cfg.train_sequences)) & set(cfg.val_sequences)):
+                raise ValueError("train_sequences and val_sequences overlap")
 
     def build_net(self) -> LocaliserNet:
         return LocaliserNet(LocaliserConfig(**self.cfg.network))
 
     def datasets(self, hia_root: Path, cache: Path) -> tuple:
         cfg = self.cfg
-        d = cache / f"localiser_{cfg.data_key()}"
-        d.mkdir(parents=True, exist_ok=True)
-        out = {}
-        for split, n, seed, seqs, noise in (("train", cfg.train_frames, cfg.data_seed, cfg.train_sequences, "kinect"),
-                                            ("val", cfg.val_frames, cfg.val_seed, cfg.val_sequences, "stereo")):
-            if (d / f"{split}.npz").is_file():  # each split is written whole (renamed into place)
-                print(f"reusing rendered {split} frames from {d}")
-                out[split] = load_localiser_frames(d / f"{split}.npz")
-                continue
-            motions = thesis_articulations(hia_root, seqs)
-            parts = []
-            chunk = 200
-            for s in tqdm(range(0, n, chunk), desc=f"render {split}", unit="chunk"):
-                parts.append(render_context_frames(min(chunk, n - s), seed * 1000 + s, ContextConfig(noise=noise),
-                                                   motions, progress=False, name=split))
-            out[split] = concat_localiser_frames(parts)
-            tmp = d / f"{split}.tmp.npz"
-            save_localiser_frames(out[split], tmp)
-            tmp.rename(d / f"{split}.npz")
-        return out["train"], out["val"]
+        train = [_rendered(cfg, "train", hia_root, cache)]
+        for extra in cfg.extra_train_data:
+            train.append(_rendered(replace(cfg, **extra), "train", hia_root, cache))
+        train = train[0] if len(train) == 1 else concat_localiser_frames(train)
+        return train, _rendered(cfg, "val", hia_root, cache)
 
     def describe_data(self, train, val) -> str:
         return f"frames: {len(train.depth)} train, {len(val.depth)} val"
