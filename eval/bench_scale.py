@@ -23,6 +23,13 @@ sequential run (Ray's own processes share the cores); ``ray_overhead_of_100_fram
 both as a fraction of a 100-frame sequence's time. ``*_after_start`` speedups count the
 frames/s once the workers run. Every run's θ is checked equal to the sequential run's
 to the last bit.
+
+With ``--long N``, one more sequence of N frames is tracked in one pass by one worker
+and with ``--chunk N/2`` by two (``torchhand track --workers 2 --chunk``):
+``speedup_chunked_2_workers`` is their wall time ratio, and
+``chunked_keypoint_deviation_mm`` the mean distance of the chunked run's keypoints
+from the one-pass run's over the second chunk's frames (the first chunk's are equal to
+the last bit, which is checked).
 """
 
 from __future__ import annotations
@@ -83,6 +90,26 @@ def timed(seqs, out: Path, **kw) -> dict:
             "dispatch_s_per_task": (wall - first - sum(task_s) / used) / (len(task_s) / used)}
 
 
+def chunked(seqs: list, tmp: Path) -> dict:
+    """One long sequence in one pass (one worker) and in two chunks (two workers)."""
+    n = read_frames(seqs[0])
+    one = timed(seqs, tmp / "long_one")
+    two = timed(seqs, tmp / "long_two", workers=2, chunk=(n + 1) // 2)
+    a, b = (OutputLayout(tmp / d / seqs[0].name) for d in ("long_one", "long_two"))
+    half = (n + 1) // 2
+    assert np.array_equal(np.load(a.theta)[:half], np.load(b.theta)[:half]), "the first chunk differs from one pass"
+    dev = np.linalg.norm(np.load(a.keypoints_3d)[half:] - np.load(b.keypoints_3d)[half:], axis=-1)
+    return {"long_frames": n, "long_one_pass": one, "long_chunked_2": two,
+            "speedup_chunked_2_workers": one["wall_s"] / two["wall_s"],
+            "chunked_keypoint_deviation_mm": float(dev.mean())}
+
+
+def read_frames(root: Path) -> int:
+    from torchhand.data.layout import read_sequence_info
+
+    return read_sequence_info(root).frames
+
+
 def start_worker_server() -> float:
     """Start the local workers' server and wait until it has imported what it preloads
     (a worker forked from it ran a no-op): seconds."""
@@ -103,6 +130,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--sequences", type=int, default=8)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--no-ray", action="store_true")
+    ap.add_argument("--long", type=int, default=0, help="frames of the one long sequence tracked in chunks (0: none)")
     args = ap.parse_args(argv)
     set_threads(1)
     result = {"sequences": args.sequences, "frames_per_sequence": args.frames, **machine()}
@@ -125,6 +153,8 @@ def main(argv=None) -> dict:
                 result[f"ray_start_s_{n}"] = time.perf_counter() - t0
                 runs[f"ray_{n}"] = timed(seqs, tmp / f"ray{n}", ray="local")
                 ray.shutdown()
+        if args.long:
+            result.update(chunked(make_sequences(tmp / "long", 1, args.long), tmp))
         folders = {"sequential": "seq", "local_2": "local2", "ray_1": "ray1", "ray_2": "ray2"}
         for name in runs:
             for s in seqs:

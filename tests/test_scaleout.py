@@ -16,7 +16,7 @@ import pytest
 from torchhand.app.cli import main
 from torchhand.app.options import TrackOptions
 from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, connect_ray, evaluate_pairs, read_list, track_many
-from torchhand.data.layout import camera_dir, frame_name
+from torchhand.data.layout import OutputLayout, camera_dir, frame_name
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
 from torchhand.model.scene import Scene
 from torchhand.tracking.tracker import TrackerConfig
@@ -273,3 +273,52 @@ def test_the_workers_server_starts_only_for_local_workers():
     if ctx.get_start_method() == "forkserver":
         assert start_server(2)  # started now, or running already: the workers fork from it
     assert "torch" in PRELOAD
+
+
+def test_chunk_windows_cover_every_frame_once_in_balanced_chunks():
+    from torchhand.app.scaleout import chunk_windows
+
+    for frames, chunk, overlap in ((12, 6, 2), (100, 30, 10), (7, 7, 3), (101, 50, 0), (5, 2, 9)):
+        w = chunk_windows(frames, chunk, overlap)
+        kept = [f for _, keep, stop in w for f in range(keep, stop)]
+        assert kept == list(range(frames))
+        lengths = [stop - keep for _, keep, stop in w]
+        assert max(lengths) <= chunk and max(lengths) - min(lengths) <= 1
+        assert all(start == max(0, keep - overlap) for start, keep, _ in w)
+
+
+def test_chunk_overlap_without_chunk_is_refused(sequences, tmp_path, capsys):
+    assert main(["track", str(sequences[0]), "--out", str(tmp_path / "o"), "--chunk-overlap", "3"]) == 2
+    assert "--chunk N" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_a_sequence_in_chunks_over_two_workers(tmp_path):
+    """A 12-frame sequence in two chunks of 6 (overlap 2) on two workers: written as one
+    sequence; the first chunk's frames equal the one-pass run's to the last bit, the
+    second's, tracked from the automatic initialisation at frame 4, land on the hand."""
+    demo = demo_motion()
+    scene = Scene.from_names(["hand_right"], dtype=demo.theta.dtype)
+    th = demo.theta[:12, demo.scene.slices["hand_right"]]
+    fr = SyntheticFrames(scene, th, demo.cameras, "long", {"format": "test"})
+    root = write_synthetic_sequence(fr, tmp_path / "long", noise="kinect", seed=3, rgb=False)
+    one = track_many([root], tmp_path / "one", JOB, progress=False)
+    events = []
+    run = track_many([root], tmp_path / "two", JOB, workers=2, progress=False, chunk=6, chunk_overlap=2,
+                     on_event=events.append)
+    assert one["failed"] == 0 and run["failed"] == 0 and run["tasks"] == 2 and run["chunked"] == 1
+    assert sum(e[2] for e in events if e[1] == "frames") == 6 + 8  # the overlap is tracked twice
+    assert len({e[2] for e in events if e[1] == "start"}) == 2
+    a, b = np.load(OutputLayout(tmp_path / "one" / "long").theta), np.load(OutputLayout(tmp_path / "two" / "long").theta)
+    assert a.shape == b.shape == (12, th.shape[1])
+    assert np.array_equal(a[:6], b[:6])
+    ka = np.load(OutputLayout(tmp_path / "one" / "long").keypoints_3d)
+    kb = np.load(OutputLayout(tmp_path / "two" / "long").keypoints_3d)
+    assert np.linalg.norm(ka[6:] - kb[6:], axis=-1).mean() < 10.0  # mm: the same hand, tracked from a new start
+    log = json.loads((tmp_path / "two" / "long" / "track_log.json").read_text())
+    assert len(log["frames"]) == 12 and log["settings"]["chunk"] == 6 and log["settings"]["chunk_overlap"] == 2
+    assert "first frame of a chunk tracked from frame 4" in log["frames"][6]["notes"]
+    assert [p.name for p in (tmp_path / "two" / "long" / "motion").iterdir()] == ["Model_Hand_R.MOTION"]
+    with pytest.raises(ValueError, match="other settings"):  # the chunking is part of the settings
+        track_many([root], tmp_path / "two", JOB, resume=True, progress=False)

@@ -262,6 +262,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="keep the sequences of --out that are complete and were tracked with these settings; track "
                         "the rest")
+    p.add_argument("--chunk", type=_positive_int, default=None, metavar="N",
+                   help="split sequences longer than N frames into chunks of about N frames, tracked as separate "
+                        "tasks (so that --workers share one long recording); each chunk after the first starts from "
+                        "the automatic initialisation (hands only): not identical to one pass")
+    p.add_argument("--chunk-overlap", type=int, default=None, metavar="K",
+                   help="frames each chunk after the first tracks before its own, to settle (default: "
+                        "torchhand.app.scaleout.CHUNK_OVERLAP, 10)")
     p.add_argument("--out", type=Path, required=True, help="output folder; each sequence gets OUT/<name>/")
     p.add_argument("--energy", default="LO+F",
                    help="energy terms: LO (model-to-data + data-to-model, depth) and any of C (collisions), S "

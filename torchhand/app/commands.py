@@ -227,7 +227,7 @@ def view(args) -> int:
 
 def track(args) -> int:
     from torchhand.app.options import TrackOptions
-    from torchhand.app.scaleout import SUMMARY_NAME, TrackJob, read_list, track_many
+    from torchhand.app.scaleout import CHUNK_OVERLAP, SUMMARY_NAME, TrackJob, read_list, track_many
     from torchhand.tracking.energies import parse_energy
     from torchhand.tracking.tracker import TrackerConfig
 
@@ -243,8 +243,11 @@ def track(args) -> int:
                            write_vertices=args.write_vertices, reinit_iou=args.reinit_iou,
                            models=tuple(args.models.split(",")) if args.models else None, nails=args.nails)
     job = TrackJob(options, threads=args.threads)
+    if args.chunk_overlap is not None and args.chunk is None:
+        raise ValueError("--chunk-overlap is the overlap of --chunk: give --chunk N too")
     run = track_many(dirs, args.out, job, workers=args.workers, ray=args.ray, batch=args.batch, resume=args.resume,
-                     force=args.force, retries=args.retries)
+                     force=args.force, retries=args.retries, chunk=args.chunk,
+                     chunk_overlap=CHUNK_OVERLAP if args.chunk_overlap is None else args.chunk_overlap)
     summaries = run["sequences"]
     failed = [s for s in summaries if s["status"] != "ok"]
     for s in summaries:

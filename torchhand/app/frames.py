@@ -24,7 +24,7 @@ from torchhand.scoring.metrics import FitCheck, fit_check
 from torchhand.tracking.preprocess import ColourView
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 
-__all__ = ["FrameRecord", "FrameReader", "read_frame", "read_rig_frame", "read_colour", "segment_of", "segment_for_search",
+__all__ = ["FrameRecord", "FrameReader", "unpack_masks", "read_frame", "read_rig_frame", "read_colour", "segment_of", "segment_for_search",
            "pose_fit", "hand_sides", "model_sides"]
 
 
@@ -58,12 +58,15 @@ class FrameReader:
     they are at and read it once. ``nails``: the source of colour views' nail detections
     (:data:`~torchhand.app.options.NAIL_SOURCES`; None: none read). With ``keep_masks``
     every frame's segmentation masks are kept (packed) for the overlays (:meth:`masks_of`).
+    ``first``: frame ``f`` of the reader is frame ``first + f`` of the sequences (a
+    chunk of a sequence; records, masks and ``n_frames`` count from it).
     """
 
     def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
                  segments: List[Optional[SegmentConfig]], keep_masks: bool = False, views: int = 1,
-                 depth: bool = True, colour: bool = False, nails: Optional[str] = None):
+                 depth: bool = True, colour: bool = False, nails: Optional[str] = None, first: int = 0):
         self.roots, self.infos, self.n_frames, self.segments = roots, infos, n_frames, segments
+        self.first = first
         self.layouts = [SequenceLayout(r) for r in roots]
         self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
         self.nails, self._nail_detector = nails, None
@@ -79,18 +82,19 @@ class FrameReader:
 
     def _read(self, f: int) -> FrameRecord:
         views, depths, colours, segmentations, errors = [], [], [], [], []
+        g = self.first + f  # the sequences' frame
         for i, (root, info, seg) in enumerate(zip(self.roots, self.infos, self.segments)):
             depth, view, colour, s, err = None, None, None, None, ""
-            if f < info.frames:
+            if g < info.frames:
                 try:
                     if self.depth and self.views == 1:
-                        depth, s = read_frame(root, info, f, seg)
+                        depth, s = read_frame(root, info, g, seg)
                         view = depth
                     elif self.depth:
-                        view, s = read_rig_frame(root, info, f, seg)
+                        view, s = read_rig_frame(root, info, g, seg)
                         depth = view[0]
                     if self.colour:
-                        colour = [self._colour_view(i, c, f) for c in range(self.views)]
+                        colour = [self._colour_view(i, c, g) for c in range(self.views)]
                         colour = colour[0] if self.views == 1 else colour
                 except (SequenceError, SegmentationError) as e:  # the tracker keeps the previous pose
                     depth, view, colour, err = None, None, None, str(e)
@@ -144,12 +148,16 @@ class FrameReader:
             yield self.record(f).colours
 
     def masks_of(self, i: int, f: int, shape: tuple) -> Optional[tuple]:
-        """(hands' mask, forearm cut) of sequence ``i``'s frame ``f``, or None."""
-        packed = self.masks[i].get(f)
-        if packed is None:
-            return None
-        n = shape[0] * shape[1]
-        return tuple(np.unpackbits(p, count=n).reshape(shape).astype(bool) for p in packed)
+        """(hands' mask, forearm cut) of sequence ``i``'s frame ``f`` (of the reader), or None."""
+        return unpack_masks(self.masks[i].get(f), shape)
+
+
+def unpack_masks(packed: Optional[tuple], shape: tuple) -> Optional[tuple]:
+    """The (hands' mask, forearm cut) boolean images a :class:`FrameReader` kept packed."""
+    if packed is None:
+        return None
+    n = shape[0] * shape[1]
+    return tuple(np.unpackbits(p, count=n).reshape(shape).astype(bool) for p in packed)
 
 
 def read_colour(seq: SequenceLayout, camera: int, f: int, detections: Optional[list] = None) -> ColourView:

@@ -25,28 +25,34 @@ __all__ = ["initialize_sequence", "automatic_init", "first_pose"]
 
 
 def first_pose(root: Path, info: SequenceInfo, scene: Scene, initializer: Optional[Initializer], cam,
-               segment: Optional[SegmentConfig]) -> tuple:
-    """(theta of frame 0, note): ``init_pose.json`` when the folder has it, else the
-    automatic initialisation on frame 0 (:mod:`torchhand.tracking.initialization`)."""
+               segment: Optional[SegmentConfig], frame: int = 0) -> tuple:
+    """(theta of ``frame``, note): for frame 0, ``init_pose.json`` when the folder has
+    it; else the automatic initialisation on ``frame``
+    (:mod:`torchhand.tracking.initialization`; a chunk of a sequence starts there)."""
     seq = SequenceLayout(root)
-    if seq.init_pose.is_file():
+    if frame == 0 and seq.init_pose.is_file():
         th = read_init_pose(root)
         if th.shape != (scene.num_dofs,):
             raise ValueError(f"{seq.init_pose}: theta has {th.size} values, the scene "
                              f"{list(info.models)} has {scene.num_dofs} DoF")
         return th, ""
     if initializer is None:
+        if frame:
+            raise ValueError(f"{root}: a chunk starting at frame {frame} needs the automatic initialisation, which "
+                             f"places hands only, from depth (the scene {list(info.models)}, {len(info.cameras)} "
+                             "view(s), this energy): track this sequence without --chunk")
         raise ValueError(f"{root}: no init_pose.json, and the automatic initialisation places hands only, from "
                          f"depth (the scene {list(info.models)}, {len(info.cameras)} view(s), this energy): "
                          "write init_pose.json")
-    res = automatic_init(root, info, initializer, cam, segment)
-    return res.theta.cpu().double().numpy(), (f"no init_pose.json: initialised automatically (depth discrepancy "
+    res = automatic_init(root, info, initializer, cam, segment, frame)
+    why = "a chunk's first frame" if frame else "no init_pose.json"
+    return res.theta.cpu().double().numpy(), (f"{why}: initialised automatically (depth discrepancy "
                                              f"{res.cost:.2f}, {res.seconds:.1f} s)")
 
 
 def automatic_init(root: Path, info: SequenceInfo, initializer: Initializer, cam,
-                   segment: Optional[SegmentConfig]) -> InitResult:
-    """The automatic initialisation of a sequence's frame 0 (its segmentation, or the
+                   segment: Optional[SegmentConfig], frame: int = 0) -> InitResult:
+    """The automatic initialisation of a sequence's ``frame`` (its segmentation, or the
     automatic one with as many hands as the scene has). A camera rig is initialised in
     the view where the hands are seen best (the localiser's hand pixels times their
     score; camera 0 with the blob rules); the pose is in world coordinates either way."""
@@ -55,7 +61,7 @@ def automatic_init(root: Path, info: SequenceInfo, initializer: Initializer, cam
     sides = hand_sides(initializer.tracker.scene)
     best, first_error = None, None
     for c in range(len(info.cameras)):
-        path = seq.depth(0, c)
+        path = seq.depth(frame, c)
         depth = read_depth(path, info.depth_unit_mm)
         try:
             seg = segment_hands(depth, info.cameras[c], segment, frame=str(path), sides=sides)

@@ -13,13 +13,13 @@ import dataclasses
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchhand.app.frames import FrameReader, hand_sides, pose_fit, segment_for_search, segment_of
+from torchhand.app.frames import FrameReader, hand_sides, pose_fit, segment_for_search, segment_of, unpack_masks
 from torchhand.app.initialize import first_pose
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE, NAIL_SOURCES, REINIT_IOU, TrackOptions
 from torchhand.app.outputs import TrackedSequence, failed, write_sequence
@@ -31,7 +31,7 @@ from torchhand.tracking.initialization import Initializer
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
-__all__ = ["track_sequences", "TrackOptions", "output_names", "energy_needs", "REINIT_IOU", "NAIL_SCORE",
+__all__ = ["track_sequences", "track_chunk", "write_chunks", "TrackedChunk", "TrackOptions", "output_names", "energy_needs", "REINIT_IOU", "NAIL_SCORE",
            "NAIL_DETECTIONS", "NAIL_SOURCES"]
 
 #: What a term reads besides its images (``EnergyTerm.needs``), by the term's type: the
@@ -132,7 +132,7 @@ class _Run:
             raise ValueError(f"init_poses: one theta per sequence, got {len(init_poses)} for {len(roots)} sequences")
         if len(names) != len(roots) or len(set(names)) != len(names):
             raise ValueError(f"names: one distinct output name per sequence, got {names} for {len(roots)} sequences")
-        targets = [Path(out) / n for n in names]
+        targets = [] if out is None else [Path(out) / n for n in names]  # None: a chunk, written by its caller
         for t in targets:
             if t.exists() and any(t.iterdir()) and not force:
                 raise FileExistsError(f"{t} is not empty; choose another --out or pass --force")
@@ -190,9 +190,25 @@ def output_names(infos: Sequence[SequenceInfo]) -> List[str]:
     return names
 
 
-def _track_batch(run: _Run, models: list, V: int, members: List[int],
-                 terms: Optional[List[EnergyTerm]]) -> Dict[int, dict]:
-    """Track one batch of same-scene sequences (``members``) and write them."""
+class _Tracked(NamedTuple):
+    """What :func:`_track_frames` tracked: the batch's scene, tracker and cameras, the
+    frame results and the fit checks and re-initialisations (``refit``) of each frame,
+    and the frame reader (its masks)."""
+
+    scene: Scene
+    tracker: Tracker
+    cams: list
+    rigs: Optional[list]
+    results: List[FrameResult]
+    refit: "_Refit"
+    frames: FrameReader
+
+
+def _track_frames(run: _Run, models: list, V: int, members: List[int], terms: Optional[List[EnergyTerm]],
+                  window: Optional[Tuple[int, int]] = None) -> _Tracked:
+    """Track one batch of same-scene sequences (``members``): all their frames, or the
+    frames ``window`` = [start, stop) of a single sequence (frame ``start``
+    initialised automatically unless it is 0)."""
     opt, needs = run.options, run.needs
     scene = Scene.from_names(models, device=opt.device)
     if terms is None and run.make_terms is not None:
@@ -205,11 +221,12 @@ def _track_batch(run: _Run, models: list, V: int, members: List[int],
     # the automatic initialisation reads the depth view that sees the hands best, the
     # re-initialisation and the fit check camera 0's
     initializer = Initializer(tracker, opt.init_config) if hands_only and "depth" in needs else None
-    init, init_notes = _starts(run, members, scene, initializer, cams, segs)
-    n_frames = max(run.infos[k].frames for k in members)
+    first = 0 if window is None else window[0]
+    init, init_notes = _starts(run, members, scene, initializer, cams, segs, first)
+    n_frames = max(run.infos[k].frames for k in members) if window is None else window[1] - first
     frames = FrameReader([run.roots[k] for k in members], [run.infos[k] for k in members], n_frames, segs,
                          keep_masks=opt.viz, views=V, depth="depth" in needs, colour="colour" in needs,
-                         nails=opt.nails if "salient" in needs else None)
+                         nails=opt.nails if "salient" in needs else None, first=first)
     refit = _Refit(tracker, scene, cams, frames, initializer if opt.reinit_iou > 0 else None, opt.reinit_iou,
                    [segment_for_search(segs[i], scene) for i in range(len(members))])
     bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame",
@@ -225,36 +242,111 @@ def _track_batch(run: _Run, models: list, V: int, members: List[int],
                 res.notes[i] = init_notes[i]
         for i, note in enumerate(res.notes):
             if note:
-                tqdm.write(f"{run.names[members[i]]} frame {f}: {note}")
+                tqdm.write(f"{run.names[members[i]]} frame {first + f}: {note}")
         results.append(res)
         bar.update(len(members))
         if run.on_frames is not None:
-            run.on_frames(sum(f < run.infos[k].frames for k in members))
+            run.on_frames(sum(first + f < run.infos[k].frames for k in members))
     bar.close()
+    return _Tracked(scene, tracker, cams, rigs, results, refit, frames)
+
+
+def _track_batch(run: _Run, models: list, V: int, members: List[int],
+                 terms: Optional[List[EnergyTerm]]) -> Dict[int, dict]:
+    """Track one batch of same-scene sequences (``members``) and write them."""
+    t = _track_frames(run, models, V, members, terms)
     written = {}
     for i, k in enumerate(members):
         N = run.infos[k].frames
-        seq = TrackedSequence(run.names[k], run.roots[k], run.infos[k], rigs[i] if rigs else [cams[i]], i,
-                              len(members), results, [refit.quality[f][i] for f in range(N)],
-                              [refit.reinitialized[f][i] for f in range(N)], partial(frames.masks_of, i),
-                              "depth" in needs)
-        written[k] = write_sequence(run.targets[k], seq=seq, scene=scene, renderer=tracker.renderer, options=opt,
-                                    settings=run.settings, force=run.force)
+        seq = TrackedSequence(run.names[k], run.roots[k], run.infos[k], t.rigs[i] if t.rigs else [t.cams[i]], i,
+                              len(members), t.results, [t.refit.quality[f][i] for f in range(N)],
+                              [t.refit.reinitialized[f][i] for f in range(N)], partial(t.frames.masks_of, i),
+                              "depth" in run.needs)
+        written[k] = write_sequence(run.targets[k], seq=seq, scene=t.scene, renderer=t.tracker.renderer,
+                                    options=run.options, settings=run.settings, force=run.force)
     return written
 
 
+class TrackedChunk(NamedTuple):
+    """Frames ``first``..``first + len(results) - 1`` of one sequence, tracked by one task
+    of a chunked run (:func:`track_chunk`; picklable): per frame its result (a batch of
+    one), fit check and re-initialisation flag, and its packed masks (overlays only)."""
+
+    first: int
+    results: List[FrameResult]
+    quality: List[tuple]
+    reinitialized: List[bool]
+    masks: Dict[int, Optional[tuple]]
+
+
+def track_chunk(root, options: TrackOptions, start: int, stop: int, keep: int, *,
+                on_frames: Optional[Callable[[int], None]] = None) -> TrackedChunk:
+    """Track frames [``start``, ``stop``) of one sequence folder from the automatic
+    initialisation of frame ``start`` (``init_pose.json`` where ``start`` is 0) and
+    return frames [``keep``, ``stop``): the frames before ``keep`` are the overlap with
+    the previous chunk, tracked only to reach ``keep`` with a settled pose. Nothing is
+    written (:func:`write_chunks` writes the sequence). Raises ``ValueError`` naming the
+    folder when the sequence cannot be tracked with these options."""
+    if not 0 <= start <= keep < stop:
+        raise ValueError(f"track_chunk: expected 0 <= start <= keep < stop, got {start}, {keep}, {stop}")
+    terms = _terms(options.config, None)
+    run = _Run.of([root], None, options, None, None, None, False, False, on_frames, energy_needs(terms))
+    summaries, groups = run.check()
+    if summaries:
+        raise ValueError(summaries[0]["error"])
+    if stop > run.infos[0].frames:
+        raise ValueError(f"{root}: frames [{start}, {stop}) asked, sequence.json has {run.infos[0].frames}")
+    (models, V), = groups
+    t = _track_frames(run, list(models), V, [0], terms, window=(start, stop))
+    k = keep - start
+    results = t.results[k:]
+    if start > 0:  # the chunk's start, said on its first kept frame (the overlap's frames are not written)
+        r = results[0]
+        said = f"first frame of a chunk tracked from frame {start} ({t.results[0].notes[0]})"
+        results[0] = r._replace(notes=[f"{said}; {r.notes[0]}" if r.notes[0] else said])
+    return TrackedChunk(keep, results, [t.refit.quality[f][0] for f in range(k, stop - start)],
+                        [t.refit.reinitialized[f][0] for f in range(k, stop - start)],
+                        {start + f: m for f, m in t.frames.masks[0].items() if f >= k})
+
+
+def write_chunks(root, target, options: TrackOptions, chunks: Sequence[TrackedChunk], settings: dict,
+                 force: bool = False, name: Optional[str] = None) -> dict:
+    """Write a sequence tracked in chunks (:func:`track_chunk`, which together cover
+    every frame once, in order) into ``target`` as :func:`track_sequences` writes a
+    sequence tracked in one pass; returns its summary."""
+    root = Path(root)
+    info = read_sequence_info(root)
+    if options.models is not None:
+        info = dataclasses.replace(info, models=list(options.models))
+    chunks = sorted(chunks, key=lambda c: c.first)
+    covered = [c.first + j for c in chunks for j in range(len(c.results))]
+    if covered != list(range(info.frames)):
+        raise ValueError(f"{root}: the chunks cover frames {covered[:3]}...{covered[-3:]}, not 0..{info.frames - 1} "
+                         "once each")
+    scene = Scene.from_names(info.models, device=options.device)
+    renderer = Tracker(scene, options.config).renderer
+    cams = [c.to(options.device) for c in info.cameras]
+    masks = {f: m for c in chunks for f, m in c.masks.items()}
+    seq = TrackedSequence(name or info.name, root, info, cams if len(cams) > 1 else cams[:1], 0, 1,
+                          [r for c in chunks for r in c.results], [q for c in chunks for q in c.quality],
+                          [x for c in chunks for x in c.reinitialized], lambda f, shape: unpack_masks(masks.get(f), shape),
+                          "depth" in energy_needs(_terms(options.config, None)))
+    return write_sequence(Path(target), seq=seq, scene=scene, renderer=renderer, options=options, settings=settings,
+                          force=force)
+
+
 def _starts(run: _Run, members: List[int], scene: Scene, initializer: Optional[Initializer], cams: list,
-            segs: list) -> tuple:
-    """((B, D) theta of frame 0 of each sequence of a batch, the notes of their first frame)."""
+            segs: list, first: int = 0) -> tuple:
+    """((B, D) theta of frame ``first`` of each sequence of a batch, the notes of that frame)."""
     starts, notes = [], []
     for i, k in enumerate(members):
-        if run.init_poses is not None:
+        if run.init_poses is not None and first == 0:
             th, note = np.asarray(run.init_poses[k], np.float64), ""
             if th.shape != (scene.num_dofs,):
                 raise ValueError(f"init_poses[{k}]: {th.size} values, the scene {list(run.infos[k].models)} has "
                                  f"{scene.num_dofs} DoF")
         else:
-            th, note = first_pose(run.roots[k], run.infos[k], scene, initializer, cams[i], segs[i])
+            th, note = first_pose(run.roots[k], run.infos[k], scene, initializer, cams[i], segs[i], frame=first)
         starts.append(th)
         notes.append(note)
         if note:

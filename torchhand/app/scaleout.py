@@ -55,11 +55,14 @@ from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, re
 from torchhand.io.output_dir import remove_partials
 from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
 
-__all__ = ["TrackJob", "track_many", "evaluate_pairs", "run_tasks", "read_list", "connect_ray", "default_batch",
+__all__ = ["TrackJob", "track_many", "chunk_windows", "CHUNK_OVERLAP", "evaluate_pairs", "run_tasks", "read_list", "connect_ray", "default_batch",
            "TaskFailure", "SUMMARY_NAME"]
 
 #: The run summary written into ``--out``: every sequence's status, time and frames.
 SUMMARY_NAME = TRACK_SUMMARY
+#: Frames each chunk after the first tracks before its own (``--chunk-overlap``): the
+#: automatic initialisation's pose settles within a few frames on the thesis sequences.
+CHUNK_OVERLAP = 10
 
 
 @dataclass(frozen=True)
@@ -316,6 +319,17 @@ def read_list(path, columns: int = 1) -> List[tuple]:
     return [tuple(Path(p) for p in r) for r in rows]
 
 
+def chunk_windows(frames: int, chunk: int, overlap: int) -> List[tuple]:
+    """(start, keep, stop) of each chunk of a sequence of ``frames`` frames split into
+    ``ceil(frames / chunk)`` chunks of nearly equal length (balanced work): a chunk
+    keeps frames [keep, stop) and tracks from ``start`` = ``keep - overlap`` (0 for the
+    first), re-tracking the previous chunk's last ``overlap`` frames from its own
+    automatic initialisation to reach ``keep`` with a settled pose."""
+    n = max(1, math.ceil(frames / chunk))
+    bounds = [round(j * frames / n) for j in range(n + 1)]
+    return [(max(0, a - overlap), a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 def _signature(target: Path) -> Optional[tuple]:
     """Which write of ``target``'s track log is there (inode, mtime), or None."""
     try:
@@ -325,10 +339,13 @@ def _signature(target: Path) -> Optional[tuple]:
     return st.st_ino, st.st_mtime_ns
 
 
-def _track_task(spec: dict, report: _Report) -> List[dict]:
-    from torchhand.app.runner import track_sequences
+def _track_task(spec: dict, report: _Report):
+    from torchhand.app.runner import track_chunk, track_sequences
 
     job: TrackJob = spec["job"]
+    if "window" in spec:  # one chunk of a sequence: its frames, written by track_many
+        start, keep, stop = spec["window"]
+        return track_chunk(spec["roots"][0], job.options, start, stop, keep, on_frames=lambda n: report("frames", n))
     # A worker that dies after a sequence's folder was renamed complete, before the task
     # returned, leaves that folder to the task's retry: it is kept, not tracked again. A
     # folder that was there before the run (--force replaces it) is never kept.
@@ -424,10 +441,21 @@ def _finished(out: Path, names: List[str], settings: dict, resume: bool, force: 
 
 def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: int = 1, ray: Optional[str] = None,
                batch: Optional[int] = None, resume: bool = False, force: bool = False, retries: int = 2,
-               progress: bool = True, on_event: Optional[Callable[[tuple], None]] = None) -> dict:
-    """``torchhand track DIR... [--workers N | --ray [ADDRESS]] [--resume]``: track
-    sequence folders as tasks (see the module), with one progress bar over all their
-    frames, and write ``<out>/track_summary.json``.
+               progress: bool = True, on_event: Optional[Callable[[tuple], None]] = None,
+               chunk: Optional[int] = None, chunk_overlap: int = CHUNK_OVERLAP) -> dict:
+    """``torchhand track DIR... [--workers N | --ray [ADDRESS]] [--resume] [--chunk N]``:
+    track sequence folders as tasks (see the module), with one progress bar over all
+    their frames, and write ``<out>/track_summary.json``.
+
+    ``chunk``: a sequence longer than ``chunk`` frames is split into chunks
+    (:func:`chunk_windows`), each a task of its own, so that the workers share one long
+    recording; each chunk after the first starts ``chunk_overlap`` frames early from the
+    automatic initialisation (hands-only scenes with depth), and the sequence is
+    written once all its chunks are tracked. This is not identical to one pass: each
+    chunk forgets the previous pose, a chunk whose start cannot be initialised fails the
+    sequence, and frames near a chunk's start are tracked from a fresh search (the
+    overlap lets it settle before its frames are kept). The chunking is part of the
+    run's settings (``track_log.json``, ``--resume``).
 
     Every folder is checked before any work starts (all unreadable ones are named in
     one error), as is every existing output folder (refused unless ``force`` or, with
@@ -444,28 +472,46 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
         raise ValueError(f"--batch must be an integer >= 1, got {batch!r}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"--workers must be an integer >= 1, got {workers!r}")
+    if chunk is not None:
+        check_int(chunk, "--chunk", low=1)
+        check_int(chunk_overlap, "--chunk-overlap", low=0)
     roots = [Path(r).resolve() for r in roots]
     options = job.options
     infos = _read_infos(roots, options)
     out = Path(out).resolve()
     names = output_names(infos)
     settings = options.settings()
+    if chunk is not None:
+        settings = {**settings, "chunk": chunk, "chunk_overlap": chunk_overlap}
     done = _finished(out, names, settings, resume, force)
     remove_partials(out, set(names))  # what killed runs left: never results
     batch = batch or default_batch(options.device)
     groups: Dict[tuple, List[int]] = {}
+    chunked: Dict[int, List[tuple]] = {}  # sequence -> its chunks' windows
     for k, info in enumerate(infos):
-        if k not in done:
+        if k in done:
+            continue
+        if chunk is not None and info.frames > chunk:
+            chunked[k] = chunk_windows(info.frames, chunk, chunk_overlap)
+        else:
             groups.setdefault(tuple(info.models), []).append(k)
-    tasks = [members[j : j + batch] for members in groups.values() for j in range(0, len(members), batch)]
+    # a task: (its sequences, the chunk's window or None)
+    tasks = [(members[j : j + batch], None) for members in groups.values() for j in range(0, len(members), batch)]
+    tasks += [([k], w) for k, windows in chunked.items() for w in windows]
+
+    def length(task: tuple) -> int:
+        members, w = task
+        return w[2] - w[0] if w else max(infos[k].frames for k in members)
+
     # the longest tasks first (stable: equal ones keep their order), so that no worker
     # starts a long sequence while the others finish: the run ends sooner, whatever
     # the number of workers, and each task still computes the same
-    tasks.sort(key=lambda t: -max(infos[k].frames for k in t))
+    tasks.sort(key=lambda t: -length(t))
     specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job,
-              "settings": settings, "before": [_signature(out / names[k]) for k in t]} for t in tasks]
-    total = sum(infos[k].frames for t in tasks for k in t)
-    n_seq = sum(len(t) for t in tasks)
+              "settings": settings, "before": [_signature(out / names[k]) for k in t], **({"window": w} if w else {})}
+             for t, w in tasks]
+    total = sum(length(t) * len(t[0]) for t in tasks)
+    n_seq = sum(len(t) for t, w in tasks if w is None) + len(chunked)
     bar = tqdm(total=total, desc=f"track {n_seq} sequence{'s' if n_seq != 1 else ''}", unit="frame",
                disable=not progress)
 
@@ -477,26 +523,45 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
 
     try:
         results = run_tasks(_track_task, specs, workers, ray, retries, job.threads, handle)
+        summaries: Dict[int, dict] = dict(done)
+        pieces: Dict[int, list] = {k: [] for k in chunked}
+        for (t, w), res in zip(tasks, results):
+            if w is not None:
+                pieces[t[0]].append(res)
+                continue
+            for j, k in enumerate(t):
+                summaries[k] = (_failed_task(names[k], res) if isinstance(res, TaskFailure) else res[j])
+        for k, parts in pieces.items():  # a chunked sequence is written once all its chunks are in
+            bad = [p for p in parts if isinstance(p, TaskFailure)]
+            summaries[k] = _failed_task(names[k], bad[0]) if bad else _write_chunked(roots[k], out / names[k], job,
+                                                                                      parts, settings, force, names[k])
     finally:
         bar.close()
         remove_partials(out, set(names))
-    summaries: Dict[int, dict] = dict(done)
-    for t, res in zip(tasks, results):
-        for j, k in enumerate(t):
-            if isinstance(res, TaskFailure):
-                summaries[k] = {"sequence": names[k], "status": "failed", "error": res.error, "frames": 0,
-                                "out": None}
-            else:
-                summaries[k] = res[j]
-        for k in t:
-            summaries[k]["source"] = str(roots[k])
+    for k in summaries:
+        summaries[k]["source"] = str(roots[k])
     seqs = [summaries[k] for k in range(len(roots))]
     summary = {"command": "track", "settings": settings, "workers": workers, "ray": ray, "batch": batch,
                "tasks": len(tasks), "sequences": seqs, "failed": sum(s["status"] != "ok" for s in seqs),
-               "resumed": len(done), "frames": total, "seconds": time.perf_counter() - t0}
+               "resumed": len(done), "frames": sum(infos[k].frames for k in range(len(roots)) if k not in done),
+               "chunked": len(chunked), "seconds": time.perf_counter() - t0}
     out.mkdir(parents=True, exist_ok=True)
     (out / SUMMARY_NAME).write_text(json.dumps(_jsonable(summary), indent=2))
     return summary
+
+
+def _failed_task(name: str, failure: TaskFailure) -> dict:
+    return {"sequence": name, "status": "failed", "error": failure.error, "frames": 0, "out": None}
+
+
+def _write_chunked(root: Path, target: Path, job: TrackJob, parts: list, settings: dict, force: bool,
+                   name: str) -> dict:
+    from torchhand.app.runner import write_chunks
+
+    try:
+        return write_chunks(root, target, job.options, parts, settings, force, name)
+    except ValueError as err:
+        return {"sequence": name, "status": "failed", "error": str(err), "frames": 0, "out": None}
 
 
 def _jsonable(x):
