@@ -258,6 +258,48 @@ def test_automatic_initialisation_of_a_rendered_hand():
     assert err < 40.0 and res.cost < 0.5
 
 
+def test_restarts_run_independent_swarms_and_refine_their_best_picks_together(monkeypatch):
+    """InitConfig(restarts=2, seed=s) runs swarms seeded 2s and 2s + 1 and refines
+    ``refine`` picks in all, shared among them, as one batch; the pose kept is the
+    candidate of lowest depth discrepancy, on the hand."""
+    import torchhand.tracking.initialization as initialization
+    from torchhand.data.layout import read_poses
+    from torchhand.model.scene import Scene
+    from torchhand.tracking.initialization import InitConfig, Initializer
+    from torchhand.tracking.tracker import Tracker, TrackerConfig
+
+    root = Path(__file__).resolve().parents[1] / "datasets" / "sample"
+    info = read_sequence_info(root)
+    cam = info.cameras[0]
+    scene = Scene.from_names(["hand_right"])
+    tracker = Tracker(scene, TrackerConfig())
+    sl = Scene.from_names(info.models).slices["hand_right"]
+    truth = torch.as_tensor(read_poses(root / "gt").theta[0][sl], dtype=torch.float32)[None]
+    with torch.no_grad():
+        depth = tracker.renderer(scene(truth).vertices, cam, normals=False).depth[0].numpy()
+    seg = segment_hands(depth, cam, SegmentConfig(mode="blobs"))
+    seeds, batches = [], []
+    swarm, solve = initialization.particle_swarm, tracker.solve
+
+    def recorded_swarm(*args, generator, **kwargs):
+        seeds.append(generator.initial_seed())
+        return swarm(*args, generator=generator, **kwargs)
+
+    def recorded_solve(starts, *args, **kwargs):
+        batches.append(len(starts))
+        return solve(starts, *args, **kwargs)
+
+    monkeypatch.setattr(initialization, "particle_swarm", recorded_swarm)
+    tracker.solve = recorded_solve
+    res = Initializer(tracker, InitConfig(restarts=2, seed=3, particles=16, generations=8, refine=4))(depth, cam, seg)
+    assert seeds == [6, 7] and batches == [4]
+    with torch.no_grad():
+        err = (scene(res.theta[None]).keypoints - scene(truth).keypoints).norm(dim=-1).mean()
+    assert err < 20.0 and res.cost < 0.3
+    with pytest.raises(ValueError, match="restarts"):
+        InitConfig(restarts=0)
+
+
 def test_detected_fingertips_seed_the_hand_axis():
     """The fingertips the shipped detector finds on a rendered hand lie near the model's
     fingertips, all on the fingers' side of the blob's centroid (the length axis' sign
