@@ -5,6 +5,7 @@ leave every finished sequence intact, and bad input is named."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import time
@@ -278,13 +279,17 @@ def test_the_workers_server_starts_only_for_local_workers():
 def test_chunk_windows_cover_every_frame_once_in_balanced_chunks():
     from torchhand.app.scaleout import chunk_windows
 
-    for frames, chunk, overlap in ((12, 6, 2), (100, 30, 10), (7, 7, 3), (101, 50, 0), (5, 2, 9)):
+    assert chunk_windows(12, 6, 2) == [(0, 0, 7), (5, 7, 12)]
+    assert chunk_windows(7, 7, 3) == [(0, 0, 7)]
+    assert chunk_windows(5, 2, 9) == [(0, 0, 5)]  # an overlap longer than the chunks: one pass
+    for frames, chunk, overlap in ((12, 6, 2), (100, 30, 10), (101, 50, 0), (1000, 300, 10), (40, 3, 2)):
         w = chunk_windows(frames, chunk, overlap)
+        assert len(w) == math.ceil(frames / chunk)
         kept = [f for _, keep, stop in w for f in range(keep, stop)]
         assert kept == list(range(frames))
-        lengths = [stop - keep for _, keep, stop in w]
-        assert max(lengths) <= chunk and max(lengths) - min(lengths) <= 1
-        assert all(start == max(0, keep - overlap) for start, keep, _ in w)
+        tracked = [stop - start for start, _, stop in w]
+        assert max(tracked) - min(tracked) <= 1  # balanced work
+        assert all(start == max(0, keep - overlap) and stop > keep for start, keep, stop in w)
 
 
 def test_chunk_overlap_without_chunk_is_refused(sequences, tmp_path, capsys):
@@ -295,9 +300,10 @@ def test_chunk_overlap_without_chunk_is_refused(sequences, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_a_sequence_in_chunks_over_two_workers(tmp_path):
-    """A 12-frame sequence in two chunks of 6 (overlap 2) on two workers: written as one
-    sequence; the first chunk's frames equal the one-pass run's to the last bit, the
-    second's, tracked from the automatic initialisation at frame 4, land on the hand."""
+    """A 12-frame sequence in two chunks (``--chunk 6``, overlap 2: frames 0-6 and, from
+    frame 5, 7-11) on two workers: written as one sequence; the first chunk's frames
+    equal the one-pass run's to the last bit, the second's, tracked from the automatic
+    initialisation at frame 5, land on the hand."""
     demo = demo_motion()
     scene = Scene.from_names(["hand_right"], dtype=demo.theta.dtype)
     th = demo.theta[:12, demo.scene.slices["hand_right"]]
@@ -308,17 +314,17 @@ def test_a_sequence_in_chunks_over_two_workers(tmp_path):
     run = track_many([root], tmp_path / "two", JOB, workers=2, progress=False, chunk=6, chunk_overlap=2,
                      on_event=events.append)
     assert one["failed"] == 0 and run["failed"] == 0 and run["tasks"] == 2 and run["chunked"] == 1
-    assert sum(e[2] for e in events if e[1] == "frames") == 6 + 8  # the overlap is tracked twice
+    assert sum(e[2] for e in events if e[1] == "frames") == 7 + 7  # the overlap is tracked twice
     assert len({e[2] for e in events if e[1] == "start"}) == 2
     a, b = np.load(OutputLayout(tmp_path / "one" / "long").theta), np.load(OutputLayout(tmp_path / "two" / "long").theta)
     assert a.shape == b.shape == (12, th.shape[1])
-    assert np.array_equal(a[:6], b[:6])
+    assert np.array_equal(a[:7], b[:7])
     ka = np.load(OutputLayout(tmp_path / "one" / "long").keypoints_3d)
     kb = np.load(OutputLayout(tmp_path / "two" / "long").keypoints_3d)
-    assert np.linalg.norm(ka[6:] - kb[6:], axis=-1).mean() < 10.0  # mm: the same hand, tracked from a new start
+    assert np.linalg.norm(ka[7:] - kb[7:], axis=-1).mean() < 10.0  # mm: the same hand, tracked from a new start
     log = json.loads((tmp_path / "two" / "long" / "track_log.json").read_text())
     assert len(log["frames"]) == 12 and log["settings"]["chunk"] == 6 and log["settings"]["chunk_overlap"] == 2
-    assert "first frame of a chunk tracked from frame 4" in log["frames"][6]["notes"]
+    assert "first frame of a chunk tracked from frame 5" in log["frames"][7]["notes"]
     assert [p.name for p in (tmp_path / "two" / "long" / "motion").iterdir()] == ["Model_Hand_R.MOTION"]
     with pytest.raises(ValueError, match="other settings"):  # the chunking is part of the settings
         track_many([root], tmp_path / "two", JOB, resume=True, progress=False)

@@ -324,7 +324,7 @@ def write_chunks(root, target, options: TrackOptions, chunks: Sequence[TrackedCh
         raise ValueError(f"{root}: the chunks cover frames {covered[:3]}...{covered[-3:]}, not 0..{info.frames - 1} "
                          "once each")
     scene = Scene.from_names(info.models, device=options.device)
-    renderer = Tracker(scene, options.config).renderer
+    renderer = Tracker(scene, options.config).renderer if options.write_render else None  # renders only
     cams = [c.to(options.device) for c in info.cameras]
     masks = {f: m for c in chunks for f, m in c.masks.items()}
     seq = TrackedSequence(name or info.name, root, info, cams if len(cams) > 1 else cams[:1], 0, 1,

@@ -320,14 +320,20 @@ def read_list(path, columns: int = 1) -> List[tuple]:
 
 
 def chunk_windows(frames: int, chunk: int, overlap: int) -> List[tuple]:
-    """(start, keep, stop) of each chunk of a sequence of ``frames`` frames split into
-    ``ceil(frames / chunk)`` chunks of nearly equal length (balanced work): a chunk
-    keeps frames [keep, stop) and tracks from ``start`` = ``keep - overlap`` (0 for the
-    first), re-tracking the previous chunk's last ``overlap`` frames from its own
-    automatic initialisation to reach ``keep`` with a settled pose."""
+    """(start, keep, stop) of each chunk of a sequence of ``frames`` frames: a chunk keeps
+    frames [keep, stop) and tracks from ``start`` = ``keep - overlap`` (0 for the first),
+    re-tracking the previous chunk's last ``overlap`` frames from its own automatic
+    initialisation to reach ``keep`` with a settled pose. ``ceil(frames / chunk)``
+    chunks (fewer where the overlap would leave a chunk no frame of its own), each
+    tracking nearly the same number of frames (balanced work: the first keeps
+    ``overlap`` more than the others)."""
     n = max(1, math.ceil(frames / chunk))
-    bounds = [round(j * frames / n) for j in range(n + 1)]
-    return [(max(0, a - overlap), a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    while n > 1 and (frames - overlap) / n < 1:
+        n -= 1
+    tracked = (frames + (n - 1) * overlap) / n
+    stops = [round(tracked + j * (tracked - overlap)) for j in range(n - 1)] + [frames]
+    keeps = [0] + stops[:-1]
+    return [(max(0, k - overlap), k, e) for k, e in zip(keeps, stops)]
 
 
 def _signature(target: Path) -> Optional[tuple]:
@@ -447,8 +453,8 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     track sequence folders as tasks (see the module), with one progress bar over all
     their frames, and write ``<out>/track_summary.json``.
 
-    ``chunk``: a sequence longer than ``chunk`` frames is split into chunks
-    (:func:`chunk_windows`), each a task of its own, so that the workers share one long
+    ``chunk``: a sequence longer than ``chunk`` frames is split into chunks of about
+    ``chunk`` frames (:func:`chunk_windows`), each a task of its own, so that the workers share one long
     recording; each chunk after the first starts ``chunk_overlap`` frames early from the
     automatic initialisation (hands-only scenes with depth), and the sequence is
     written once all its chunks are tracked. This is not identical to one pass: each
