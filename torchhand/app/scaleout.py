@@ -48,6 +48,7 @@ import torch
 from tqdm import tqdm
 
 from torchhand.core.check import check_int
+from torchhand.app.chunks import CHUNK_OVERLAP, chunk_windows, plan_tasks, task_length, write_chunked
 from torchhand.app.options import TrackOptions
 from torchhand.app.workers import worker_context
 from torchhand.core.errors import MissingExtra
@@ -60,9 +61,6 @@ __all__ = ["TrackJob", "track_many", "chunk_windows", "CHUNK_OVERLAP", "evaluate
 
 #: The run summary written into ``--out``: every sequence's status, time and frames.
 SUMMARY_NAME = TRACK_SUMMARY
-#: Frames each chunk after the first tracks before its own (``--chunk-overlap``): the
-#: automatic initialisation's pose settles within a few frames on the thesis sequences.
-CHUNK_OVERLAP = 10
 
 
 @dataclass(frozen=True)
@@ -319,23 +317,6 @@ def read_list(path, columns: int = 1) -> List[tuple]:
     return [tuple(Path(p) for p in r) for r in rows]
 
 
-def chunk_windows(frames: int, chunk: int, overlap: int) -> List[tuple]:
-    """(start, keep, stop) of each chunk of a sequence of ``frames`` frames: a chunk keeps
-    frames [keep, stop) and tracks from ``start`` = ``keep - overlap`` (0 for the first),
-    re-tracking the previous chunk's last ``overlap`` frames from its own automatic
-    initialisation to reach ``keep`` with a settled pose. ``ceil(frames / chunk)``
-    chunks (fewer where the overlap would leave a chunk no frame of its own), each
-    tracking nearly the same number of frames (balanced work: the first keeps
-    ``overlap`` more than the others)."""
-    n = max(1, math.ceil(frames / chunk))
-    while n > 1 and (frames - overlap) / n < 1:
-        n -= 1
-    tracked = (frames + (n - 1) * overlap) / n
-    stops = [round(tracked + j * (tracked - overlap)) for j in range(n - 1)] + [frames]
-    keeps = [0] + stops[:-1]
-    return [(max(0, k - overlap), k, e) for k, e in zip(keeps, stops)]
-
-
 def _signature(target: Path) -> Optional[tuple]:
     """Which write of ``target``'s track log is there (inode, mtime), or None."""
     try:
@@ -454,7 +435,7 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     their frames, and write ``<out>/track_summary.json``.
 
     ``chunk``: a sequence longer than ``chunk`` frames is split into chunks of about
-    ``chunk`` frames (:func:`chunk_windows`), each a task of its own, so that the workers share one long
+    ``chunk`` frames (:func:`~torchhand.app.chunks.chunk_windows`), each a task of its own, so that the workers share one long
     recording; each chunk after the first starts ``chunk_overlap`` frames early from the
     automatic initialisation (hands-only scenes with depth), and the sequence is
     written once all its chunks are tracked. This is not identical to one pass: each
@@ -492,31 +473,11 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     done = _finished(out, names, settings, resume, force)
     remove_partials(out, set(names))  # what killed runs left: never results
     batch = batch or default_batch(options.device)
-    groups: Dict[tuple, List[int]] = {}
-    chunked: Dict[int, List[tuple]] = {}  # sequence -> its chunks' windows
-    for k, info in enumerate(infos):
-        if k in done:
-            continue
-        if chunk is not None and info.frames > chunk:
-            chunked[k] = chunk_windows(info.frames, chunk, chunk_overlap)
-        else:
-            groups.setdefault(tuple(info.models), []).append(k)
-    # a task: (its sequences, the chunk's window or None)
-    tasks = [(members[j : j + batch], None) for members in groups.values() for j in range(0, len(members), batch)]
-    tasks += [([k], w) for k, windows in chunked.items() for w in windows]
-
-    def length(task: tuple) -> int:
-        members, w = task
-        return w[2] - w[0] if w else max(infos[k].frames for k in members)
-
-    # the longest tasks first (stable: equal ones keep their order), so that no worker
-    # starts a long sequence while the others finish: the run ends sooner, whatever
-    # the number of workers, and each task still computes the same
-    tasks.sort(key=lambda t: -length(t))
+    tasks, chunked = plan_tasks(infos, done, batch, chunk, chunk_overlap)
     specs = [{"roots": [roots[k] for k in t], "names": [names[k] for k in t], "out": out, "force": force, "job": job,
               "settings": settings, "before": [_signature(out / names[k]) for k in t], **({"window": w} if w else {})}
              for t, w in tasks]
-    total = sum(length(t) * len(t[0]) for t in tasks)
+    total = sum(task_length(t, infos) * len(t[0]) for t in tasks)
     n_seq = sum(len(t) for t, w in tasks if w is None) + len(chunked)
     bar = tqdm(total=total, desc=f"track {n_seq} sequence{'s' if n_seq != 1 else ''}", unit="frame",
                disable=not progress)
@@ -529,18 +490,7 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
 
     try:
         results = run_tasks(_track_task, specs, workers, ray, retries, job.threads, handle)
-        summaries: Dict[int, dict] = dict(done)
-        pieces: Dict[int, list] = {k: [] for k in chunked}
-        for (t, w), res in zip(tasks, results):
-            if w is not None:
-                pieces[t[0]].append(res)
-                continue
-            for j, k in enumerate(t):
-                summaries[k] = (_failed_task(names[k], res) if isinstance(res, TaskFailure) else res[j])
-        for k, parts in pieces.items():  # a chunked sequence is written once all its chunks are in
-            bad = [p for p in parts if isinstance(p, TaskFailure)]
-            summaries[k] = _failed_task(names[k], bad[0]) if bad else _write_chunked(roots[k], out / names[k], job,
-                                                                                      parts, settings, force, names[k])
+        summaries = _collect(tasks, results, chunked, dict(done), roots, out, names, job.options, settings, force)
     finally:
         bar.close()
         remove_partials(out, set(names))
@@ -556,18 +506,26 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     return summary
 
 
+def _collect(tasks: list, results: list, chunked: dict, summaries: Dict[int, dict], roots: list, out: Path,
+             names: list, options: TrackOptions, settings: dict, force: bool) -> Dict[int, dict]:
+    """Every sequence's summary from its task's result; a chunked sequence written once
+    all its chunks are in (failed with the first failing chunk's error)."""
+    pieces: Dict[int, list] = {k: [] for k in chunked}
+    for (t, w), res in zip(tasks, results):
+        if w is not None:
+            pieces[t[0]].append(res)
+            continue
+        for j, k in enumerate(t):
+            summaries[k] = _failed_task(names[k], res) if isinstance(res, TaskFailure) else res[j]
+    for k, parts in pieces.items():
+        bad = [p for p in parts if isinstance(p, TaskFailure)]
+        summaries[k] = (_failed_task(names[k], bad[0]) if bad else
+                        write_chunked(roots[k], out / names[k], options, parts, settings, force, names[k]))
+    return summaries
+
+
 def _failed_task(name: str, failure: TaskFailure) -> dict:
     return {"sequence": name, "status": "failed", "error": failure.error, "frames": 0, "out": None}
-
-
-def _write_chunked(root: Path, target: Path, job: TrackJob, parts: list, settings: dict, force: bool,
-                   name: str) -> dict:
-    from torchhand.app.runner import write_chunks
-
-    try:
-        return write_chunks(root, target, job.options, parts, settings, force, name)
-    except ValueError as err:
-        return {"sequence": name, "status": "failed", "error": str(err), "frames": 0, "out": None}
 
 
 def _jsonable(x):
