@@ -316,13 +316,13 @@ def test_a_sequence_in_chunks_over_two_workers(tmp_path):
     assert one["failed"] == 0 and run["failed"] == 0 and run["tasks"] == 2 and run["chunked"] == 1
     assert sum(e[2] for e in events if e[1] == "frames") == 7 + 7  # the overlap is tracked twice
     assert len({e[2] for e in events if e[1] == "start"}) == 2
-    a, b = np.load(OutputLayout(tmp_path / "one" / "long").theta), np.load(OutputLayout(tmp_path / "two" / "long").theta)
+    one_out, two_out = OutputLayout(tmp_path / "one" / "long"), OutputLayout(tmp_path / "two" / "long")
+    a, b = np.load(one_out.theta), np.load(two_out.theta)
     assert a.shape == b.shape == (12, th.shape[1])
     assert np.array_equal(a[:7], b[:7])
-    ka = np.load(OutputLayout(tmp_path / "one" / "long").keypoints_3d)
-    kb = np.load(OutputLayout(tmp_path / "two" / "long").keypoints_3d)
+    ka, kb = np.load(one_out.keypoints_3d), np.load(two_out.keypoints_3d)
     assert np.linalg.norm(ka[7:] - kb[7:], axis=-1).mean() < 10.0  # mm: the same hand, tracked from a new start
-    log = json.loads((tmp_path / "two" / "long" / "track_log.json").read_text())
+    log = json.loads(two_out.track_log.read_text())
     assert len(log["frames"]) == 12 and log["settings"]["chunk"] == 6 and log["settings"]["chunk_overlap"] == 2
     assert "first frame of a chunk tracked from frame 5" in log["frames"][7]["notes"]
     assert [p.name for p in (tmp_path / "two" / "long" / "motion").iterdir()] == ["Model_Hand_R.MOTION"]

@@ -305,7 +305,8 @@ class LocaliserTask(Task):
         for extra in [{}] + list(cfg.extra_train_data):
             unknown = sorted(set(extra) - set(EXTRA_DATA_FIELDS))
             if unknown:
-                raise ValueError(f"extra_train_data: unknown fields {unknown}; expected some of {list(EXTRA_DATA_FIELDS)}")
+                raise ValueError(f"extra_train_data: unknown fields {unknown}; "
+                                 f"expected some of {list(EXTRA_DATA_FIELDS)}")
             if sorted(set(extra.get("train_sequences", cfg.train_sequences)) & set(cfg.val_sequences)):
                 raise ValueError("train_sequences and val_sequences overlap")
 

@@ -31,8 +31,8 @@ from torchhand.tracking.initialization import Initializer
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 
-__all__ = ["track_sequences", "track_chunk", "write_chunks", "TrackedChunk", "TrackOptions", "output_names", "energy_needs", "REINIT_IOU", "NAIL_SCORE",
-           "NAIL_DETECTIONS", "NAIL_SOURCES"]
+__all__ = ["track_sequences", "track_chunk", "write_chunks", "TrackedChunk", "TrackOptions", "output_names",
+           "energy_needs", "REINIT_IOU", "NAIL_SCORE", "NAIL_DETECTIONS", "NAIL_SOURCES"]
 
 #: What a term reads besides its images (``EnergyTerm.needs``), by the term's type: the
 #: nail term reads the colour views' nail detections (``salient.json`` or the shipped
@@ -329,7 +329,8 @@ def write_chunks(root, target, options: TrackOptions, chunks: Sequence[TrackedCh
     masks = {f: m for c in chunks for f, m in c.masks.items()}
     seq = TrackedSequence(name or info.name, root, info, cams if len(cams) > 1 else cams[:1], 0, 1,
                           [r for c in chunks for r in c.results], [q for c in chunks for q in c.quality],
-                          [x for c in chunks for x in c.reinitialized], lambda f, shape: unpack_masks(masks.get(f), shape),
+                          [x for c in chunks for x in c.reinitialized],
+                          lambda f, shape: unpack_masks(masks.get(f), shape),
                           "depth" in energy_needs(_terms(options.config, None)))
     return write_sequence(Path(target), seq=seq, scene=scene, renderer=renderer, options=options, settings=settings,
                           force=force)

@@ -56,8 +56,8 @@ from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, re
 from torchhand.io.output_dir import remove_partials
 from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
 
-__all__ = ["TrackJob", "track_many", "chunk_windows", "CHUNK_OVERLAP", "evaluate_pairs", "run_tasks", "read_list", "connect_ray", "default_batch",
-           "TaskFailure", "SUMMARY_NAME"]
+__all__ = ["TrackJob", "track_many", "chunk_windows", "CHUNK_OVERLAP", "evaluate_pairs", "run_tasks", "read_list",
+           "connect_ray", "default_batch", "TaskFailure", "SUMMARY_NAME"]
 
 #: The run summary written into ``--out``: every sequence's status, time and frames.
 SUMMARY_NAME = TRACK_SUMMARY
@@ -435,8 +435,8 @@ def track_many(roots: Sequence, out, job: Optional[TrackJob] = None, workers: in
     their frames, and write ``<out>/track_summary.json``.
 
     ``chunk``: a sequence longer than ``chunk`` frames is split into chunks of about
-    ``chunk`` frames (:func:`~torchhand.app.chunks.chunk_windows`), each a task of its own, so that the workers share one long
-    recording; each chunk after the first starts ``chunk_overlap`` frames early from the
+    ``chunk`` frames (:func:`~torchhand.app.chunks.chunk_windows`), each a task of its
+    own, so that the workers share one long recording; each chunk after the first starts ``chunk_overlap`` frames early from the
     automatic initialisation (hands-only scenes with depth), and the sequence is
     written once all its chunks are tracked. This is not identical to one pass: each
     chunk forgets the previous pose, a chunk whose start cannot be initialised fails the
