@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, set_threads, write_json  # noqa: E402
 
 from torchhand.app.scaleout import CHUNK_OVERLAP, TrackJob, chunk_windows, track_many  # noqa: E402
-from torchhand.data.layout import OutputLayout  # noqa: E402
+from torchhand.data.layout import OutputLayout, read_sequence_info  # noqa: E402
 from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence  # noqa: E402
 from torchhand.model.scene import Scene  # noqa: E402
 
@@ -92,7 +92,7 @@ def timed(seqs, out: Path, **kw) -> dict:
 
 def chunked(seqs: list, tmp: Path) -> dict:
     """One long sequence in one pass (one worker) and in two chunks (two workers)."""
-    n = read_frames(seqs[0])
+    n = read_sequence_info(seqs[0]).frames
     one = timed(seqs, tmp / "long_one")
     two = timed(seqs, tmp / "long_two", workers=2, chunk=(n + 1) // 2)
     a, b = (OutputLayout(tmp / d / seqs[0].name) for d in ("long_one", "long_two"))
@@ -102,12 +102,6 @@ def chunked(seqs: list, tmp: Path) -> dict:
     return {"long_frames": n, "long_one_pass": one, "long_chunked_2": two,
             "speedup_chunked_2_workers": one["wall_s"] / two["wall_s"],
             "chunked_keypoint_deviation_mm": float(dev.mean())}
-
-
-def read_frames(root: Path) -> int:
-    from torchhand.data.layout import read_sequence_info
-
-    return read_sequence_info(root).frames
 
 
 def start_worker_server() -> float:

@@ -7,11 +7,14 @@ sequences with objects need ``init_pose.json`` and are listed as skipped) is ren
 with the kinect noise model (frames 0..F-1, the same renders as ``exp_tracking.py lo``).
 
 1. Initialisation: frame 0 is segmented automatically (as many hands as the scene has)
-   and initialised ``--tries`` times, try k with ``InitConfig(seed=k)`` (the swarm's
-   random draws); each try's error is the mean distance of its keypoints (every hand's
-   21) to the ground truth's. A try succeeds within ``--success-mm`` (10 mm).
+   and initialised ``--tries`` times, try k with ``InitConfig(seed=k, restarts=R)`` (the
+   swarms' random draws; ``--restarts``, default the library's); each try's error is the
+   mean distance of its keypoints (every hand's 21) to the ground truth's, and its
+   ``costs`` entry its depth discrepancy at full resolution (what the search ranks by).
+   A try succeeds within ``--success-mm`` (10 mm).
 2. Tracking: a copy of the sequence without ``init_pose.json`` and without ``gt/`` is
-   tracked with the CLI defaults (so frame 0 is initialised automatically, seed 0) and
+   tracked with the CLI defaults (so frame 0 is initialised automatically, seed 0, with
+   ``--restarts``) and
    scored against ``gt/`` (mean px / mm over the frames, worst frame).
 
 Writes the per-sequence success rates and errors, the pooled success rate, and the
@@ -44,7 +47,7 @@ from torchhand.tracking.segmentation import SegmentConfig, segment_hands  # noqa
 from torchhand.tracking.tracker import Tracker, TrackerConfig  # noqa: E402
 
 
-def init_tries(folder: Path, tries: int, success_mm: float) -> dict:
+def init_tries(folder: Path, tries: int, success_mm: float, restarts: int) -> dict:
     """``tries`` seeded initialisations of a rendered sequence's frame 0, scored."""
     info = read_sequence_info(folder)
     scene = Scene.from_names(info.models)
@@ -54,18 +57,19 @@ def init_tries(folder: Path, tries: int, success_mm: float) -> dict:
     depth = read_depth(path, info.depth_unit_mm)
     seg = segment_hands(depth, cam, SegmentConfig(hands=len(scene.models)), frame=str(path))
     truth = torch.as_tensor(read_poses(SequenceLayout(folder).gt).keypoints_3d[0], dtype=torch.float32)  # (K, 3)
-    errors, seconds = [], []
+    errors, seconds, costs = [], [], []
     initializer = Initializer(tracker)
     for k in range(tries):
-        initializer.config = InitConfig(seed=k)
+        initializer.config = InitConfig(seed=k, restarts=restarts)
         res = initializer(depth, cam, seg)
+        costs.append(round(res.cost, 4))
         with torch.no_grad():
             kp = scene(res.theta[None]).keypoints[0]
         errors.append(float((kp - truth).norm(dim=-1).mean()))
         seconds.append(res.seconds)
     errors_a = np.asarray(errors)
     return {"models": list(info.models), "tries": tries, "success_rate": float((errors_a <= success_mm).mean()),
-            "errors_mm": [round(e, 2) for e in errors], "median_mm": float(np.median(errors_a)),
+            "errors_mm": [round(e, 2) for e in errors], "costs": costs, "median_mm": float(np.median(errors_a)),
             "worst_mm": float(errors_a.max()), "seconds_per_try": float(np.mean(seconds)),
             "seconds_per_hand": float(np.mean(seconds) / len(scene.models))}
 
@@ -91,6 +95,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--work", type=Path, default=Path("out/exp"))
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--restarts", type=int, default=InitConfig().restarts,
+                    help="independent swarms per initialisation (InitConfig.restarts)")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     seqs = args.sequences.split(",") if args.sequences else sorted(p.name for p in (args.hia_root / "Configs").iterdir())
@@ -109,10 +115,11 @@ def main(argv=None) -> dict:
     results = {}
     for s, folder in folders.items():
         t0 = time.perf_counter()
-        r = init_tries(folder, args.tries, args.success_mm)
+        r = init_tries(folder, args.tries, args.success_mm, args.restarts)
         plain = without_init_pose(folder, args.work)
         out = args.work / "tracked_noinit"
-        summary = track_sequences([plain], out, TrackOptions(TrackerConfig()), force=True, progress=False)[0]
+        options = TrackOptions(TrackerConfig(), init_config=InitConfig(restarts=args.restarts))
+        summary = track_sequences([plain], out, options, force=True, progress=False)[0]
         if summary["status"] != "ok":
             raise RuntimeError(f"sequence {s}: tracking failed: {summary['error']}")
         score = evaluate_sequence(summary["out"], SequenceLayout(folder).gt, with_penetration=False)
@@ -121,12 +128,13 @@ def main(argv=None) -> dict:
                          "frame0_mm": float(score["per_frame"]["mm"][0])}
         r["seconds"] = time.perf_counter() - t0
         results[s] = r
-        print(s, {k: v for k, v in r.items() if k != "errors_mm"}, flush=True)
+        print(s, {k: v for k, v in r.items() if k not in ("errors_mm", "costs")}, flush=True)
     rates = [r["success_rate"] for r in results.values()]
     errors = np.concatenate([r["errors_mm"] for r in results.values()]) if results else np.zeros(0)
     result = {
         "experiment": "automatic initialisation on kinect renders of the thesis motions",
         "success_mm": args.success_mm, "tries_per_sequence": args.tries, "frames_tracked": args.frames,
+        "restarts": args.restarts,
         "sequences": results, "skipped": skipped,
         "overall": {"success_rate": float((errors <= args.success_mm).mean()) if errors.size else float("nan"),
                     "worst_sequence_success_rate": min(rates) if rates else float("nan"),

@@ -6,6 +6,7 @@ that are tracked as tasks of their own and written once all are in
 from __future__ import annotations
 
 import math
+import traceback
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
@@ -67,11 +68,13 @@ def plan_tasks(infos: Sequence, skip, batch: int, chunk: Optional[int], overlap:
 def write_chunked(root: Path, target: Path, options: TrackOptions, parts: list, settings: dict, force: bool,
                   name: str) -> dict:
     """Write a sequence from its tracked chunks
-    (:func:`~torchhand.app.runner.write_chunks`); its summary, failed where they do not
-    cover it."""
+    (:func:`~torchhand.app.runner.write_chunks`); its summary. The write fails the
+    sequence alone, as a task's error fails its task (the error's type, message and
+    traceback in the summary); the others are written."""
     from torchhand.app.runner import write_chunks
 
     try:
         return write_chunks(root, target, options, parts, settings, force, name)
-    except ValueError as err:
-        return {"sequence": name, "status": "failed", "error": str(err), "frames": 0, "out": None}
+    except Exception as err:  # noqa: BLE001 - as a task's own error (scaleout._call)
+        error = f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}"
+        return {"sequence": name, "status": "failed", "error": error, "frames": 0, "out": None}

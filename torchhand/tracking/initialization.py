@@ -30,7 +30,7 @@ Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
    (seeds ``seed * restarts + r``), and step 3 refines their best picks (``refine`` in
    all, shared among the swarms) as one batch: a
    swarm that settles a finger beside the truth scores clearly worse at full
-   resolution than one that does not (0.15-0.22 against 0.084-0.088 on the thesis
+   resolution than one that does not (0.148-0.219 against 0.084-0.088 on the thesis
    renders of sequences 08 and 11, docs/results.md), so a second swarm makes such a
    start rarer.
 
@@ -322,7 +322,7 @@ class Initializer:
                 rend = renderer(verts, cam, normals=False)
             return depth_discrepancy(rend.depth, data, config.clamp_mm).double().cpu().reshape(pos.shape[:2])
 
-        picks = []
+        picks, swarm_costs = [], []
         for r in range(config.restarts):  # independent swarms, their picks refined together
             gen = torch.Generator().manual_seed(config.seed * config.restarts + r)
             x = torch.maximum(torch.minimum(_particles(bases, P, spread, gen), hi), lo)
@@ -330,7 +330,7 @@ class Initializer:
             # the best of every swarm, then the best distinct particles: ``refine`` in all
             share = -(-config.refine // config.restarts)
             picks.append(res.particles.reshape(-1, D)[_refine_picks(res, share)])
-            search_cost = min(float(res.cost.min()), search_cost) if r else float(res.cost.min())
+            swarm_costs.append(float(res.cost.min()))
         # refined with the tracker's objective, as one batch
         starts = scene.clamp(torch.cat(picks).to(dev, dt))
         n = len(starts)
@@ -343,7 +343,7 @@ class Initializer:
         k = int(torch.argmin(final[:n]))
         if final[k] > final[n:].min() + REFINE_SLACK:
             k = n + int(torch.argmin(final[n:]))
-        return InitResult(cands[k], float(final[k]), search_cost, time.perf_counter() - t0)
+        return InitResult(cands[k], float(final[k]), min(swarm_costs), time.perf_counter() - t0)
 
 
 def keypoint_pose(model, joints: np.ndarray, confidence: np.ndarray, camera: Camera, iterations: int = 15
