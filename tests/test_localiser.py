@@ -89,6 +89,27 @@ def test_network_shapes_and_onnx_agree(tmp_path):
         LocaliserNet.load(tmp_path / "bad.pt")
 
 
+def test_widening_keeps_the_outputs_and_trains_the_new_channels():
+    torch.manual_seed(0)
+    small = LocaliserNet(LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8)))
+    with torch.no_grad():  # running statistics of its own, as a trained network has
+        small.train()(torch.rand(4, 1, 64, 64) * 800 + 300, torch.full((4,), 500.0))
+    small.eval()
+    wide = LocaliserNet(LocaliserConfig(channels=(8, 16, 24), decoder=(20, 16))).widen_from(small).eval()
+    x, ref = torch.rand(2, 1, 64, 96) * 1000, torch.tensor([500.0, 700.0])
+    with torch.no_grad():
+        for a, b in zip(small(x, ref), wide(x, ref)):
+            torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-5)
+    # the head reads the new channels once trained: their weights receive gradients
+    out = wide.train()(x, ref)
+    sum(o.square().mean() for o in out).backward()
+    assert wide.head.weight.grad[:, 8:].abs().sum() > 0
+    for bad in (LocaliserConfig(channels=(4, 12, 16), decoder=(12, 8)),
+                LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8), dilations=(1, 2))):
+        with pytest.raises(ValueError, match="cannot widen"):
+            LocaliserNet(bad).widen_from(small)
+
+
 def test_keypoint_pose_recovers_a_curled_hand():
     import torchhand as th
     from torchhand.model.joints21 import standard_joints
@@ -318,3 +339,16 @@ def test_training_joins_extra_renders_each_cached_under_its_own_key(tmp_path):
         task.check_config(LocaliserTrainConfig(extra_train_data=[{"lr": 1.0}]))
     with pytest.raises(ValueError, match="overlap"):
         task.check_config(LocaliserTrainConfig(extra_train_data=[{"train_sequences": ["03"]}]))
+
+
+def test_training_starts_a_wider_network_from_a_narrower_ones_weights(tmp_path):
+    from train.hand_localiser import LocaliserTask, LocaliserTrainConfig
+
+    small = LocaliserNet(LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8))).eval()
+    task = LocaliserTask(LocaliserTrainConfig(network={"channels": [8, 12, 24], "decoder": [16, 8]}))
+    wide = task.build_net()
+    task.start_from(wide, small, "small.pt")
+    assert torch.equal(wide.head.bias, small.head.bias) and torch.equal(wide.head.weight, small.head.weight)
+    wider = LocaliserNet(LocaliserConfig(channels=(8, 12, 32), decoder=(12, 8)))
+    with pytest.raises(SystemExit, match="wide.pt: cannot widen"):
+        task.start_from(task.build_net(), wider, "wide.pt")

@@ -313,6 +313,18 @@ class LocaliserTask(Task):
     def build_net(self) -> LocaliserNet:
         return LocaliserNet(LocaliserConfig(**self.cfg.network))
 
+    def start_from(self, net: LocaliserNet, start: LocaliserNet, path: str) -> None:
+        """The same network, or a narrower one widened (:meth:`LocaliserNet.widen_from`)."""
+        if start.config == net.config:
+            net.load_state_dict(start.state_dict())
+            return
+        try:
+            net.widen_from(start)
+        except ValueError as e:
+            raise SystemExit(f"{path}: {e}") from None
+        print(f"{path}: widened from {start.config.channels}/{start.config.decoder} to "
+              f"{net.config.channels}/{net.config.decoder}")
+
     def datasets(self, hia_root: Path, cache: Path) -> tuple:
         cfg = self.cfg
         train = [_rendered(cfg, "train", hia_root, cache)]

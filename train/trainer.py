@@ -112,6 +112,13 @@ class Task:
         of ``done.json`` after ``steps``."""
         raise NotImplementedError
 
+    def start_from(self, net: torch.nn.Module, start: torch.nn.Module, path: str) -> None:
+        """Put the weights of ``start`` (read from ``init_weights``, ``path``) into the
+        fresh ``net``; by default the two must be the same network."""
+        if start.config != net.config:
+            raise SystemExit(f"{path}: network {start.config} differs from the config's {net.config}")
+        net.load_state_dict(start.state_dict())
+
     def describe_data(self, train, val) -> str:
         """One line on the datasets, e.g. ``frames: 1060 train, 210 val``."""
         return ""
@@ -197,10 +204,7 @@ def _start(task: Task, out: Path, resume: bool, rank: int, size: int) -> tuple:
     g = torch.Generator().manual_seed(cfg.seed)
     net = task.build_net()
     if cfg.init_weights:
-        start = type(net).load(cfg.init_weights)
-        if start.config != net.config:
-            raise SystemExit(f"{cfg.init_weights}: network {start.config} differs from the config's {net.config}")
-        net.load_state_dict(start.state_dict())
+        task.start_from(net, type(net).load(cfg.init_weights), cfg.init_weights)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.1)
     step = 0

@@ -32,7 +32,7 @@ default (:meth:`HandLocaliser.load`).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import List, NamedTuple, Optional
 
@@ -160,6 +160,39 @@ class LocaliserNet(nn.Module):
         out = self.head(u1)
         C, J = len(CLASSES), self.JOINTS
         return LocaliserOutput(out[:, :C], out[:, C:C + J], out[:, C + J:C + 3 * J], out[:, C + 3 * J:])
+
+    def widen_from(self, narrower: "LocaliserNet") -> "LocaliserNet":
+        """Take the weights of a network of the same design with fewer channels, so that
+        this one computes the same outputs (its extra channels start with random weights
+        of their own and zero weights into the channels the narrower network has, the
+        head's too): training goes on from the narrower network's state with more
+        capacity. Returns self."""
+        a, b = narrower.config, self.config
+        widths = list(zip(a.channels + a.decoder, b.channels + b.decoder))
+        if replace(a, channels=b.channels, decoder=b.decoder) != b or any(n < o for o, n in widths):
+            raise ValueError(f"cannot widen a localiser of {a} to {b}: only the widths may differ, and only grow")
+        (o1, o2, o3), (od2, od1) = a.channels, a.decoder
+        n3, nd2 = b.channels[2], b.decoder[0]
+        r = lambda n: list(range(n))  # noqa: E731
+        plan = [(self.enc1[0], narrower.enc1[0], r(2)), (self.enc1[1], narrower.enc1[1], r(o1)),
+                (self.enc2[0], narrower.enc2[0], r(o1)), (self.enc2[1], narrower.enc2[1], r(o2)),
+                (self.enc3[0], narrower.enc3[0], r(o2)),
+                *[(x, y, r(o3)) for x, y in zip(self.enc3[1:], narrower.enc3[1:])],
+                # the decoders' inputs are concatenations: (upsampled deeper level, skip)
+                (self.dec2, narrower.dec2, r(o3) + [n3 + i for i in range(o2)]),
+                (self.dec1, narrower.dec1, r(od2) + [nd2 + i for i in range(o1)])]
+        with torch.no_grad():
+            for new, old, cols in plan:
+                k = old[0].out_channels
+                new[0].weight[:k] = 0.0
+                new[0].weight[:k, cols] = old[0].weight
+                for name in ("weight", "bias", "running_mean", "running_var"):
+                    getattr(new[1], name)[:k] = getattr(old[1], name)
+                new[1].num_batches_tracked.copy_(old[1].num_batches_tracked)
+            self.head.weight.zero_()
+            self.head.weight[:, :od1] = narrower.head.weight
+            self.head.bias.copy_(narrower.head.bias)
+        return self
 
     def save(self, path) -> Path:
         """Write ``{"format", "config", "state_dict"}`` (:func:`~torchhand.salient.weights.save_weights`)."""
