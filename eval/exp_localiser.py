@@ -28,6 +28,11 @@ seeds, its speed, and the real SR305 frames.
 4. **SR305** (``--sr305``): the 19 real frames through ``segment_hands`` (auto); the
    figure shows each frame's classes (green hand, blue arm/body) and joints. The fit
    of those frames is measured by ``eval/exp_real.py``.
+5. **Seen against unseen** (``--seen CACHE/train.npz``): section 1's measures on the
+   first ``--seen-frames`` frames the network was trained on and on as many new renders
+   of the training noise family (Kinect; seed 777, the held-out motions): equal figures
+   mean the network underfits (more capacity or steps help), far better seen figures
+   that it overfits (more renders help).
 """
 
 from __future__ import annotations
@@ -50,6 +55,8 @@ sys.path.insert(0, str(REPO))  # train.hand_localiser's motions, run from any fo
 HIA = REPO.parent / "shared" / "data" / "hands_in_action"
 TEST_SEED = 9001
 HELD_OUT = ["03", "10", "20"]
+#: Seed of section 5's unseen frames (Kinect noise, as in training).
+UNSEEN_SEED = 777
 #: A hand with fewer measured pixels than this (occluded, out of the image) is not in view.
 IN_VIEW_PX = 500
 
@@ -60,12 +67,15 @@ def _motions() -> dict:
     return thesis_articulations(HIA, HELD_OUT) if HIA.is_dir() else {}
 
 
-def test_set(loc: HandLocaliser, n: int) -> dict:
-    """Section 1 of the module docstring."""
+def test_set(loc: HandLocaliser, n: int, frames=None, blobs: bool = True) -> dict:
+    """Section 1 of the module docstring (``frames``: these instead of the test set's
+    renders; ``blobs=False`` leaves out the blob rules)."""
     from torchhand.geometry.camera import Camera
     from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 
-    fr = render_context_frames(n, TEST_SEED, ContextConfig(noise="stereo"), _motions(), name="test")
+    fr = frames if frames is not None else render_context_frames(n, TEST_SEED, ContextConfig(noise="stereo"),
+                                                                 _motions(), name="test")
+    n = len(fr.depth)
     ious, blob_ious, single_ious, e2, e3, conf, right, found, total = [], [], [], [], [], [], 0, 0, 0
     in_view, found_in_view = 0, 0
     for f in range(n):
@@ -78,6 +88,7 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
         hands = np.isfinite(fr.joints_z[f]).all(1)
         if hands.sum() == 1:
             single_ious.append(ious[-1])
+        if hands.sum() == 1 and blobs:
             K = fr.K[f]
             cam = Camera.from_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480)
             try:
@@ -114,6 +125,21 @@ def test_set(loc: HandLocaliser, n: int) -> dict:
             "handedness_accuracy": right / max(found, 1), "hands_found": found / max(total, 1),
             "hands_in_view": in_view, "hands_found_in_view": found_in_view / max(in_view, 1),
             "confidence_error_correlation": float(np.corrcoef(np.concatenate(conf), e2)[0, 1])}
+
+
+def seen_and_unseen(loc: HandLocaliser, cache: Path, n: int) -> dict:
+    """Section 5 of the module docstring."""
+    from torchhand.salient.localiser_data import LocaliserFrames, load_localiser_frames
+
+    seen = load_localiser_frames(cache)
+    seen = LocaliserFrames(*(x[:n] for x in seen))
+    unseen = render_context_frames(n, UNSEEN_SEED, ContextConfig(noise="kinect"), _motions(), name="unseen")
+    keys = ("hand_iou_mean", "keypoints_2d_median_px", "handedness_accuracy", "hands_found_in_view")
+    out = {"frames": n, "training_frames": str(cache)}
+    for name, fr in (("seen", seen), ("unseen", unseen)):
+        res = test_set(loc, n, fr, blobs=False)
+        out[name] = {k: res[k] for k in keys}
+    return out
 
 
 def initialisation(n: int, compare_blobs: bool) -> dict:
@@ -256,11 +282,16 @@ def main() -> None:
     ap.add_argument("--figure", type=Path, help="the SR305 frames' classes and joints, one PNG")
     ap.add_argument("--weights", type=Path, help="an .onnx localiser (default: the shipped one)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--seen", type=Path, help="a training cache's train.npz: section 5 on its first --seen-frames")
+    ap.add_argument("--seen-frames", type=int, default=160)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     loc = HandLocaliser.load(args.weights, threads=args.threads)
     out = {"test_set": test_set(loc, args.frames)}
     print(json.dumps(out["test_set"], indent=2), flush=True)
+    if args.seen is not None:
+        out["seen_and_unseen"] = seen_and_unseen(loc, args.seen, args.seen_frames)
+        print(out["seen_and_unseen"], flush=True)
     if args.sr305.is_dir():
         out["sr305"] = sr305(loc, args.sr305, args.figure)
         print({k: v for k, v in out["sr305"].items() if k != "per_frame"}, flush=True)
