@@ -98,7 +98,7 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2 or depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth must have shape ({camera.height}, {camera.width}), got {depth.shape}")
-    d = np.where(np.isfinite(depth) & (depth >= config.near) & (depth <= config.far), depth, 0).astype(np.float32)
+    d = _within(depth, config.near, config.far)
     if mask is not None:
         if mask.shape != d.shape:
             raise ValueError(f"mask must have shape {d.shape}, got {mask.shape}")
@@ -154,8 +154,20 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     return DepthFrame(full_depth, torch.as_tensor(valid_full, device=device), points, normals,
                       torch.as_tensor(rc + [r0, c0], dtype=torch.int64, device=device).reshape(-1, 2),
                       torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device),
-                      torch.as_tensor(np.where(np.isfinite(depth) & (depth > 0), depth, 0), device=device),
+                      torch.as_tensor(_within(depth, _TINY, _HUGE), device=device),
                       torch.as_tensor(covered, device=device))
+
+
+#: The smallest and largest finite positive float32: ``_within(d, _TINY, _HUGE)`` keeps
+#: the finite positive depths.
+_TINY, _HUGE = float(np.nextafter(np.float32(0), np.float32(1))), float(np.finfo(np.float32).max)
+
+
+def _within(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(H, W) float32 ``depth`` where it lies in [lo, hi], else 0 (NaN and infinities
+    too): OpenCV's range test and masked copy, several times faster than numpy's on a
+    whole frame."""
+    return cv2.bitwise_and(depth, depth, mask=cv2.inRange(depth, float(lo), float(hi)))
 
 
 def _margin(config: PreprocessConfig) -> int:
