@@ -47,6 +47,7 @@ defaults suit hands 0.3-1.5 m from a depth camera and are documented in docs/rea
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
+from functools import lru_cache
 from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import cv2
@@ -249,8 +250,16 @@ def _column(p: np.ndarray, camera: Camera) -> float:
     return float(camera.fx * p[0] / max(p[2], 1e-6) + camera.cx)
 
 
+@lru_cache(maxsize=4)
+def _pixel_grid(h: int, w: int) -> tuple:
+    """(v, u) float32 pixel coordinates of an h x w image (read-only, made once)."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    v.flags.writeable = u.flags.writeable = False
+    return v, u
+
+
 def _points(d: np.ndarray, camera: Camera) -> np.ndarray:
-    v, u = np.mgrid[0 : d.shape[0], 0 : d.shape[1]].astype(np.float32)
+    v, u = _pixel_grid(*d.shape)
     return np.stack([(u - camera.cx) * d / camera.fx, (v - camera.cy) * d / camera.fy, d], -1)
 
 
@@ -423,7 +432,13 @@ def _forearm_direction(blob: np.ndarray, cut: np.ndarray, labels: np.ndarray, d:
     palm's, so a torso behind the hand is no forearm)."""
     arm = cut & (d > 0)
     if arm.sum() < min_pixels:
-        ring = cv2.dilate(blob.astype(np.uint8), np.ones((31, 31), np.uint8)).astype(bool) & ~blob
+        rows, cols = np.flatnonzero(blob.any(1)), np.flatnonzero(blob.any(0))
+        H, W = blob.shape  # the blob's box widened by the ring's 15 px: the same ring, a smaller image
+        r0, r1 = max(int(rows[0]) - 15, 0), min(int(rows[-1]) + 16, H)
+        c0, c1 = max(int(cols[0]) - 15, 0), min(int(cols[-1]) + 16, W)
+        ring = np.zeros_like(blob)
+        ring[r0:r1, c0:c1] = cv2.dilate(blob[r0:r1, c0:c1].astype(np.uint8), np.ones((31, 31), np.uint8)).astype(bool)
+        ring &= ~blob
         arm = ring & (labels == 3) & (d > 0) & (np.abs(d - palm[2]) < 80.0)
     if arm.sum() < min_pixels:
         return np.zeros(3)
