@@ -9,6 +9,10 @@ synth``'s single view) and by a ring of ``--views`` depth cameras around the sce
 the world frame and the ground truth). Each is tracked from the true first pose with the
 CLI's default tracker settings (every view's depth in the energy for the rig) and
 scored against the truth: mean and worst-frame joint error (mm), and camera 0's px.
+The rig's views are cut to the hands (``TrackerConfig.crop_views``) and its depth terms
+pair two views' worth of model vertices and pixels spread over them
+(``TrackerConfig.rig_budget``), the defaults; ``--whole-views`` tracks it once more with
+every view whole (its whole image and every term's whole caps; ``whole_views_*`` keys).
 ``time_ratio`` is the rig's seconds per frame after frame 0 over camera 0's, measured
 side by side in one run; ``mm_ratio`` its mean error over camera 0's (at most 1 and at
 most 2 are the targets).
@@ -46,6 +50,9 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--whole-views", action="store_true",
+                    help="also track the rig with every view whole (its whole image, every term's whole caps), "
+                         "side by side")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     cfg = TrackerConfig()
@@ -66,6 +73,11 @@ def main(argv=None) -> None:
             a, b = row["camera_0"], row[f"rig_{args.views}"]
             row["time_ratio"] = b["seconds_per_frame_after_first"] / a["seconds_per_frame_after_first"]
             row["mm_ratio"] = b["mean_mm"] / a["mean_mm"]
+            if args.whole_views:  # the rig again with whole images, side by side
+                c = row[f"rig_{args.views}_whole_views"] = scored_run(rig, tmp / "out_whole",
+                                                                      replace(cfg, crop_views=False, rig_budget=None))
+                row["whole_views_time_ratio"] = c["seconds_per_frame_after_first"] / a["seconds_per_frame_after_first"]
+                row["whole_views_mm_ratio"] = c["mean_mm"] / a["mean_mm"]
             result["sequences"][spec] = row
             print(f"{spec}: camera 0 {a['mean_mm']:.2f} mm, {1000 * a['seconds_per_frame_after_first']:.0f} ms; "
                   f"{args.views} views {b['mean_mm']:.2f} mm, {1000 * b['seconds_per_frame_after_first']:.0f} ms",

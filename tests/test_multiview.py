@@ -57,6 +57,45 @@ def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
     assert torch.equal(single.theta, rig.theta) and torch.equal(single.energy, rig.energy)
 
 
+def test_a_rigs_views_are_cut_to_their_hands_with_the_same_geometry(ring):
+    from torchhand.tracking.views import crop_views
+
+    scene, cams, gt, _, depth, _ = ring
+    tracker = Tracker(scene, TrackerConfig())
+    with torch.no_grad():
+        posed = scene(gt[:1])
+    views, rigs = crop_views([depth[0][:4]], [tuple(cams[:4])], posed.vertices, tracker.renderer, 8)
+    (h, w), (H, W) = views[0][0].shape, depth[0][0].shape
+    assert h * w < 0.6 * H * W and all(c.width == w and c.height == h for c in rigs[0])
+    for d, full, cam, crop in zip(views[0], depth[0][:4], cams[:4], rigs[0]):
+        dc, dr = float(cam.cx - crop.cx), float(cam.cy - crop.cy)  # the crop's origin in the image
+        assert dc == int(dc) and dr == int(dr) and np.array_equal(d, full[int(dr):int(dr) + h, int(dc):int(dc) + w])
+        uv, uv_crop = cam.project(posed.keypoints), crop.project(posed.keypoints)
+        torch.testing.assert_close(uv_crop + torch.tensor([dc, dr], dtype=uv.dtype), uv)
+        assert d[d > 0].size and (d > 0).sum() == (full > 0).sum()  # every hand pixel kept
+    # a pose before the cameras leaves the views whole
+    far = _shifted(scene, gt[:1], [0.0, 0.0, -2000.0])
+    with torch.no_grad():
+        same = crop_views([depth[0][:4]], [tuple(cams[:4])], scene(far).vertices, tracker.renderer, 8)
+    assert same[0][0][0] is depth[0][0] and same[1][0][0] is cams[0]
+
+
+def test_a_rig_tracked_on_cut_views_and_a_shared_budget_lands_where_whole_views_do(ring):
+    scene, cams, gt, _, depth, _ = ring
+    start = _shifted(scene, gt[:1], [4.0, -3.0, 5.0])
+    cfg = TrackerConfig(max_iterations=4, first_frame_iterations=4, rig_budget=None)
+    runs = {}
+    for name, c in (("whole", replace(cfg, crop_views=False)), ("cut", cfg), ("budget", replace(cfg, rig_budget=2.0))):
+        runs[name] = Tracker(scene, c).track_frame([depth[0][:4]], [cams[:4]], start, first=True)
+    assert _keypoint_error(scene, runs["cut"].theta, runs["whole"].theta) < 0.05
+    assert _keypoint_error(scene, runs["budget"].theta, gt[:1]) < _keypoint_error(scene, start, gt[:1]) / 4
+    # four views on a budget of two: about half the pairs of the whole caps
+    assert 0.3 < int(runs["budget"].correspondences[0]) / int(runs["cut"].correspondences[0]) < 0.7
+    assert Tracker(scene, TrackerConfig()).frame_states.share(8) == 0.25
+    with pytest.raises(ValueError, match="rig_budget"):
+        TrackerConfig(rig_budget=0.0)
+
+
 @pytest.mark.slow
 def test_depth_views_of_a_rig_are_tracked_together(ring):
     scene, cams, gt, _, depth, _ = ring

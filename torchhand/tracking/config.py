@@ -58,6 +58,14 @@ class TrackerConfig:
             the fused Warp kernels and solve the normal equations they accumulate
             (:mod:`~torchhand.tracking.fused`; float32 and one view per problem, else the
             torch objective); False: the torch objective, the reference.
+        crop_views: each view of a camera rig is cut to the box of its hands (the start
+            pose's projection widened by ``render_margin`` and ``views.CROP_MARGIN`` px;
+            depth views without colour, and no term reading whole frames): the same
+            geometry, a fraction of the pixels. False: whole images.
+        rig_budget: a camera rig's depth terms pair at most this many single views'
+            worth of model vertices and data pixels, spread evenly over its views (each
+            view takes ``rig_budget / V`` of every term's cap; more views see the hand
+            from more sides, not in more detail); None: every view its whole caps.
         threads: torch intra-op threads of the frame loop (reading a frame, preprocessing,
             solving, the ``revise`` callback; at most torch's own count): 1, because the
             loop's many small operations gain nothing from more and lose much on a busy
@@ -93,11 +101,16 @@ class TrackerConfig:
     swarm_spread: Tuple[float, float, float] = (5.0, 0.05, 0.1)
     limit_slack: Optional[float] = 0.0
     fused: bool = False
+    crop_views: bool = True
+    rig_budget: Optional[float] = 2.0
     threads: Optional[int] = 1
 
     def __post_init__(self) -> None:
         if not isinstance(self.fused, bool):
             raise ValueError(f"fused must be True or False, got {self.fused!r}")
+        if not isinstance(self.crop_views, bool):
+            raise ValueError(f"crop_views must be True or False, got {self.crop_views!r}")
+        check_number(self.rig_budget, "rig_budget", low=0, unit="views", none=True)
         check_number(self.prediction, "prediction", low=0, inclusive=True, none=True)
         if not isinstance(self.prediction_limiter, bool):
             raise ValueError(f"prediction_limiter must be True or False, got {self.prediction_limiter!r}")

@@ -36,7 +36,8 @@ from torchhand.tracking.preprocess import ColourFrame, DepthFrame, EmptyFrameErr
 from torchhand.tracking.recovery import recover
 from torchhand.tracking.solve import Algorithm1, SolveResult, box_rows
 from torchhand.tracking.swarm import Swarm
-from torchhand.tracking.views import ColourHistory, FrameStates, StateBuilder, per_view, rigs_of
+from torchhand.tracking.views import (CROP_MARGIN, ColourHistory, FrameStates, StateBuilder, crop_views, per_view,
+                                      rigs_of)
 
 __all__ = ["TrackerConfig", "FrameResult", "SolveResult", "Tracker", "predicted_start", "SOLVER_TYPES"]
 
@@ -110,7 +111,8 @@ class Tracker:
         caster = RayCaster(scene.faces, config.render_backend, cull_back_faces=cull)
         self.renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id, caster=caster)
         self.frame_states = StateBuilder(scene, self.renderer, config.labels, config.label_distance,
-                                         config.label_radius, config.neighbor_backend, config.render_margin)
+                                         config.label_radius, config.neighbor_backend, config.render_margin,
+                                         config.rig_budget)
         self.solver = SOLVER_TYPES[config.solver]()
         # the solvers' box: the joint limits widened by limit_slack (the limits themselves
         # are the soft ones of E_anatomy, Eq. 4.17), and per sequence grown to hold its
@@ -246,6 +248,12 @@ class Tracker:
                 raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
         lower, upper = self._bounds_of(B)
         init = previous if start is None else self.clamp(start, (lower, upper))
+        if (V > 1 and cfg.crop_views and depth_views is not None and colour_views is None
+                and not any(t.whole_frames for t in self.terms)):
+            with torch.no_grad():
+                vertices = self.scene(init, validate=False).vertices
+            depth_views, rigs = crop_views(depth_views, rigs, vertices, self.renderer,
+                                           cfg.render_margin + CROP_MARGIN)
         frames, cols, ok, notes = self._preprocess(depth_views, colour_views, rigs, previous)
         theta = previous.clone()
         valid = torch.zeros(B, dtype=torch.bool)

@@ -9,6 +9,7 @@ b at row b V + v), the others on the B problems.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import torch
@@ -22,7 +23,8 @@ from torchhand.tracking.energies import TrackState
 from torchhand.tracking.labels import label_by_proximity, label_data
 from torchhand.tracking.preprocess import ColourConfig, ColourFrame, ColourView, preprocess_colour
 
-__all__ = ["FrameStates", "StateBuilder", "ColourHistory", "same_camera", "rigs_of", "per_view"]
+__all__ = ["FrameStates", "StateBuilder", "ColourHistory", "same_camera", "rigs_of", "per_view", "crop_views",
+           "CROP_MARGIN"]
 
 
 def same_camera(a: Camera, b: Camera) -> bool:
@@ -50,13 +52,20 @@ class StateBuilder:
         neighbor_backend: of the proximity labelling.
         render_margin: px around the projections of a solve's start poses that its
             renders cover.
+        rig_budget: views' worth of correspondences a camera rig's image terms take,
+            spread evenly over its views (``TrackState.share``); None: each view all.
     """
 
     def __init__(self, scene: Scene, renderer: Renderer, labels: str, label_distance: float, label_radius: float,
-                 neighbor_backend: str, render_margin: int):
+                 neighbor_backend: str, render_margin: int, rig_budget: Optional[float] = None):
         self.scene, self.renderer = scene, renderer
         self.labels, self.label_distance, self.label_radius = labels, label_distance, label_radius
         self.neighbor_backend, self.render_margin = neighbor_backend, int(render_margin)
+        self.rig_budget = rig_budget
+
+    def share(self, views: int) -> float:
+        """``TrackState.share`` of the view problems of a rig of ``views`` views."""
+        return 1.0 if self.rig_budget is None else min(1.0, self.rig_budget / views)
 
     def box(self, vertices: torch.Tensor, cameras: Sequence[Camera], shared: bool) -> tuple:
         """The pixel box (r0, r1, c0, c1) a solve renders in: the projections of its start
@@ -126,7 +135,7 @@ class StateBuilder:
             with stage("labels", work=lambda: _label_work(frames, posed_v.vertices)):
                 labels = self.label(frames, cameras, posed_v, rend)
         view = TrackState(self.scene, th_v, prev_v, posed_v, frames, cameras, rend, labels, problems=problems,
-                          frame_data=frame_data, box=box, colours=colours)
+                          frame_data=frame_data, box=box, colours=colours, share=self.share(V))
         first = slice(0, None, V)  # each problem seen by its first view
         pose = TrackState(self.scene, theta, previous, posed, frames[first], cameras[first],
                           rend.maps(lambda x: x[first]), labels[first],
@@ -176,6 +185,45 @@ class ColourHistory:
                                   dtype=like.dtype, salient=view.salient, previous_ignore=prev_ignore)
         self._last[key] = (frame.gray, view.ignore)
         return frame
+
+
+#: px that a cropped view keeps beyond a solve's render box (``render_margin``): the
+#: reach of the data the terms pair with the models' pixels (free space's 40 px radius;
+#: the labels' 30 mm, about 40 px at 400 mm).
+CROP_MARGIN = 48
+
+
+def crop_views(depth_views: List[Optional[list]], rigs: List[tuple], vertices: torch.Tensor, renderer,
+               margin: int) -> tuple:
+    """Each view of each rig cut to its hands: the box of the projected start pose's
+    ``vertices`` (B, N, 3) widened by ``margin`` px, one size for every view (the
+    largest box) and kept inside the image; its camera's principal point moved with it,
+    so the geometry is the same. Returns (depth views, rigs) as given when no view would
+    be smaller than 80 % of its image (a model out of view or before a camera)."""
+    B, V = len(rigs), len(rigs[0])
+    cams = [c for rig in rigs for c in rig]
+    H, W = cams[0].height, cams[0].width
+    b = renderer.pixel_boxes(vertices.detach().repeat_interleave(V, 0), cams, per_problem=True).cpu().long()
+    r0, r1 = (b[:, 0] - margin).clamp(0, H), (b[:, 1] + margin).clamp(0, H)
+    c0, c1 = (b[:, 2] - margin).clamp(0, W), (b[:, 3] + margin).clamp(0, W)
+    h, w = int((r1 - r0).max()), int((c1 - c0).max())
+    if h * w >= 0.8 * H * W:
+        return depth_views, rigs
+    r0, c0 = torch.minimum(r0, torch.tensor(H - h)).tolist(), torch.minimum(c0, torch.tensor(W - w)).tolist()
+    out_views, out_rigs = [], []
+    for p, rig in enumerate(rigs):
+        crops = []
+        for v, cam in enumerate(rig):
+            i = p * V + v
+            K = cam.K.clone()
+            K[0, 2] -= c0[i]
+            K[1, 2] -= r0[i]
+            crops.append(dataclasses.replace(cam, K=K, width=w, height=h))
+        out_rigs.append(tuple(crops))
+        views = depth_views[p]
+        at = [(r0[p * V + v], c0[p * V + v]) for v in range(V)]
+        out_views.append(None if views is None else [d[r:r + h, c:c + w] for (r, c), d in zip(at, views)])
+    return out_views, out_rigs
 
 
 def rigs_of(cameras: Sequence, B: int) -> tuple:

@@ -45,7 +45,7 @@ from torchhand.model.kinematics import skew
 from torchhand.model.scene import Scene, SceneOutput
 from torchhand.tracking.preprocess import DepthFrame
 
-__all__ = ["Residuals", "Counts", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm",
+__all__ = ["Residuals", "Counts", "Prepared", "TrackState", "EnergyTerm", "VertexRayTerm", "VertexPixelTerm", "capped",
            "ModelRows", "RayRows", "PixelRows", "PixelPairs", "Setup", "begin", "pixel_rows", "project_views",
            "scatter_columns", "no_residuals", "bone_inliers", "counts", "stack_rows", "stride_subsample",
            "seen_vertices"]
@@ -147,7 +147,9 @@ class TrackState:
     entry at the first iteration, when every problem of the solve is present; box: the
     pixel box (r0, r1, c0, c1) the renders of the solve cover (None: the whole image);
     colours: one preprocessed colour frame per problem (``ColourFrame``), or None for
-    depth-only data.
+    depth-only data; share: the part of its caps (the most model vertices, data or
+    free-space pixels it pairs per problem) that a term takes on each problem, below 1
+    for the views of a camera rig (``TrackerConfig.rig_budget``; :func:`capped`).
 
     With several views per problem (a camera rig), the tracker gives the terms that read
     images (``EnergyTerm.needs``) a state of B x V *view problems*, problem-major (view v
@@ -169,6 +171,7 @@ class TrackState:
     frame_data: Dict = field(default_factory=dict, repr=False)
     box: Optional[tuple] = None
     colours: Optional[List] = None
+    share: float = 1.0
     _visible: Optional[torch.Tensor] = field(default=None, repr=False)
 
     def visible_vertices(self) -> torch.Tensor:
@@ -210,13 +213,16 @@ class EnergyTerm:
     of a camera rig (``TrackState``). ``detections``: ``"salient"`` for a term that
     reads each colour view's salient point detections (``ColourFrame.salient``: the
     nails), which the runner provides (a camera's ``salient.json``, or the shipped
-    nail detector); None otherwise.
+    nail detector); None otherwise. ``whole_frames``: the term reads more of a view
+    than the pixels near the models (it runs a detector on the whole frame), so the
+    tracker does not crop a rig's views to the hands for it.
     """
 
     name: str = "term"
     prior: bool = False
     needs: Optional[str] = None
     detections: Optional[str] = None
+    whole_frames: bool = False
 
     def prepare(self, state: TrackState) -> Prepared:  # pragma: no cover - interface
         """The term's data at ``state``'s pose: correspondences, their counts."""
@@ -486,6 +492,11 @@ def bone_inliers(d: torch.Tensor, bone: torch.Tensor, keep: torch.Tensor, num_bo
     mean = torch.zeros_like(n).index_add_(0, key, dd * w) / n
     std = (torch.zeros_like(n).index_add_(0, key, (dd - mean[key]) ** 2 * w) / n).sqrt()
     return (dd <= mean[key] + sigma * std[key] + 1e-6).view(d.shape)
+
+
+def capped(count: int, share: float) -> int:
+    """A term's cap ``count`` on a problem of ``TrackState.share`` (at least 1)."""
+    return max(1, int(round(count * share)))
 
 
 def stride_subsample(mask: torch.Tensor, count: int) -> tuple:

@@ -27,7 +27,7 @@ from torchhand.geometry.neighbors import marked_boxes, nearest_marked_pixel
 from torchhand.geometry.render import window_map
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (ModelRows, RayRows, TrackState, VertexRayTerm, begin, bone_inliers,
-                                              counts, seen_vertices)
+                                              capped, counts, seen_vertices)
 
 __all__ = ["DataToModel", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -94,7 +94,7 @@ class DataToModel(VertexRayTerm):
         ``max_pixels`` per model, evenly spaced), their points, Pluecker rays and search
         radii; built at the solve's first outer iteration (host work once per frame)."""
         dev, dt = state.theta.device, state.theta.dtype
-        B, K, M = len(state.frames), len(state.scene.models), self.max_pixels
+        B, K, M = len(state.frames), len(state.scene.models), capped(self.max_pixels, state.share)
         rc = torch.zeros(B, K, M, 2, dtype=torch.int64, device=dev)
         z = torch.zeros(B, K, M, dtype=dt, device=dev)
         valid = torch.zeros(B, K, M, dtype=torch.bool, device=dev)

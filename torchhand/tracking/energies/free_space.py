@@ -48,8 +48,8 @@ from torchhand.core.check import check_int, check_number
 from torchhand.geometry.neighbors import marked_pixel_transform
 from torchhand.geometry.render import window
 from torchhand.optim.robust_loss import Cauchy
-from torchhand.tracking.energies.base import (PixelPairs, PixelRows, TrackState, VertexPixelTerm, begin, counts,
-                                              seen_vertices, stride_subsample)
+from torchhand.tracking.energies.base import (PixelPairs, PixelRows, TrackState, VertexPixelTerm, begin, capped,
+                                              counts, seen_vertices, stride_subsample)
 
 __all__ = ["FreeSpace", "DEFAULT_WEIGHT", "DEFAULT_LOSS"]
 
@@ -119,7 +119,7 @@ class FreeSpace(VertexPixelTerm):
         rend = window(state.render, (r0, r0 + h, c0, c0 + w))  # the data side's box
         ids, z_model = rend.model_id, rend.depth
         free = (ids >= 0) & ((depth == 0) | (depth > z_model + self.margin))  # (B, h, w)
-        K, M = len(scene.models), self.max_pixels
+        K, M = len(scene.models), capped(self.max_pixels, state.share)
         # up to M free-space pixels of each model, evenly spaced
         flat, mid = free.reshape(B, -1), ids.reshape(B, -1)
         pos, slot = zip(*(stride_subsample(flat & (mid == k), M) for k in range(K)))

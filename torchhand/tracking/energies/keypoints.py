@@ -67,6 +67,7 @@ class Keypoints(EnergyTerm):
 
     name = "keypoints"
     needs = "depth"
+    whole_frames = True  # the localiser reads the whole frame
 
     def __init__(self, localiser=None, min_confidence: float = 0.3):
         self._localiser = localiser

@@ -25,8 +25,8 @@ import torch
 from torchhand.core.check import check_choice, check_int, check_number
 from torchhand.geometry.mesh import vertex_normals
 from torchhand.geometry.neighbors import PointIndex
-from torchhand.tracking.energies.base import (EnergyTerm, ModelRows, Residuals, TrackState, begin, bone_inliers, counts,
-                                              scatter_columns, stack_rows, stride_subsample)
+from torchhand.tracking.energies.base import (EnergyTerm, ModelRows, Residuals, TrackState, begin, bone_inliers, capped,
+                                              counts, scatter_columns, stack_rows, stride_subsample)
 
 __all__ = ["ModelToData", "SurfaceRows"]
 
@@ -112,7 +112,7 @@ class ModelToData(EnergyTerm):
         rows = []
         for k, (name, model) in enumerate(zip(scene.names, scene.models)):  # models: a handful, static
             vs = scene.vertex_slices[name]
-            local, slot = stride_subsample(visible[:, vs], self.max_vertices)  # (B, M)
+            local, slot = stride_subsample(visible[:, vs], capped(self.max_vertices, state.share))  # (B, M)
             ids = local + vs.start
             Vk = V[batch, ids]  # (B, M, 3)
             nV = vertex_normals(V, scene.faces, ids, scene.vertex_faces)

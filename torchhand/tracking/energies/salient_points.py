@@ -70,6 +70,7 @@ class Salient(EnergyTerm):
     """
 
     name = "salient"
+    whole_frames = True  # its detector reads the whole frame
     needs = "depth"
 
     def __init__(self, detector=None, lam: float = 1.2, min_score: float = 0.15, confidence_weighted: bool = False,

@@ -67,6 +67,7 @@ class Weighted(EnergyTerm):
         self.term, self.weight = term, float(weight)
         self.per_correspondence, self.min_weight = bool(per_correspondence), float(min_weight)
         self.name, self.needs, self.detections = term.name, term.needs, term.detections
+        self.whole_frames = term.whole_frames
         self.prior = term.prior or self.per_correspondence
 
     def prepare(self, state: TrackState) -> WeightedPrepared:
@@ -115,6 +116,7 @@ class Robust(EnergyTerm):
             raise TypeError(f"loss must be a torchhand.optim.robust_loss.RobustLoss, got {type(loss).__name__}")
         self.term, self.loss = term, loss
         self.name, self.prior, self.needs, self.detections = term.name, term.prior, term.needs, term.detections
+        self.whole_frames = term.whole_frames
 
     def prepare(self, state: TrackState) -> RobustPrepared:
         inner = self.term.prepare(state)
