@@ -142,8 +142,8 @@ def seen_and_unseen(loc: HandLocaliser, cache: Path, n: int) -> dict:
     return out
 
 
-def initialisation(n: int, compare_blobs: bool) -> dict:
-    """Section 2 of the module docstring."""
+def initialisation(n: int, compare_blobs: bool, loc: HandLocaliser) -> dict:
+    """Section 2 of the module docstring, with the localiser ``loc``."""
     from torchhand.geometry.camera import Camera
     from torchhand.model.joints21 import standard_joints
     from torchhand.model.scene import Scene
@@ -167,7 +167,7 @@ def initialisation(n: int, compare_blobs: bool) -> dict:
             t0 = time.perf_counter()
             try:
                 segment = SegmentConfig(mode=mode.split("_")[0], far=4000.0)
-                seg = segment_hands(depth, cam, segment, sides=("right",))
+                seg = segment_hands(depth, cam, segment, sides=("right",), localiser=loc)
                 if mode == "auto_true_joints" and seg.located:  # the search given the true joints
                     seg = seg._replace(located=(seg.located[0]._replace(
                         uv=fr.joints_uv[f, 1].astype(np.float32), z=fr.joints_z[f, 1].astype(np.float32),
@@ -299,7 +299,7 @@ def main() -> None:
     out["speed"] = speed(loc, frame.astype(np.float32))
     print(out["speed"], flush=True)
     if args.init_frames > 0:
-        out["initialisation"] = initialisation(args.init_frames, args.compare_blobs)
+        out["initialisation"] = initialisation(args.init_frames, args.compare_blobs, loc)
         print(out["initialisation"], flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=2))

@@ -225,18 +225,24 @@ def test_fit_check_flags_a_model_on_the_wrong_blob():
 
 
 @pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
-def test_shipped_localiser_finds_rendered_hands(frames):
+def test_shipped_localiser_finds_rendered_hands():
+    """16 renders of a seed no training run used: the hands in view (500 or more
+    measured pixels; the others are hidden or cut off) are found, their joints within
+    tens of px (their accuracy on the test set: docs/localiser.md)."""
+    frames = render_context_frames(16, seed=7, progress=False)
     loc = HandLocaliser.load()
-    found = total = 0
+    found, total, errors = 0, 0, []
     for f in range(len(frames.depth)):
         res = loc.locate(frames.depth[f].astype(np.float32))
-        for k, side in enumerate(("left", "right")):
-            if not np.isfinite(frames.joints_z[f, k]).all():
+        for k in range(2):
+            if not np.isfinite(frames.joints_z[f, k]).all() or (frames.labels[f] == 1 + k).sum() < 500:
                 continue
             total += 1
             d = [np.median(np.linalg.norm(h.uv - frames.joints_uv[f, k], axis=1)) for h in res.hands]
-            found += bool(d) and min(d) < 60  # the hand is found (its joints' accuracy: docs/localiser.md)
-    assert found >= 0.75 * total
+            if d and min(d) < 60:
+                found += 1
+                errors.append(min(d))
+    assert total >= 12 and found >= 0.8 * total and np.median(errors) < 25.0
 
 
 def test_localiser_refuses_depth_it_cannot_read():

@@ -338,11 +338,15 @@ class HandLocaliser:
             raise ValueError(f"depth looks like metres (median {float(np.median(valid)):.3g}): expected millimetres")
         H, W = d.shape
         labels = np.where(d > 0, self._frame_pass(d), 0).astype(np.uint8)
+        comps = self._components(labels)
+        windows = [self._window(d, comp, box) for comp, box in comps]
         hands = []
-        for comp, box in self._components(labels):
-            hand = self._crop_pass(d, comp, box, labels)
-            if hand is not None:
-                hands.append(hand)
+        if windows:  # every blob's window in one batch
+            outs = self._forward(np.stack([w[0] for w in windows])[:, None], np.array([w[1] for w in windows]))
+            for i, ((comp, _), (_, ref, side, r0, c0)) in enumerate(zip(comps, windows)):
+                hand = self._crop_pass(d, comp, labels, [o[i] for o in outs], ref, side, r0, c0)
+                if hand is not None:
+                    hands.append(hand)
         hands.sort(key=lambda h: -h.score * h.mask.sum() ** 0.25)
         return Localisation(labels, hands[: self.max_hands])
 
@@ -381,7 +385,9 @@ class HandLocaliser:
                                    int(stats[k, cv2.CC_STAT_HEIGHT]), int(stats[k, cv2.CC_STAT_WIDTH]))))
         return out
 
-    def _crop_pass(self, d: np.ndarray, comp: np.ndarray, box: tuple, frame_labels: np.ndarray) -> Optional[LocatedHand]:
+    def _window(self, d: np.ndarray, comp: np.ndarray, box: tuple) -> tuple:
+        """The crop pass's input for a blob of the frame pass: (the window resized to the
+        input size, its reference depth, its side and top-left pixel in the frame)."""
         H, W = d.shape
         S = self.config.input_size
         top, left, height, width = box
@@ -394,7 +400,14 @@ class HandLocaliser:
         x = _resize_nearest(crop, S, S)
         zs = d[comp & (d > 0)]
         ref = np.float32(np.median(zs) if len(zs) else np.median(x[x > 0]) if (x > 0).any() else 600.0)
-        classes, heat, offset, dz = (o[0] for o in self._forward(x[None, None], np.array([ref], np.float32)))
+        return x, ref, side, r0, c0
+
+    def _crop_pass(self, d: np.ndarray, comp: np.ndarray, frame_labels: np.ndarray, out: list, ref: np.float32,
+                   side: int, r0: int, c0: int) -> Optional[LocatedHand]:
+        """The hand of a blob from the network's outputs ``out`` on its window."""
+        H, W = d.shape
+        sr, sc = slice(max(r0, 0), min(r0 + side, H)), slice(max(c0, 0), min(c0 + side, W))
+        classes, heat, offset, dz = out
         p = _softmax(classes)
         p_full = np.stack([cv2.resize(c, (side, side), interpolation=cv2.INTER_LINEAR) for c in p])
         win = p_full[:, sr.start - r0:sr.stop - r0, sc.start - c0:sc.stop - c0]
