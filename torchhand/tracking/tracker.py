@@ -248,19 +248,12 @@ class Tracker:
                 raise ValueError(f"start must have one row per problem ({B}), got shape {tuple(start.shape)}")
         lower, upper = self._bounds_of(B)
         init = previous if start is None else self.clamp(start, (lower, upper))
-        if (V > 1 and cfg.crop_views and depth_views is not None and colour_views is None
-                and not any(t.whole_frames for t in self.terms)):
-            with torch.no_grad():
-                vertices = self.scene(init, validate=False).vertices
-            depth_views, rigs = crop_views(depth_views, rigs, vertices, self.renderer,
-                                           cfg.render_margin + CROP_MARGIN)
+        depth_views, rigs = self._cut_views(depth_views, colour_views, rigs, init)
         frames, cols, ok, notes = self._preprocess(depth_views, colour_views, rigs, previous)
         theta = previous.clone()
-        valid = torch.zeros(B, dtype=torch.bool)
-        iters = torch.zeros(B, dtype=torch.int64)
+        valid, recovered = torch.zeros(B, dtype=torch.bool), torch.zeros(B, dtype=torch.bool)
+        iters, counts = torch.zeros(B, dtype=torch.int64), torch.zeros(B, dtype=torch.int64)
         energy = previous.new_full((B,), float("nan"))
-        recovered = torch.zeros(B, dtype=torch.bool)
-        counts = torch.zeros(B, dtype=torch.int64)
         if ok:
             idx = torch.tensor(ok)
             cams = [rigs[b][v] for b in ok for v in range(V)]
@@ -290,6 +283,18 @@ class Tracker:
                     notes[b] = "no correspondences (models out of view or far from the data)"
         self._energy_history.append(energy)
         return FrameResult(theta, valid, iters, energy, recovered, counts, notes, time.perf_counter() - t0)
+
+    def _cut_views(self, depth_views, colour_views, rigs, start: torch.Tensor) -> tuple:
+        """(depth views, rigs): a depth rig's views cut to the hands at ``start``
+        (``TrackerConfig.crop_views``; not for colour views or terms reading whole
+        frames), else as given."""
+        cfg = self.config
+        if (len(rigs[0]) == 1 or not cfg.crop_views or depth_views is None or colour_views is not None
+                or any(t.whole_frames for t in self.terms)):
+            return depth_views, rigs
+        with torch.no_grad():
+            vertices = self.scene(start, validate=False).vertices
+        return crop_views(depth_views, rigs, vertices, self.renderer, cfg.render_margin + CROP_MARGIN)
 
     def _preprocess(self, depth_views, colour_views, rigs, previous: torch.Tensor) -> tuple:
         """The frames of the problems that have them, preprocessed: (depth frames and
