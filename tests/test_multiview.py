@@ -87,6 +87,12 @@ def test_a_rig_tracked_on_cut_views_and_a_shared_budget_lands_where_whole_views_
     runs = {}
     for name, c in (("whole", replace(cfg, crop_views=False)), ("cut", cfg), ("budget", replace(cfg, rig_budget=2.0))):
         runs[name] = Tracker(scene, c).track_frame([depth[0][:4]], [cams[:4]], start, first=True)
+    from torchhand.tracking.views import CROP_MARGIN, crop_views
+
+    with torch.no_grad():  # the tracker's cut at this start is a real one
+        cut, _ = crop_views([depth[0][:4]], [tuple(cams[:4])], scene(start).vertices, Tracker(scene, cfg).renderer,
+                            cfg.render_margin + CROP_MARGIN)
+    assert cut[0][0].size < 0.8 * depth[0][0].size
     assert _keypoint_error(scene, runs["cut"].theta, runs["whole"].theta) < 0.05
     assert _keypoint_error(scene, runs["budget"].theta, gt[:1]) < _keypoint_error(scene, start, gt[:1]) / 4
     # four views on a budget of two: about half the pairs of the whole caps
