@@ -358,3 +358,71 @@ def test_training_starts_a_wider_network_from_a_narrower_ones_weights(tmp_path):
     wider = LocaliserNet(LocaliserConfig(channels=(8, 12, 32), decoder=(12, 8)))
     with pytest.raises(SystemExit, match="wide.pt: cannot widen"):
         task.start_from(task.build_net(), wider, "wide.pt")
+
+
+def test_rendered_hands_composited_onto_a_real_frame_keep_their_labels_at_its_scale():
+    """A rendered hand at 500 mm over a rendered wall, composited onto a real frame (a
+    body plane at 800 mm, its hand removed): the hand stays, the wall gives way to the
+    body (labelled body, shifted back as drawn), the real frame's holes stay holes."""
+    from train.hand_localiser import composite
+
+    S = 64
+    d = np.full((S, S), 2000.0, np.float32)
+    lab = np.zeros((S, S), np.int64)
+    d[20:40, 20:40], lab[20:40, 20:40] = 500.0, 2
+    real = np.full((480, 640), 800.0, np.float32)
+    real[:, :100] = 0.0  # no measurement
+    r = np.array([0.0, 0.5, 0.5, 0.5, 0.9])  # no shift beyond the range's start: -150 mm
+    out, out_lab = composite(d, lab, 500.0, real, 476.0, 200.0, 476.0, r, (-150.0, 500.0))
+    hand = lab == 2
+    assert np.array_equal(out[hand], d[hand]) and (out_lab[hand] == 2).all()
+    rest = ~hand & (out > 0)
+    assert rest.any() and np.allclose(out[rest], 650.0) and (out_lab[rest] == 3).all()
+    assert (out_lab[~hand & (out == 0)] == IGNORE).all()
+
+
+def test_a_hand_hidden_in_its_sample_has_no_joints_to_find():
+    """Samples whose range cut removes the hand keep no joint targets for it."""
+    from dataclasses import replace
+
+    from train.hand_localiser import LocaliserTrainConfig, sample_batch
+
+    frames = render_context_frames(2, 7, progress=False)
+    cfg = LocaliserTrainConfig(batch_size=8, p_crop=1.0)
+    g = torch.Generator().manual_seed(0)
+    _, _, labels, joints = sample_batch(frames, replace(cfg, far_cut_mm=[50.0, 60.0]), g)
+    assert not torch.isfinite(joints).any() and not np.isin(labels.numpy(), (1, 2)).any()
+    _, _, labels, joints = sample_batch(frames, cfg, torch.Generator().manual_seed(0))
+    assert torch.isfinite(joints).any()
+
+
+def test_real_backgrounds_read_their_hand_masks_and_refuse_what_does_not_match(tmp_path):
+    import cv2
+
+    from train.hand_localiser import LocaliserTask, LocaliserTrainConfig
+    from train.real_backgrounds import read_real_frames
+
+    frames = tmp_path / "rec"
+    frames.mkdir()
+    for k in (2, 10):
+        cv2.imwrite(str(frames / f"{k}.png"), np.full((6, 8), 8000, np.uint16))
+    hand = np.zeros((6, 8), bool)
+    hand[1:3, 2:5] = True
+    np.savez_compressed(tmp_path / "m.npz", **{"2": np.packbits(hand.ravel()), "10": np.packbits(~hand.ravel())})
+    real = read_real_frames(frames, 0.125, 476.0, tmp_path / "m.npz")
+    assert real.names == ("2", "10") and np.allclose(real.depth, 1000.0)
+    assert np.array_equal(real.hands[0], hand) and (real.without_hands()[0][hand] == 0).all()
+    assert (real.without_hands()[0][~hand] == 1000.0).all()
+    np.savez_compressed(tmp_path / "other.npz", **{"2": np.packbits(hand.ravel())})
+    with pytest.raises(ValueError, match="no mask for .*10.png"):
+        read_real_frames(frames, 0.125, 476.0, tmp_path / "other.npz")
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        read_real_frames(frames, 0.125, 476.0, tmp_path / "missing.npz")
+    entry = {"frames": str(frames), "depth_unit_mm": 0.125, "focal_px": 476.0, "hand_masks": str(tmp_path / "m.npz")}
+    task = LocaliserTask(LocaliserTrainConfig())
+    with pytest.raises(ValueError, match="real_val's frames are among the backgrounds"):
+        task.check_config(LocaliserTrainConfig(backgrounds=[entry], p_background=0.3, real_val=entry))
+    with pytest.raises(ValueError, match="needs backgrounds"):
+        task.check_config(LocaliserTrainConfig(p_background=0.3))
+    with pytest.raises(ValueError, match="expected the fields"):
+        task.check_config(LocaliserTrainConfig(backgrounds=[{"frames": str(frames)}], p_background=0.3))

@@ -82,6 +82,14 @@ class LocaliserTrainConfig(RunConfig):
     # --- more training renders: each entry overrides some of ``EXTRA_DATA_FIELDS`` (its
     # own cache); its frames join the training set (e.g. an earlier run's renders)
     extra_train_data: List[dict] = field(default_factory=list)
+    # --- real context (:mod:`train.real_backgrounds`): each entry is a folder of real
+    # depth frames, {"frames", "depth_unit_mm", "focal_px", "hand_masks"}; a share
+    # ``p_background`` of the samples are rendered hands composited onto one of them
+    backgrounds: List[dict] = field(default_factory=list)
+    p_background: float = 0.0
+    background_shift_mm: List[float] = field(default_factory=lambda: [-150.0, 500.0])
+    # real frames of the same form whose hand validation must find (and nothing else)
+    real_val: dict = field(default_factory=dict)
 
     def data_key(self) -> str:
         d = {"version": DATA_VERSION, **{k: getattr(self, k) for k in (
@@ -91,6 +99,15 @@ class LocaliserTrainConfig(RunConfig):
 
 #: The data fields an ``extra_train_data`` entry may set.
 EXTRA_DATA_FIELDS = ("train_frames", "data_seed", "train_sequences")
+#: The fields of a ``backgrounds`` or ``real_val`` entry.
+REAL_FIELDS = ("frames", "depth_unit_mm", "focal_px", "hand_masks")
+
+
+def real_frames(entry: dict):
+    """The :class:`train.real_backgrounds.RealFrames` of a ``backgrounds`` entry."""
+    from train.real_backgrounds import read_real_frames
+
+    return read_real_frames(entry["frames"], entry["depth_unit_mm"], entry["focal_px"], entry["hand_masks"])
 
 
 def thesis_articulations(hia_root: Path, sequences: List[str], per_sequence: int = 48) -> dict:
@@ -132,15 +149,50 @@ def _window(image: np.ndarray, centre: tuple, side: float, size: int, flip: bool
                           borderValue=fill)
 
 
-def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Generator, part: tuple = (0, 1)) -> tuple:
+def composite(d: np.ndarray, lab: np.ndarray, hand_z, background: np.ndarray, focal_px: float,
+              side: float, render_focal: float, r: np.ndarray, shift_mm: tuple) -> tuple:
+    """A rendered sample window (depth ``d``, labels ``lab``) in front of a real frame
+    (``background`` (H, W) mm, its hand removed) seen at the same metric scale: the
+    rendered hands always, the rendered arm, body and things within 200 mm of the hand
+    where nearer than the real frame; elsewhere the real frame, labelled body. The real
+    frame is shifted back by a share of ``shift_mm`` (and shrunk to match), mirrored
+    and centred on a random measured pixel by the draws ``r`` (5,)."""
+    S = d.shape[0]
+    valid = background > 0
+    pts = np.argwhere(valid[::8, ::8]) * 8
+    if not len(pts):
+        return d, lab
+    shift = shift_mm[0] + (shift_mm[1] - shift_mm[0]) * r[0]
+    z_med = float(np.median(background[valid]))
+    side_r = side * focal_px / render_focal * (z_med + shift) / z_med
+    v, u = pts[int(r[1] * len(pts)) % len(pts)]
+    centre = (u + (r[2] - 0.5) * side_r / 2, v + (r[3] - 0.5) * side_r / 2)
+    real = _window(background, centre, side_r, S, r[4] < 0.5, 0.0)
+    real = np.where(real > 0, real + np.float32(shift), np.float32(0.0))
+    hand = (lab == 1) | (lab == 2)
+    if hand_z is None:
+        hand_z = float(np.median(d[hand])) if hand.any() else None
+    near = lab == 3
+    if hand_z is not None:
+        near |= (lab == 0) & (np.abs(d - hand_z) < 200.0)
+    keep = hand | (near & (d > 0) & ((real == 0) | (d <= real)))
+    return (np.where(keep, d, real).astype(np.float32),
+            np.where(keep, lab, np.where(real > 0, 3, IGNORE)).astype(lab.dtype))
+
+
+def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Generator, part: tuple = (0, 1),
+                 backgrounds: tuple = ()) -> tuple:
     """One step's samples: (depth (B, 1, S, S) mm, reference (B,), labels (B, S, S) int64,
     joints (B, 2, 21, 3) [u, v, z] in input px / mm, NaN absent); ``part``: this rank's
-    share of the batch (the draws are those of the whole batch)."""
+    share of the batch (the draws are those of the whole batch); ``backgrounds``: (depth
+    (H, W) mm with its hand removed, focal px) of real frames to composite a share
+    ``cfg.p_background`` of the samples onto (:func:`composite`)."""
     S = LocaliserConfig(**cfg.network).input_size
     B = cfg.batch_size
     N = len(data.depth)
     idx = torch.randint(0, N, (B,), generator=g).numpy()
     draws = torch.rand(B, 8, generator=g).numpy()
+    real_draws = torch.rand(B, 7, generator=g).numpy() if backgrounds else None
     rank, world = part
     share = range(rank * B // world, (rank + 1) * B // world)
     depth = np.zeros((len(share), 1, S, S), np.float32)
@@ -165,10 +217,17 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
             hand_z = None
         flip = r[5] < 0.5
         d = _window(data.depth[f].astype(np.float32), tuple(centre), side, S, flip, 0.0)
+        lab = _window(data.labels[f], tuple(centre), side, S, flip, 0).astype(np.int64)
+        if real_draws is not None and real_draws[b, 0] < cfg.p_background:
+            bg, focal = backgrounds[int(real_draws[b, 1] * len(backgrounds)) % len(backgrounds)]
+            d, lab = composite(d, lab, hand_z, bg, focal, side, float(data.K[f, 0, 0]), real_draws[b, 2:],
+                               tuple(cfg.background_shift_mm))
         cut = cfg.far_cut_mm[0] + (cfg.far_cut_mm[1] - cfg.far_cut_mm[0]) * r[6]
         d[d > cut] = 0.0
-        lab = _window(data.labels[f], tuple(centre), side, S, flip, 0).astype(np.int64)
         lab[(d == 0) & (lab != IGNORE)] = IGNORE
+        # a hand hidden (by the range cut, or by a real body in front of its render's
+        # occluder) has no joints to find
+        hidden = np.array([(lab == 1).sum() < 30, (lab == 2).sum() < 30])
         if flip:
             lab = np.where(lab == 1, 2, np.where(lab == 2, 1, lab))
         s = S / side
@@ -176,7 +235,7 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
         jv = (uv[..., 1] - (centre[1] - side / 2) + 0.5) * s - 0.5
         if flip:
             ju = S - 1 - ju
-        jt = np.stack([ju, jv, data.joints_z[f]], -1)
+        jt = np.where(hidden[:, None, None], np.nan, np.stack([ju, jv, data.joints_z[f]], -1))
         joints[i] = jt[::-1] if flip else jt
         valid = d[d > 0]
         ref[i] = (hand_z + 40.0 * (r[7] - 0.5)) if hand_z is not None else (float(np.median(valid)) if len(valid) else 1000.0)
@@ -268,6 +327,26 @@ def evaluate(net: LocaliserNet, data: LocaliserFrames) -> dict:
             "val_handedness": right_side / max(found, 1), "val_found": found / max(total, 1)}
 
 
+def evaluate_real(net: LocaliserNet, real) -> dict:
+    """On real frames with reference hand masks (:class:`train.real_backgrounds.RealFrames`):
+    the share of frames whose most confident hand lies mostly (half its pixels) on the
+    reference hand, the mean share of the hand pixels found off it (an arm, the body, the
+    head taken for a hand), and the mean hand-pixel IoU (the masks include some wrist)."""
+    from torchhand.salient.localiser import HandLocaliser
+
+    was = net.training
+    loc = HandLocaliser.from_net(net.eval())
+    found, off, iou = [], [], []
+    for d, ref in zip(real.depth, real.hands):
+        res = loc.locate(d)
+        pred = np.isin(res.labels, (1, 2))
+        found.append(bool(res.hands) and (res.hands[0].mask & ref).sum() >= 0.5 * res.hands[0].mask.sum())
+        off.append((pred & ~ref).sum() / max(pred.sum(), 1))
+        iou.append((pred & ref).sum() / max((pred | ref).sum(), 1))
+    net.train(was)
+    return {"real_found": float(np.mean(found)), "real_off_hand": float(np.mean(off)), "real_iou": float(np.mean(iou))}
+
+
 # ------------------------------------------------------------------------ the task
 
 
@@ -309,6 +388,15 @@ class LocaliserTask(Task):
                                  f"expected some of {list(EXTRA_DATA_FIELDS)}")
             if sorted(set(extra.get("train_sequences", cfg.train_sequences)) & set(cfg.val_sequences)):
                 raise ValueError("train_sequences and val_sequences overlap")
+        for name, entries in (("backgrounds", cfg.backgrounds), ("real_val", [cfg.real_val] if cfg.real_val else [])):
+            for e in entries:
+                if sorted(e) != sorted(REAL_FIELDS):
+                    raise ValueError(f"{name}: expected the fields {list(REAL_FIELDS)}, got {sorted(e)}")
+        if not 0 <= cfg.p_background <= 1 or (cfg.p_background > 0 and not cfg.backgrounds):
+            raise ValueError(f"p_background must be in [0, 1] and needs backgrounds, got {cfg.p_background}")
+        if cfg.real_val and any(Path(cfg.real_val["frames"]).resolve() == Path(e["frames"]).resolve()
+                                for e in cfg.backgrounds):
+            raise ValueError("real_val's frames are among the backgrounds: validate on other frames")
 
     def build_net(self) -> LocaliserNet:
         return LocaliserNet(LocaliserConfig(**self.cfg.network))
@@ -331,13 +419,20 @@ class LocaliserTask(Task):
         for extra in cfg.extra_train_data:
             train.append(_rendered(replace(cfg, **extra), "train", hia_root, cache))
         train = train[0] if len(train) == 1 else concat_localiser_frames(train)
+        self.backgrounds = []
+        for e in cfg.backgrounds:
+            real = real_frames(e)
+            self.backgrounds += [(d, real.focal_px) for d in real.without_hands()]
+        self.real_val = real_frames(cfg.real_val) if cfg.real_val else None
         return train, _rendered(cfg, "val", hia_root, cache)
 
     def describe_data(self, train, val) -> str:
-        return f"frames: {len(train.depth)} train, {len(val.depth)} val"
+        real = f", {len(self.backgrounds)} real backgrounds" if self.backgrounds else ""
+        real += f", {len(self.real_val.depth)} real val" if self.real_val is not None else ""
+        return f"frames: {len(train.depth)} train, {len(val.depth)} val{real}"
 
     def batch(self, data, g: torch.Generator, part: tuple) -> tuple:
-        return sample_batch(data, self.cfg, g, part)
+        return sample_batch(data, self.cfg, g, part, tuple(self.backgrounds))
 
     def loss(self, model, batch: tuple, device, size: int) -> tuple:
         depth, ref, labels, joints = batch
@@ -349,12 +444,13 @@ class LocaliserTask(Task):
         return loss_fn(model(depth, ref), labels, heat, pos, off, dep, self.cfg, npos, size)
 
     def validate(self, net, val) -> dict:
-        return evaluate(net, val)
+        real = evaluate_real(net, self.real_val) if self.real_val is not None else {}
+        return {**evaluate(net, val), **real}
 
     def finish(self, net, out: Path, val) -> dict:
         net.save(out / f"{WEIGHT_NAME}.pt")
         export_localiser_onnx(net, out / f"{WEIGHT_NAME}.onnx")
-        return evaluate(net, val)
+        return self.validate(net, val)
 
 
 def main(argv=None) -> int:
