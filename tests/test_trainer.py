@@ -114,3 +114,13 @@ def test_a_toy_task_runs_through_the_command_line(tmp_path, capsys):
     cfg.write_text(json.dumps({"nois": 1.0}))
     with pytest.raises(SystemExit, match=r"cfg\.json: unknown config field.*nois"):
         main(_Toy, ["--out", str(tmp_path / "bad"), "--config", str(cfg)])
+
+
+def test_a_missing_init_weights_file_stops_the_run_before_any_work(tmp_path):
+    from train.hand_localiser import LocaliserTask
+    from train.trainer import checked_config
+
+    cfg = tmp_path / "c.json"
+    cfg.write_text('{"init_weights": "runs/nothere/hand_localiser.pt"}')
+    with pytest.raises(SystemExit, match="init_weights: runs/nothere/hand_localiser.pt not found"):
+        checked_config(LocaliserTask, cfg)

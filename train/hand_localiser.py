@@ -392,6 +392,9 @@ class LocaliserTask(Task):
             for e in entries:
                 if sorted(e) != sorted(REAL_FIELDS):
                     raise ValueError(f"{name}: expected the fields {list(REAL_FIELDS)}, got {sorted(e)}")
+                for key in ("frames", "hand_masks"):
+                    if not Path(e[key]).exists():
+                        raise ValueError(f"{name}: {key} {e[key]} not found")
         if not 0 <= cfg.p_background <= 1 or (cfg.p_background > 0 and not cfg.backgrounds):
             raise ValueError(f"p_background must be in [0, 1] and needs backgrounds, got {cfg.p_background}")
         if cfg.real_val and any(Path(cfg.real_val["frames"]).resolve() == Path(e["frames"]).resolve()

@@ -155,6 +155,8 @@ def checked_config(task_type: type, path: Optional[Path]) -> RunConfig:
     ValueError becomes an exit naming the file."""
     cfg = load_config(task_type.config_type, path)
     try:
+        if cfg.init_weights and not Path(cfg.init_weights).is_file():
+            raise ValueError(f"init_weights: {cfg.init_weights} not found (the run that writes it comes first)")
         task_type(cfg).check_config(cfg)
     except ValueError as e:
         raise SystemExit(f"{path if path is not None else 'the default config'}: {e}")
