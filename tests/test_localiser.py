@@ -361,39 +361,52 @@ def test_training_starts_a_wider_network_from_a_narrower_ones_weights(tmp_path):
 
 
 def test_rendered_hands_composited_onto_a_real_frame_keep_their_labels_at_its_scale():
-    """A rendered hand at 500 mm over a rendered wall, composited onto a real frame (a
-    body plane at 800 mm, its hand removed): the hand stays, the wall gives way to the
-    body (labelled body, shifted back as drawn), the real frame's holes stay holes."""
+    """A rendered hand at 500 mm over a rendered wall, composited with a real frame (a
+    20 px wide body at 800 mm, seen with half the render's focal length) moved to lie
+    100 mm behind the hand: the hand and its arm stay, the wall gives way to the body
+    (labelled body) at the render's scale, the real frame's holes stay holes; moved in
+    front of the hand, the body hides it."""
     from train.hand_localiser import composite
 
     S = 64
     d = np.full((S, S), 2000.0, np.float32)
     lab = np.zeros((S, S), np.int64)
     d[20:40, 20:40], lab[20:40, 20:40] = 500.0, 2
-    real = np.full((480, 640), 800.0, np.float32)
-    real[:, :100] = 0.0  # no measurement
-    r = np.array([0.0, 0.5, 0.5, 0.5, 0.9])  # no shift beyond the range's start: -150 mm
-    out, out_lab = composite(d, lab, 500.0, real, 476.0, 200.0, 476.0, r, (-150.0, 500.0))
-    hand = lab == 2
-    assert np.array_equal(out[hand], d[hand]) and (out_lab[hand] == 2).all()
-    rest = ~hand & (out > 0)
-    assert rest.any() and np.allclose(out[rest], 650.0) and (out_lab[rest] == 3).all()
-    assert (out_lab[~hand & (out == 0)] == IGNORE).all()
+    d[40:, 25:35], lab[40:, 25:35] = 520.0, 3
+    real = np.zeros((480, 640), np.float32)
+    real[:, 310:330] = 800.0
+    r = np.array([0.0, 0.5, 0.5, 0.5, 0.9])
+    # the real window: 200 px * (250 / 500) * (600 / 800) = 75 px onto 64: the body 17 px wide
+    out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (100.0, 700.0))
+    kept = lab > 0
+    assert np.array_equal(out[kept], d[kept]) and np.array_equal(out_lab[kept], lab[kept])
+    body = out == 600.0
+    assert abs(int(body[5].sum()) - 17) <= 1 and (out_lab[body] == 3).all()
+    assert (out[~kept & ~body] == 0).all() and (out_lab[~kept & ~body] == IGNORE).all()
+    out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (-300.0, -300.0))
+    hidden = (lab == 2) & (out == 200.0)
+    assert hidden.sum() > 100 and (out_lab[hidden] == 3).all() and (out_lab == 2).sum() == 400 - hidden.sum()
 
 
 def test_a_hand_hidden_in_its_sample_has_no_joints_to_find():
-    """Samples whose range cut removes the hand keep no joint targets for it."""
+    """Samples keep joint targets only for a hand with pixels in them, mirrored or not:
+    with the left hands' pixels gone, only the right hands' joints are targets (in
+    slot 1, or slot 0 when mirrored), and a range cut before every hand leaves none."""
     from dataclasses import replace
 
+    from torchhand.salient.localiser_data import ContextConfig
     from train.hand_localiser import LocaliserTrainConfig, sample_batch
 
-    frames = render_context_frames(2, 7, progress=False)
-    cfg = LocaliserTrainConfig(batch_size=8, p_crop=1.0)
-    g = torch.Generator().manual_seed(0)
-    _, _, labels, joints = sample_batch(frames, replace(cfg, far_cut_mm=[50.0, 60.0]), g)
-    assert not torch.isfinite(joints).any() and not np.isin(labels.numpy(), (1, 2)).any()
+    frames = render_context_frames(2, 7, ContextConfig(p_two_hands=1.0), progress=False)
+    frames = frames._replace(labels=np.where(frames.labels == 1, 0, frames.labels).astype(np.uint8))
+    cfg = LocaliserTrainConfig(batch_size=16, p_crop=1.0)
     _, _, labels, joints = sample_batch(frames, cfg, torch.Generator().manual_seed(0))
-    assert torch.isfinite(joints).any()
+    has = torch.isfinite(joints).all(-1).any(-1)  # (B, 2)
+    pixels = torch.stack([(labels == 1).sum((1, 2)), (labels == 2).sum((1, 2))], 1)
+    assert has.any() and not (has & (pixels < 30)).any() and not has.all(1).any()
+    assert has[:, 0].any() and has[:, 1].any()  # both slots used: mirrored and not
+    _, _, labels, joints = sample_batch(frames, replace(cfg, far_cut_mm=[50.0, 60.0]), torch.Generator().manual_seed(0))
+    assert not torch.isfinite(joints).any() and not np.isin(labels.numpy(), (1, 2)).any()
 
 
 def test_real_backgrounds_read_their_hand_masks_and_refuse_what_does_not_match(tmp_path):

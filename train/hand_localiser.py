@@ -17,13 +17,16 @@ every detector of the project (:mod:`train.trainer`); this module is the task:
    run's seed, read from its cache).
 2. batches: a share ``p_crop`` of the samples are a hand's box widened 1.3-2x (the
    crop pass), the rest a 128 px window of the frame reduced 4-6x (the frame pass);
-   mirror flips swap the left and right hand (a mirrored right hand is a left hand).
+   mirror flips swap the left and right hand (a mirrored right hand is a left hand);
+   a share ``p_background`` are composited onto real depth frames whose own hands are
+   removed (``backgrounds``, :func:`composite`); a hand with fewer than 30 pixels left
+   in a sample (range cut, hidden) has no joint targets there.
 3. loss: cross-entropy of the classes (hands weighted ``hand_weight``), the
    penalty-reduced focal loss of the joints' heat maps (Gaussian targets), L1 on the
    joints' sub-cell offsets and relative depths at their cells.
 4. writes ``RUN/hand_localiser.pt`` and ``RUN/hand_localiser.onnx``; validation logs
    the hand-pixel IoU, the median 2D joint error (px, crop pass) and the handedness
-   accuracy.
+   accuracy, and with ``real_val`` the real frames' figures (:func:`evaluate_real`).
 """
 
 from __future__ import annotations
@@ -87,7 +90,7 @@ class LocaliserTrainConfig(RunConfig):
     # ``p_background`` of the samples are rendered hands composited onto one of them
     backgrounds: List[dict] = field(default_factory=list)
     p_background: float = 0.0
-    background_shift_mm: List[float] = field(default_factory=lambda: [-150.0, 500.0])
+    background_behind_mm: List[float] = field(default_factory=lambda: [100.0, 700.0])  # its median behind the hand
     # real frames of the same form whose hand validation must find (and nothing else)
     real_val: dict = field(default_factory=dict)
 
@@ -150,32 +153,39 @@ def _window(image: np.ndarray, centre: tuple, side: float, size: int, flip: bool
 
 
 def composite(d: np.ndarray, lab: np.ndarray, hand_z, background: np.ndarray, focal_px: float,
-              side: float, render_focal: float, r: np.ndarray, shift_mm: tuple) -> tuple:
-    """A rendered sample window (depth ``d``, labels ``lab``) in front of a real frame
-    (``background`` (H, W) mm, its hand removed) seen at the same metric scale: the
-    rendered hands always, the rendered arm, body and things within 200 mm of the hand
-    where nearer than the real frame; elsewhere the real frame, labelled body. The real
-    frame is shifted back by a share of ``shift_mm`` (and shrunk to match), mirrored
-    and centred on a random measured pixel by the draws ``r`` (5,)."""
+              side: float, render_focal: float, r: np.ndarray, behind_mm: tuple) -> tuple:
+    """A rendered sample window (depth ``d`` (S, S) mm, classes ``lab`` (S, S)) with a
+    real frame behind it (``background`` (H, W) mm, its hand removed, camera focal length
+    ``focal_px``) at the same metric scale: (depth, classes) of the composite.
+
+    The real frame is moved in depth so that its median lies a share ``r[0]`` of
+    ``behind_mm`` behind the hand (``hand_z`` mm; None: the window's hand pixels', else
+    its measured pixels' median), and its window is the render's ``side`` scaled by the
+    focal lengths' ratio and by that move (exact at its median depth); it is mirrored
+    (``r[4]``) and centred near a random measured pixel (``r[1:4]``). The rendered hands,
+    arm and body, and other rendered things within 200 mm of the hand, stay where nearer
+    than the real frame (a real arm may hide a hand); every other pixel is the real
+    frame's, labelled body where measured (every measured pixel of a background must be
+    the person or nearer than the hand's surroundings: walls would be taught as body)."""
     S = d.shape[0]
     valid = background > 0
     pts = np.argwhere(valid[::8, ::8]) * 8
-    if not len(pts):
+    hand = (lab == 1) | (lab == 2)
+    if hand_z is None:
+        seen = d[hand] if hand.any() else d[d > 0]
+        hand_z = float(np.median(seen)) if len(seen) else None
+    if not len(pts) or hand_z is None:
         return d, lab
-    shift = shift_mm[0] + (shift_mm[1] - shift_mm[0]) * r[0]
     z_med = float(np.median(background[valid]))
+    shift = hand_z + behind_mm[0] + (behind_mm[1] - behind_mm[0]) * r[0] - z_med
     side_r = side * focal_px / render_focal * (z_med + shift) / z_med
     v, u = pts[int(r[1] * len(pts)) % len(pts)]
     centre = (u + (r[2] - 0.5) * side_r / 2, v + (r[3] - 0.5) * side_r / 2)
     real = _window(background, centre, side_r, S, r[4] < 0.5, 0.0)
     real = np.where(real > 0, real + np.float32(shift), np.float32(0.0))
-    hand = (lab == 1) | (lab == 2)
-    if hand_z is None:
-        hand_z = float(np.median(d[hand])) if hand.any() else None
-    near = lab == 3
-    if hand_z is not None:
-        near |= (lab == 0) & (np.abs(d - hand_z) < 200.0)
-    keep = hand | (near & (d > 0) & ((real == 0) | (d <= real)))
+    real[real <= 0] = 0.0
+    near = hand | (lab == 3) | ((lab == 0) & (np.abs(d - hand_z) < 200.0))
+    keep = near & (d > 0) & ((real == 0) | (d <= real))
     return (np.where(keep, d, real).astype(np.float32),
             np.where(keep, lab, np.where(real > 0, 3, IGNORE)).astype(lab.dtype))
 
@@ -221,12 +231,12 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
         if real_draws is not None and real_draws[b, 0] < cfg.p_background:
             bg, focal = backgrounds[int(real_draws[b, 1] * len(backgrounds)) % len(backgrounds)]
             d, lab = composite(d, lab, hand_z, bg, focal, side, float(data.K[f, 0, 0]), real_draws[b, 2:],
-                               tuple(cfg.background_shift_mm))
+                               tuple(cfg.background_behind_mm))
         cut = cfg.far_cut_mm[0] + (cfg.far_cut_mm[1] - cfg.far_cut_mm[0]) * r[6]
         d[d > cut] = 0.0
         lab[(d == 0) & (lab != IGNORE)] = IGNORE
-        # a hand hidden (by the range cut, or by a real body in front of its render's
-        # occluder) has no joints to find
+        # a hand hidden (by the range cut, or by a real arm or body in front of it) has
+        # no joints to find
         hidden = np.array([(lab == 1).sum() < 30, (lab == 2).sum() < 30])
         if flip:
             lab = np.where(lab == 1, 2, np.where(lab == 2, 1, lab))
@@ -395,6 +405,9 @@ class LocaliserTask(Task):
                 for key in ("frames", "hand_masks"):
                     if not Path(e[key]).exists():
                         raise ValueError(f"{name}: {key} {e[key]} not found")
+        lo_hi = list(cfg.background_behind_mm)
+        if len(lo_hi) != 2 or lo_hi[0] > lo_hi[1]:
+            raise ValueError(f"background_behind_mm must be [low, high] in mm, got {cfg.background_behind_mm}")
         if not 0 <= cfg.p_background <= 1 or (cfg.p_background > 0 and not cfg.backgrounds):
             raise ValueError(f"p_background must be in [0, 1] and needs backgrounds, got {cfg.p_background}")
         if cfg.real_val and any(Path(cfg.real_val["frames"]).resolve() == Path(e["frames"]).resolve()

@@ -52,10 +52,9 @@ class RealFrames(NamedTuple):
 
 
 def _frames(folder: Path) -> list:
-    files = sorted(folder.glob("*.png"), key=lambda p: (len(p.stem), p.stem))
-    if not files:
-        raise FileNotFoundError(f"{folder}: no depth frames (*.png) here")
-    return files
+    from torchhand.data.importing import depth_files
+
+    return depth_files(folder)
 
 
 def hand_mask(depth: np.ndarray, localiser) -> np.ndarray:
@@ -83,6 +82,9 @@ def read_real_frames(folder, depth_unit_mm: float, focal_px: float, masks) -> Re
             if p.stem not in m.files:
                 raise ValueError(f"{masks}: no mask for {p} (masks of another folder?)")
             d = read_depth(p, depth_unit_mm)
+            if m[p.stem].size != (d.size + 7) // 8:
+                raise ValueError(f"{masks}: the mask of {p.name} has {m[p.stem].size * 8} bits, the frame "
+                                 f"{d.shape[0]}x{d.shape[1]} pixels (masks of other frames?)")
             h = np.unpackbits(m[p.stem])[: d.size].reshape(d.shape).astype(bool)
             depth.append(d)
             hands.append(h)
@@ -91,7 +93,10 @@ def read_real_frames(folder, depth_unit_mm: float, focal_px: float, masks) -> Re
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    class Help(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+        pass
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=Help)
     ap.add_argument("--frames", type=Path, required=True, help="folder of 16-bit depth PNGs")
     ap.add_argument("--depth-unit-mm", type=float, required=True, help="millimetres per depth unit")
     ap.add_argument("--out", type=Path, required=True, help="the masks' .npz (not overwritten)")
@@ -113,7 +118,9 @@ def main(argv=None) -> int:
         tiles.append(cv2.resize(vis, (320, 240)))
         print(f"{p.name}: {int(m.sum())} hand pixels")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(args.out, **masks)
+    tmp = args.out.with_name(args.out.stem + ".tmp.npz")
+    np.savez_compressed(tmp, **masks)
+    tmp.rename(args.out)
     if args.figure is not None:
         tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % 4)
         cv2.imwrite(str(args.figure), np.vstack([np.hstack(tiles[i:i + 4]) for i in range(0, len(tiles), 4)]))

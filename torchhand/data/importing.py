@@ -29,7 +29,8 @@ from torchhand.geometry.camera import Camera
 from torchhand.io.assets import find_model
 from torchhand.io.output_dir import prepare_output_dir
 
-__all__ = ["Intrinsics", "read_intrinsics", "natural_key", "check_intrinsics", "check_depth_pngs", "import_depth_folder"]
+__all__ = ["Intrinsics", "read_intrinsics", "natural_key", "check_intrinsics", "check_depth_pngs", "depth_files",
+           "import_depth_folder"]
 
 
 class Intrinsics(dict):
@@ -100,7 +101,9 @@ def check_depth_pngs(files: Sequence[Path], hint: str = "") -> Tuple[int, int]:
     return size
 
 
-def _depth_files(src: Path) -> List[Path]:
+def depth_files(src: Path) -> List[Path]:
+    """The ``.png`` files of the folder ``src`` in natural order; a SequenceError naming
+    it when it is no folder or holds none."""
     if not src.is_dir():
         raise SequenceError(f"{src}: not a folder (give the folder holding the depth PNGs)")
     files = sorted((p for p in src.iterdir() if p.suffix.lower() == ".png" and p.is_file()),
@@ -128,7 +131,7 @@ def import_depth_folder(src, out, intrinsics: Dict, depth_unit_mm: float, models
         written, so a bad recording leaves no partial folder.
     """
     src = Path(src)
-    files = _depth_files(src)
+    files = depth_files(src)
     if not (isinstance(depth_unit_mm, (int, float)) and np.isfinite(depth_unit_mm) and depth_unit_mm > 0):
         raise ValueError(f"--depth-unit-mm must be a positive number of millimetres, got {depth_unit_mm!r}")
     for m in models:
