@@ -386,6 +386,9 @@ def test_rendered_hands_composited_onto_a_real_frame_keep_their_labels_at_its_sc
     out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (-300.0, -300.0))
     hidden = (lab == 2) & (out == 200.0)
     assert hidden.sum() > 100 and (out_lab[hidden] == 3).all() and (out_lab == 2).sum() == 400 - hidden.sum()
+    # placed as recorded (moved 500 mm nearer: the body at 300 mm), the hand is drawn over it
+    out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (100.0, 700.0), (-500.0, 0.0))
+    assert (out_lab == 2).sum() == 400 and (out == 300.0).any()
 
 
 def test_a_hand_hidden_in_its_sample_has_no_joints_to_find():

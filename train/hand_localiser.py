@@ -91,6 +91,11 @@ class LocaliserTrainConfig(RunConfig):
     backgrounds: List[dict] = field(default_factory=list)
     p_background: float = 0.0
     background_behind_mm: List[float] = field(default_factory=lambda: [100.0, 700.0])  # its median behind the hand
+    # "behind_hand" (above), or "recorded": the real frame moved by ``background_shift_mm``
+    # from its recorded depth, the rendered hands drawn over it wherever they are (the
+    # placement of the shipped network's run, train/configs/localiser_real.json)
+    background_placement: str = "behind_hand"
+    background_shift_mm: List[float] = field(default_factory=lambda: [-150.0, 500.0])
     # real frames of the same form whose hand validation must find (and nothing else)
     real_val: dict = field(default_factory=dict)
 
@@ -153,7 +158,7 @@ def _window(image: np.ndarray, centre: tuple, side: float, size: int, flip: bool
 
 
 def composite(d: np.ndarray, lab: np.ndarray, hand_z, background: np.ndarray, focal_px: float,
-              side: float, render_focal: float, r: np.ndarray, behind_mm: tuple) -> tuple:
+              side: float, render_focal: float, r: np.ndarray, behind_mm: tuple, recorded: tuple = ()) -> tuple:
     """A rendered sample window (depth ``d`` (S, S) mm, classes ``lab`` (S, S)) with a
     real frame behind it (``background`` (H, W) mm, its hand removed, camera focal length
     ``focal_px``) at the same metric scale: (depth, classes) of the composite.
@@ -166,26 +171,34 @@ def composite(d: np.ndarray, lab: np.ndarray, hand_z, background: np.ndarray, fo
     arm and body, and other rendered things within 200 mm of the hand, stay where nearer
     than the real frame (a real arm may hide a hand); every other pixel is the real
     frame's, labelled body where measured (every measured pixel of a background must be
-    the person or nearer than the hand's surroundings: walls would be taught as body)."""
+    the person or nearer than the hand's surroundings: walls would be taught as body).
+    With ``recorded`` (low, high) mm, the real frame is moved by a share ``r[0]`` of it
+    from its recorded depth instead, and the rendered hands are drawn over it wherever
+    they are."""
     S = d.shape[0]
     valid = background > 0
     pts = np.argwhere(valid[::8, ::8]) * 8
     hand = (lab == 1) | (lab == 2)
-    if hand_z is None:
+    if hand_z is None and (hand.any() or not recorded):
         seen = d[hand] if hand.any() else d[d > 0]
         hand_z = float(np.median(seen)) if len(seen) else None
-    if not len(pts) or hand_z is None:
+    if not len(pts) or (hand_z is None and not recorded):
         return d, lab
     z_med = float(np.median(background[valid]))
-    shift = hand_z + behind_mm[0] + (behind_mm[1] - behind_mm[0]) * r[0] - z_med
+    shift = (recorded[0] + (recorded[1] - recorded[0]) * r[0] if recorded else
+             hand_z + behind_mm[0] + (behind_mm[1] - behind_mm[0]) * r[0] - z_med)
     side_r = side * focal_px / render_focal * (z_med + shift) / z_med
     v, u = pts[int(r[1] * len(pts)) % len(pts)]
     centre = (u + (r[2] - 0.5) * side_r / 2, v + (r[3] - 0.5) * side_r / 2)
     real = _window(background, centre, side_r, S, r[4] < 0.5, 0.0)
     real = np.where(real > 0, real + np.float32(shift), np.float32(0.0))
     real[real <= 0] = 0.0
-    near = hand | (lab == 3) | ((lab == 0) & (np.abs(d - hand_z) < 200.0))
+    near = hand | (lab == 3)
+    if hand_z is not None:
+        near |= (lab == 0) & (np.abs(d - hand_z) < 200.0)
     keep = near & (d > 0) & ((real == 0) | (d <= real))
+    if recorded:
+        keep |= hand
     return (np.where(keep, d, real).astype(np.float32),
             np.where(keep, lab, np.where(real > 0, 3, IGNORE)).astype(lab.dtype))
 
@@ -231,7 +244,8 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
         if real_draws is not None and real_draws[b, 0] < cfg.p_background:
             bg, focal = backgrounds[int(real_draws[b, 1] * len(backgrounds)) % len(backgrounds)]
             d, lab = composite(d, lab, hand_z, bg, focal, side, float(data.K[f, 0, 0]), real_draws[b, 2:],
-                               tuple(cfg.background_behind_mm))
+                               tuple(cfg.background_behind_mm), tuple(cfg.background_shift_mm)
+                               if cfg.background_placement == "recorded" else ())
         cut = cfg.far_cut_mm[0] + (cfg.far_cut_mm[1] - cfg.far_cut_mm[0]) * r[6]
         d[d > cut] = 0.0
         lab[(d == 0) & (lab != IGNORE)] = IGNORE
@@ -405,9 +419,12 @@ class LocaliserTask(Task):
                 for key in ("frames", "hand_masks"):
                     if not Path(e[key]).exists():
                         raise ValueError(f"{name}: {key} {e[key]} not found")
-        lo_hi = list(cfg.background_behind_mm)
-        if len(lo_hi) != 2 or lo_hi[0] > lo_hi[1]:
-            raise ValueError(f"background_behind_mm must be [low, high] in mm, got {cfg.background_behind_mm}")
+        for name in ("background_behind_mm", "background_shift_mm"):
+            lo_hi = list(getattr(cfg, name))
+            if len(lo_hi) != 2 or lo_hi[0] > lo_hi[1]:
+                raise ValueError(f"{name} must be [low, high] in mm, got {lo_hi}")
+        if cfg.background_placement not in ("behind_hand", "recorded"):
+            raise ValueError(f"background_placement must be 'behind_hand' or 'recorded', got {cfg.background_placement!r}")
         if not 0 <= cfg.p_background <= 1 or (cfg.p_background > 0 and not cfg.backgrounds):
             raise ValueError(f"p_background must be in [0, 1] and needs backgrounds, got {cfg.p_background}")
         if cfg.real_val and any(Path(cfg.real_val["frames"]).resolve() == Path(e["frames"]).resolve()
