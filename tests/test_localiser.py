@@ -366,7 +366,7 @@ def test_rendered_hands_composited_onto_a_real_frame_keep_their_labels_at_its_sc
     100 mm behind the hand: the hand and its arm stay, the wall gives way to the body
     (labelled body) at the render's scale, the real frame's holes stay holes; moved in
     front of the hand, the body hides it."""
-    from train.hand_localiser import composite
+    from train.hand_localiser import background, composite
 
     S = 64
     d = np.full((S, S), 2000.0, np.float32)
@@ -376,18 +376,19 @@ def test_rendered_hands_composited_onto_a_real_frame_keep_their_labels_at_its_sc
     real = np.zeros((480, 640), np.float32)
     real[:, 310:330] = 800.0
     r = np.array([0.0, 0.5, 0.5, 0.5, 0.9])
+    bg = background(real, 250.0)
     # the real window: 200 px * (250 / 500) * (600 / 800) = 75 px onto 64: the body 17 px wide
-    out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (100.0, 700.0))
+    out, out_lab = composite(d, lab, 500.0, bg, 200.0, 500.0, r, (100.0, 700.0))
     kept = lab > 0
     assert np.array_equal(out[kept], d[kept]) and np.array_equal(out_lab[kept], lab[kept])
     body = out == 600.0
     assert abs(int(body[5].sum()) - 17) <= 1 and (out_lab[body] == 3).all()
     assert (out[~kept & ~body] == 0).all() and (out_lab[~kept & ~body] == IGNORE).all()
-    out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (-300.0, -300.0))
+    out, out_lab = composite(d, lab, 500.0, bg, 200.0, 500.0, r, (-300.0, -300.0))
     hidden = (lab == 2) & (out == 200.0)
     assert hidden.sum() > 100 and (out_lab[hidden] == 3).all() and (out_lab == 2).sum() == 400 - hidden.sum()
     # placed as recorded (moved 500 mm nearer: the body at 300 mm), the hand is drawn over it
-    out, out_lab = composite(d, lab, 500.0, real, 250.0, 200.0, 500.0, r, (100.0, 700.0), (-500.0, 0.0))
+    out, out_lab = composite(d, lab, 500.0, bg, 200.0, 500.0, r, (100.0, 700.0), (-500.0, 0.0))
     assert (out_lab == 2).sum() == 400 and (out == 300.0).any()
 
 

@@ -35,7 +35,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import List
+from typing import List, NamedTuple
 
 import cv2
 import numpy as np
@@ -157,11 +157,28 @@ def _window(image: np.ndarray, centre: tuple, side: float, size: int, flip: bool
                           borderValue=fill)
 
 
-def composite(d: np.ndarray, lab: np.ndarray, hand_z, background: np.ndarray, focal_px: float,
-              side: float, render_focal: float, r: np.ndarray, behind_mm: tuple, recorded: tuple = ()) -> tuple:
+class Background(NamedTuple):
+    """A real frame to composite onto (:func:`background`): depth (H, W) mm with its hand
+    removed, its camera's focal length (px), the median of its measured depths (mm) and
+    the (row, column) of every 8th measured pixel in both directions."""
+
+    depth: np.ndarray
+    focal_px: float
+    median_mm: float
+    points: np.ndarray
+
+
+def background(depth: np.ndarray, focal_px: float) -> Background:
+    """The :class:`Background` of a frame, its statistics computed once."""
+    valid = depth > 0
+    return Background(depth, float(focal_px), float(np.median(depth[valid])) if valid.any() else float("nan"),
+                      np.argwhere(valid[::8, ::8]) * 8)
+
+
+def composite(d: np.ndarray, lab: np.ndarray, hand_z, bg: Background, side: float, render_focal: float,
+              r: np.ndarray, behind_mm: tuple, recorded: tuple = ()) -> tuple:
     """A rendered sample window (depth ``d`` (S, S) mm, classes ``lab`` (S, S)) with a
-    real frame behind it (``background`` (H, W) mm, its hand removed, camera focal length
-    ``focal_px``) at the same metric scale: (depth, classes) of the composite.
+    real frame behind it (``bg``) at the same metric scale: (depth, classes) of the composite.
 
     The real frame is moved in depth so that its median lies a share ``r[0]`` of
     ``behind_mm`` behind the hand (``hand_z`` mm; None: the window's hand pixels', else
@@ -176,21 +193,19 @@ def composite(d: np.ndarray, lab: np.ndarray, hand_z, background: np.ndarray, fo
     from its recorded depth instead, and the rendered hands are drawn over it wherever
     they are."""
     S = d.shape[0]
-    valid = background > 0
-    pts = np.argwhere(valid[::8, ::8]) * 8
+    pts, z_med = bg.points, bg.median_mm
     hand = (lab == 1) | (lab == 2)
     if hand_z is None and (hand.any() or not recorded):
         seen = d[hand] if hand.any() else d[d > 0]
         hand_z = float(np.median(seen)) if len(seen) else None
     if not len(pts) or (hand_z is None and not recorded):
         return d, lab
-    z_med = float(np.median(background[valid]))
     shift = (recorded[0] + (recorded[1] - recorded[0]) * r[0] if recorded else
              hand_z + behind_mm[0] + (behind_mm[1] - behind_mm[0]) * r[0] - z_med)
-    side_r = side * focal_px / render_focal * (z_med + shift) / z_med
+    side_r = side * bg.focal_px / render_focal * (z_med + shift) / z_med
     v, u = pts[int(r[1] * len(pts)) % len(pts)]
     centre = (u + (r[2] - 0.5) * side_r / 2, v + (r[3] - 0.5) * side_r / 2)
-    real = _window(background, centre, side_r, S, r[4] < 0.5, 0.0)
+    real = _window(bg.depth, centre, side_r, S, r[4] < 0.5, 0.0)
     real = np.where(real > 0, real + np.float32(shift), np.float32(0.0))
     real[real <= 0] = 0.0
     near = hand | (lab == 3)
@@ -207,9 +222,9 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
                  backgrounds: tuple = ()) -> tuple:
     """One step's samples: (depth (B, 1, S, S) mm, reference (B,), labels (B, S, S) int64,
     joints (B, 2, 21, 3) [u, v, z] in input px / mm, NaN absent); ``part``: this rank's
-    share of the batch (the draws are those of the whole batch); ``backgrounds``: (depth
-    (H, W) mm with its hand removed, focal px) of real frames to composite a share
-    ``cfg.p_background`` of the samples onto (:func:`composite`)."""
+    share of the batch (the draws are those of the whole batch); ``backgrounds``: the
+    :class:`Background` s of real frames to composite a share ``cfg.p_background`` of
+    the samples onto (:func:`composite`)."""
     S = LocaliserConfig(**cfg.network).input_size
     B = cfg.batch_size
     N = len(data.depth)
@@ -242,8 +257,8 @@ def sample_batch(data: LocaliserFrames, cfg: LocaliserTrainConfig, g: torch.Gene
         d = _window(data.depth[f].astype(np.float32), tuple(centre), side, S, flip, 0.0)
         lab = _window(data.labels[f], tuple(centre), side, S, flip, 0).astype(np.int64)
         if real_draws is not None and real_draws[b, 0] < cfg.p_background:
-            bg, focal = backgrounds[int(real_draws[b, 1] * len(backgrounds)) % len(backgrounds)]
-            d, lab = composite(d, lab, hand_z, bg, focal, side, float(data.K[f, 0, 0]), real_draws[b, 2:],
+            bg = backgrounds[int(real_draws[b, 1] * len(backgrounds)) % len(backgrounds)]
+            d, lab = composite(d, lab, hand_z, bg, side, float(data.K[f, 0, 0]), real_draws[b, 2:],
                                tuple(cfg.background_behind_mm), tuple(cfg.background_shift_mm)
                                if cfg.background_placement == "recorded" else ())
         cut = cfg.far_cut_mm[0] + (cfg.far_cut_mm[1] - cfg.far_cut_mm[0]) * r[6]
@@ -455,7 +470,7 @@ class LocaliserTask(Task):
         self.backgrounds = []
         for e in cfg.backgrounds:
             real = real_frames(e)
-            self.backgrounds += [(d, real.focal_px) for d in real.without_hands()]
+            self.backgrounds += [background(d, real.focal_px) for d in real.without_hands()]
         self.real_val = real_frames(cfg.real_val) if cfg.real_val else None
         return train, _rendered(cfg, "val", hia_root, cache)
 
