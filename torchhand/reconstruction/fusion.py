@@ -93,9 +93,10 @@ def extract_surface(mesh, config: FusionConfig = FusionConfig()) -> SurfaceMesh:
     cloud = o3d.geometry.PointCloud(mesh.vertices)
     cloud.normals = mesh.vertex_normals
     # scale 2: the octree's cube is twice the samples' box, so the surface Poisson closes
-    # over the never-seen side (where the fingers hold it) is not clipped by the cube
+    # over the never-seen side (where the fingers hold it) is not clipped by the cube; one
+    # thread: Open3D's multi-threaded Poisson crashes at random under load (isl-org/Open3D#6828)
     closed, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=config.poisson_depth,
-                                                                          scale=2.0)
+                                                                          scale=2.0, n_threads=1)
     best = _largest_component(closed)
     if config.triangles and len(best.faces) > config.triangles:
         simple = closed.simplify_quadric_decimation(config.triangles)
