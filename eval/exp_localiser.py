@@ -16,7 +16,11 @@ seeds, its speed, and the real SR305 frames.
    share of hands found (joints within 60 px on average), of all rendered hands and of
    those in view (``IN_VIEW_PX`` measured pixels or more: a hand hidden behind an object
    or outside the image cannot be found), and the correlation of the joints' confidence
-   with their 2D error.
+   with their 2D error. ``hands_found_in_view_with_hint`` and ``hand_iou_mean_with_hint``:
+   the same when the localiser is also given, for each hand in view, its true depth
+   pixels moved by up to ``HINT_MOTION_PX`` in a random direction as a hint (what
+   ``torchhand track`` gives it from the previous frame's fit: the tracked hand's
+   render; here simulated).
 2. **Initialisation**: ``--init-frames`` one-hand frames (right hand, shipped size) are
    segmented and initialised as ``torchhand track`` does without ``init_pose.json``;
    success = mean error of the 21 joints <= 10 mm; the time per hand.
@@ -59,6 +63,8 @@ HELD_OUT = ["03", "10", "20"]
 UNSEEN_SEED = 777
 #: A hand with fewer measured pixels than this (occluded, out of the image) is not in view.
 IN_VIEW_PX = 500
+#: The simulated hints of section 1 are the true hand moved by up to this many px.
+HINT_MOTION_PX = 15.0
 
 
 def _motions() -> dict:
@@ -77,15 +83,22 @@ def test_set(loc: HandLocaliser, n: int, frames=None, blobs: bool = True) -> dic
                                                                  _motions(), name="test")
     n = len(fr.depth)
     ious, blob_ious, single_ious, e2, e3, conf, right, found, total = [], [], [], [], [], [], 0, 0, 0
-    in_view, found_in_view = 0, 0
+    in_view, found_in_view, found_hinted, hinted_ious = 0, 0, 0, []
+    rng = np.random.default_rng(TEST_SEED)
     for f in range(n):
         res = loc.locate(fr.depth[f].astype(np.float32))
         known = fr.labels[f] != IGNORE
         gt = np.isin(fr.labels[f], (1, 2)) & known
         if not gt.any():
             continue
-        ious.append(float((np.isin(res.labels, (1, 2)) & gt).sum() / (np.isin(res.labels, (1, 2)) & known | gt).sum()))
+        iou = lambda labels: float((np.isin(labels, (1, 2)) & gt).sum() / (np.isin(labels, (1, 2)) & known | gt).sum())
+        ious.append(iou(res.labels))
         hands = np.isfinite(fr.joints_z[f]).all(1)
+        # every hand in view hinted as a tracker would (its previous frame's fit), simulated
+        hinted = loc.locate(fr.depth[f].astype(np.float32),
+                            [_moved_hint(fr.depth[f], fr.labels[f] == 1 + k, rng) for k in range(2)
+                             if hands[k] and (fr.labels[f] == 1 + k).sum() >= IN_VIEW_PX])
+        hinted_ious.append(iou(hinted.labels))
         if hands.sum() == 1:
             single_ious.append(ious[-1])
         if hands.sum() == 1 and blobs:
@@ -103,7 +116,9 @@ def test_set(loc: HandLocaliser, n: int, frames=None, blobs: bool = True) -> dic
             seen = int((fr.labels[f] == 1 + k).sum() >= IN_VIEW_PX)
             in_view += seen
             uv_gt, z_gt = fr.joints_uv[f, k], fr.joints_z[f, k]
-            cand = [h for h in res.hands if np.mean(np.linalg.norm(h.uv - uv_gt, axis=1)) < 60]
+            near = lambda hands: [h for h in hands if np.mean(np.linalg.norm(h.uv - uv_gt, axis=1)) < 60]
+            found_hinted += seen * bool(near(hinted.hands))
+            cand = near(res.hands)
             if not cand:
                 continue
             h = cand[0]
@@ -124,7 +139,17 @@ def test_set(loc: HandLocaliser, n: int, frames=None, blobs: bool = True) -> dic
             "keypoints_3d_median_mm": float(np.median(e3)), "keypoints_3d_mean_mm": float(np.mean(e3)),
             "handedness_accuracy": right / max(found, 1), "hands_found": found / max(total, 1),
             "hands_in_view": in_view, "hands_found_in_view": found_in_view / max(in_view, 1),
+            "hands_found_in_view_with_hint": found_hinted / max(in_view, 1),
+            "hand_iou_mean_with_hint": float(np.mean(hinted_ious)),
             "confidence_error_correlation": float(np.corrcoef(np.concatenate(conf), e2)[0, 1])}
+
+
+def _moved_hint(depth: np.ndarray, hand: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The hand's depth pixels moved by up to ``HINT_MOTION_PX`` px in a random direction."""
+    a, r = rng.uniform(0, 2 * np.pi), rng.uniform(0, HINT_MOTION_PX)
+    M = np.float32([[1, 0, r * np.cos(a)], [0, 1, r * np.sin(a)]])
+    h, w = depth.shape
+    return cv2.warpAffine(np.where(hand, depth, 0).astype(np.float32), M, (w, h), flags=cv2.INTER_NEAREST)
 
 
 def seen_and_unseen(loc: HandLocaliser, cache: Path, n: int) -> dict:

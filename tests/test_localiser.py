@@ -141,7 +141,7 @@ class _Fixed:
     def __init__(self, hands, labels):
         self.hands, self.labels = hands, labels
 
-    def locate(self, depth):
+    def locate(self, depth, hints=()):
         return Localisation(self.labels, self.hands)
 
 
@@ -243,6 +243,65 @@ def test_shipped_localiser_finds_rendered_hands():
                 found += 1
                 errors.append(min(d))
     assert total >= 12 and found >= 0.8 * total and np.median(errors) < 25.0
+
+
+@pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
+def test_hints_find_the_hands_the_frame_pass_missed():
+    """A frame pass that sees no hand (forced here) finds nothing; given the true hand's
+    depth shifted by 10 px (a tracked hand one frame later) as a hint, the crop pass
+    finds the hand (most of its pixels on the true hand), marked as hinted; a hint the frame pass's blobs cover adds nothing."""
+    frames = render_context_frames(16, seed=7, progress=False)
+    loc = HandLocaliser.load()
+    blind = HandLocaliser(loc._forward, loc.config)
+    blind._frame_pass = lambda d: np.zeros(d.shape, np.uint8)
+    tried, found = 0, 0
+    for f in range(len(frames.depth)):
+        d = frames.depth[f].astype(np.float32)
+        for k in range(2):
+            hand = frames.labels[f] == 1 + k
+            if not np.isfinite(frames.joints_z[f, k]).all() or hand.sum() < 1500:
+                continue
+            tried += 1
+            hint = np.roll(np.where(hand, d, 0), 10, axis=1)
+            assert blind.locate(d).hands == []
+            res = blind.locate(d, [hint])
+            on = [h for h in res.hands if (h.mask & hand).sum() > 0.5 * h.mask.sum()]
+            found += bool(on) and all(h.hinted for h in on)
+            seen = loc.locate(d)  # a hint where the frame pass found the hand: no second copy
+            if seen.hands and (seen.hands[0].mask & hand).sum() > 0.8 * hand.sum():
+                assert len(loc.locate(d, [np.where(seen.hands[0].mask, d, 0)]).hands) == len(seen.hands)
+    assert tried >= 8 and found >= 0.8 * tried
+    with pytest.raises(ValueError, match=r"hints\[0\] has shape"):
+        loc.locate(frames.depth[0].astype(np.float32), [np.zeros((10, 10), np.float32)])
+
+
+@pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
+def test_the_runner_hints_the_frame_after_a_good_fit(tmp_path, monkeypatch):
+    """Tracked with ``--segment auto``, each frame after a fit that passes its check is
+    segmented with the tracked hand's render as a hint."""
+    import json
+
+    import torchhand.app.frames as frames_module
+    from torchhand.app.runner import TrackOptions, track_sequences
+    from torchhand.data.layout import read_poses
+    from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
+    from torchhand.model.scene import Scene
+
+    demo = demo_motion(slice(0, 4))
+    theta = demo.theta[:, demo.scene.slices["hand_right"]].clone()
+    frames = SyntheticFrames(Scene.from_names(["hand_right"]), theta, demo.cameras, "hinted", {"format": "test"})
+    seq = write_synthetic_sequence(frames, tmp_path / "seq", noise="kinect", rgb=False, progress=False)
+    (seq / "init_pose.json").write_text(json.dumps({"theta": [float(x) for x in read_poses(seq / "gt").theta[0]]}))
+    given, real = [], frames_module.segment_hands
+
+    def spy(depth, camera, config, **kw):
+        hints = kw.get("hints", ())
+        given.append([h.shape for h in hints])
+        return real(depth, camera, config, **kw)
+
+    monkeypatch.setattr(frames_module, "segment_hands", spy)
+    track_sequences([seq], tmp_path / "out", TrackOptions(segment=SegmentConfig(mode="auto")), progress=False)
+    assert given[0] == [] and all(g == [(480, 640)] for g in given[1:4]), given
 
 
 def test_localiser_refuses_depth_it_cannot_read():

@@ -17,6 +17,7 @@ import torch
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb
 from torchhand.geometry.camera import project_points
+from torchhand.geometry.render import RenderResult
 from torchhand.model.joints21 import is_hand, scene_standard_joints
 from torchhand.model.scene import Scene
 from torchhand.salient import SalientDetector
@@ -24,8 +25,8 @@ from torchhand.scoring.metrics import FitCheck, fit_check
 from torchhand.tracking.preprocess import ColourView
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 
-__all__ = ["FrameRecord", "FrameReader", "unpack_masks", "read_frame", "read_rig_frame", "read_colour", "segment_of", "segment_for_search",
-           "pose_fit", "hand_sides", "model_sides"]
+__all__ = ["FrameRecord", "FrameReader", "unpack_masks", "read_frame", "read_rig_frame", "read_colour", "segment_of",
+           "segment_for_search", "pose_fit", "render_pose", "hand_hints", "hand_sides", "model_sides"]
 
 
 class FrameRecord(NamedTuple):
@@ -59,7 +60,9 @@ class FrameReader:
     (:data:`~torchhand.app.options.NAIL_SOURCES`; None: none read). With ``keep_masks``
     every frame's segmentation masks are kept (packed) for the overlays (:meth:`masks_of`).
     ``first``: frame ``f`` of the reader is frame ``first + f`` of the sequences (a
-    chunk of a sequence; records, masks and ``n_frames`` count from it).
+    chunk of a sequence; records, masks and ``n_frames`` count from it). ``hints[i]``:
+    where sequence ``i``'s hands are expected in camera 0 (:func:`hand_hints` of the
+    previous frame's fit, set by the runner; empty: none), passed to the segmentation.
     """
 
     def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
@@ -71,6 +74,7 @@ class FrameReader:
         self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
         self.nails, self._nail_detector = nails, None
         self.masks: List[Dict[int, Optional[tuple]]] = [{} for _ in roots]  # per sequence, per frame
+        self.hints: List[tuple] = [() for _ in roots]
         self._last: Optional[FrameRecord] = None
         self._detections: Dict[tuple, Optional[list]] = {}
 
@@ -88,10 +92,10 @@ class FrameReader:
             if g < info.frames:
                 try:
                     if self.depth and self.views == 1:
-                        depth, s = read_frame(root, info, g, seg)
+                        depth, s = read_frame(root, info, g, seg, self.hints[i])
                         view = depth
                     elif self.depth:
-                        view, s = read_rig_frame(root, info, g, seg)
+                        view, s = read_rig_frame(root, info, g, seg, self.hints[i])
                         depth = view[0]
                     if self.colour:
                         colour = [self._colour_view(i, c, g) for c in range(self.views)]
@@ -178,8 +182,9 @@ def read_colour(seq: SequenceLayout, camera: int, f: int, detections: Optional[l
     return ColourView(image, mask, salient)
 
 
-def read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig]):
-    """(depth mm of camera 0 with only the hands' pixels when segmented, segmentation or None)."""
+def read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig], hints: tuple = ()):
+    """(depth mm of camera 0 with only the hands' pixels when segmented, segmentation or
+    None); ``hints``: the segmentation's (:func:`hand_hints`)."""
     seq = SequenceLayout(root)
     path = seq.depth(f)
     depth = read_depth(path, info.depth_unit_mm)
@@ -188,12 +193,14 @@ def read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Segment
     rgb_path = seq.rgb(f)
     rgb = read_rgb(rgb_path) if segment.mode == "skin" and rgb_path.is_file() else None
     seg = segment_hands(depth, info.cameras[0], segment, frame=str(path), rgb=rgb,
-                        sides=model_sides(tuple(info.models)))
+                        sides=model_sides(tuple(info.models)), hints=hints)
     return seg.apply(depth), seg
 
 
-def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig]) -> tuple:
-    """(depth mm of every view, camera 0's segmentation or None) of a camera rig's frame.
+def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig], hints: tuple = ()
+                   ) -> tuple:
+    """(depth mm of every view, camera 0's segmentation or None) of a camera rig's frame
+    (``hints``: camera 0's, :func:`hand_hints`).
 
     Segmented, each view keeps its hands' pixels; a view in which no hand is found is
     all unknown (NaN), so it costs nothing, and the frame fails only when no view finds
@@ -206,7 +213,7 @@ def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Seg
     for c, depth in enumerate(views):
         try:
             sg = segment_hands(depth, info.cameras[c], segment, frame=str(seq.depth(f, c)),
-                               sides=model_sides(tuple(info.models)))
+                               sides=model_sides(tuple(info.models)), hints=hints if c == 0 else ())
             out.append(sg.apply(depth))
             segs.append(sg)
         except SegmentationError as err:
@@ -238,22 +245,44 @@ def segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[S
     return None
 
 
+def render_pose(scene: Scene, renderer, theta: torch.Tensor, cam) -> RenderResult:
+    """The render of a scene at one pose (D,) in ``cam`` (whole images, no normals)."""
+    with torch.no_grad():
+        return renderer(scene(theta[None]).vertices, cam, normals=False)
+
+
+def hand_hints(scene: Scene, rendered: RenderResult) -> tuple:
+    """Where a render (:func:`render_pose`) shows each hand of the scene: one (H, W) depth
+    map (mm, 0 elsewhere) per hand model, scene order, left out where a hand is not in
+    view; the localiser's hints for the next frame
+    (:meth:`~torchhand.salient.localiser.HandLocaliser.locate`)."""
+    ids, depth = rendered.model_id[0].cpu().numpy(), rendered.depth[0].cpu().numpy()
+    hints = []
+    for k, m in enumerate(scene.models):
+        if is_hand(m):
+            own = ids == k
+            if own.any():
+                hints.append(np.where(own, depth, 0).astype(np.float32))
+    return tuple(hints)
+
+
 def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
-             segmentation: Optional[Segmentation] = None) -> FitCheck:
+             segmentation: Optional[Segmentation] = None, rendered: Optional[RenderResult] = None) -> FitCheck:
     """The fit check of a scene at one pose (D,) against data (H, W) mm: the silhouette
     IoU and median depth residual, and, where the frame was segmented by the hand
     localiser, its independent measures (:func:`~torchhand.scoring.metrics.fit_check`;
     each hand model is compared with the located hand of its side, else the one in
     its place; with the blob rules deciding after a localiser found too little, its
-    classes still count)."""
-    with torch.no_grad():
-        posed = scene(theta[None])
-        model = renderer(posed.vertices, cam, normals=False).depth[0].cpu().numpy()
+    classes still count). ``rendered``: the pose's :func:`render_pose`, where the
+    caller has it."""
+    if rendered is None:
+        rendered = render_pose(scene, renderer, theta, cam)
+    model = rendered.depth[0].cpu().numpy()
     seg = segmentation
     if seg is None or seg.labels is None:
         return fit_check(model, data)
     with torch.no_grad():
-        joints = scene_standard_joints(scene, posed)[0]
+        joints = scene_standard_joints(scene, scene(theta[None]))[0]
         T = cam.T_cw.to(joints)
         uv = project_points(joints @ T[:3, :3].T + T[:3, 3], cam.K.to(joints)).cpu().numpy()
     hands = [m for m in scene.models if is_hand(m)]

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchhand.app.frames import FrameReader, hand_sides, pose_fit, segment_for_search, segment_of, unpack_masks
+from torchhand.app.frames import (FrameReader, hand_hints, hand_sides, pose_fit, render_pose, segment_for_search,
+                                  segment_of, unpack_masks)
 from torchhand.app.initialize import first_pose
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE, NAIL_SOURCES, REINIT_IOU, TrackOptions
 from torchhand.app.outputs import TrackedSequence, failed, write_sequence
@@ -34,9 +35,11 @@ from torchhand.tracking.tracker import FrameResult, Tracker, TrackerConfig
 __all__ = ["track_sequences", "track_chunk", "write_chunks", "TrackedChunk", "TrackOptions", "output_names",
            "energy_needs", "REINIT_IOU", "NAIL_SCORE", "NAIL_DETECTIONS", "NAIL_SOURCES"]
 
-#: What a term reads besides its images (``EnergyTerm.needs``), by the term's type: the
-#: nail term reads the colour views' nail detections (``salient.json`` or the shipped
-#: detector, which the runner provides: ``"salient"``).
+#: A frame's fit gives the next frame's localiser hints (``_Refit``) when it passes its
+#: fit check with at least this silhouette IoU.
+HINT_MIN_IOU = 0.5
+
+
 def track_sequences(roots: Sequence, out, options: TrackOptions = TrackOptions(), *,
                     names: Optional[Sequence[str]] = None, init_poses: Optional[Sequence] = None,
                     make_terms: Optional[Callable[[], List[EnergyTerm]]] = None, force: bool = False,
@@ -359,7 +362,10 @@ class _Refit:
     """After each frame: every sequence's fit quality (``quality[f][i]``: silhouette IoU,
     median depth residual) and, below ``reinit_iou``, its re-initialisation
     (``reinitialized[f][i]``); see :func:`track_sequences`. The frame's depth maps and
-    segmentations are the reader's record of the frame."""
+    segmentations are the reader's record of the frame. A fit that passes its check
+    (and has a silhouette IoU of :data:`HINT_MIN_IOU` or more) gives the localiser of
+    the next frame its hands as hints (:func:`~torchhand.app.frames.hand_hints`); a
+    failed one takes them back, so a wrong track does not hold the localiser to it."""
 
     def __init__(self, tracker: Tracker, scene: Scene, cams: list, frames: FrameReader,
                  initializer: Optional[Initializer], reinit_iou: float, search: List[SegmentConfig]):
@@ -370,8 +376,10 @@ class _Refit:
         self.quality: List[List[tuple]] = []
         self.reinitialized: List[List[bool]] = []
 
-    def fit(self, theta: torch.Tensor, i: int, data: np.ndarray, seg=None) -> FitCheck:
-        return pose_fit(self.scene, self.tracker.renderer, theta, self.cams[i], data, seg)
+    def fit(self, theta: torch.Tensor, i: int, data: np.ndarray, seg=None) -> tuple:
+        """(fit check, render) of problem ``i``'s pose."""
+        rendered = render_pose(self.scene, self.tracker.renderer, theta, self.cams[i])
+        return pose_fit(self.scene, self.tracker.renderer, theta, self.cams[i], data, seg, rendered), rendered
 
     def __call__(self, f: int, res: FrameResult) -> FrameResult:
         record = self.frames.record(f)
@@ -381,14 +389,17 @@ class _Refit:
             if depth is None or not bool(res.valid[i]):
                 quality.append(FitCheck(float("nan"), float("nan")))
                 flags.append(False)
+                self.frames.hints[i] = ()  # no fit, no hint: a hand that left is not looked for there
                 continue
             seg = record.segmentations[i]
             if seg is not None and seg.note and not notes[i]:
                 notes[i] = seg.note
             data = np.where(np.isnan(depth) | ((depth >= self.near) & (depth <= self.far)), depth, 0)
-            q, flag = self.fit(theta[i], i, data, seg), False
+            (q, rendered), flag = self.fit(theta[i], i, data, seg), False
             if self.initializer is not None and f > 0 and (q.iou < self.reinit_iou or q.flagged):
-                q, flag = self._reinitialise(i, depth, seg, data, theta, q, notes)
+                q, flag, rendered = self._reinitialise(i, depth, seg, data, theta, q, rendered, notes)
+            good = seg is not None and seg.labels is not None and not q.flagged and q.iou >= HINT_MIN_IOU
+            self.frames.hints[i] = hand_hints(self.scene, rendered) if good else ()
             quality.append(q)
             flags.append(flag)
         self.quality.append(quality)
@@ -396,12 +407,12 @@ class _Refit:
         return res._replace(theta=theta, notes=notes)
 
     def _reinitialise(self, i: int, depth: np.ndarray, seg, data: np.ndarray, theta: torch.Tensor, q: FitCheck,
-                      notes: list) -> tuple:
+                      rendered, notes: list) -> tuple:
         """The search around problem ``i``'s pose (seeded from the localiser's joints where
         it found them); its pose replaces ``theta[i]`` when it fits better: for a failed
         fit check, one that passes it or explains more of the localiser's hand and lies
         less off it; else a higher silhouette IoU.
-        Returns (fit check, re-initialised)."""
+        Returns (fit check, re-initialised, render of the pose kept)."""
         why = (f"fit check (keypoints {q.keypoint_mm:.0f} mm from the localiser's, {q.explained:.2f} of its hand "
                f"explained, {q.off_hand:.2f} off it)" if q.flagged else f"silhouette IoU {q.iou:.2f}")
         try:
@@ -410,8 +421,8 @@ class _Refit:
             new = self.initializer(depth, self.cams[i], seg, around=theta[i])
         except (SegmentationError, ValueError) as err:
             notes[i] = f"{why}; no re-initialisation: {err}"
-            return q, False
-        q2 = self.fit(new.theta.to(theta), i, data, seg)
+            return q, False, rendered
+        q2, rendered2 = self.fit(new.theta.to(theta), i, data, seg)
         by_check = q.flagged and np.isfinite(q.explained) and np.isfinite(q2.explained)
         better = ((not q2.flagged, q2.explained - q2.off_hand) > (False, q.explained - q.off_hand) if by_check
                   else q2.iou > q.iou)
@@ -420,5 +431,5 @@ class _Refit:
                     f"{q2.off_hand:.2f}" if by_check else f"silhouette IoU {q.iou:.2f} -> {q2.iou:.2f}")
             notes[i] = f"re-initialised ({why}): {what} ({new.seconds:.1f} s)"
             theta[i] = new.theta.to(theta)
-            return q2, True
-        return q, False
+            return q2, True, rendered2
+        return q, False, rendered

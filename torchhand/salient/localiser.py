@@ -18,6 +18,12 @@ The network sees depth (mm; 0 = no measurement) as two channels: absolute
 the frame pass, the hand's median for the crop pass), so one network serves both
 passes, at any distance. Its outputs are at stride 2 of its input.
 
+A tracker can give **hints**, where it expects a hand (the render of the pose it tracked
+in the previous frame): a hint that no hand found already covers gets a crop pass of its
+own, as a blob would. The crop pass sees the hand at several times the
+frame pass's resolution and finds hands the frame pass took for the body or missed
+(docs/localiser.md, "Hints").
+
 Handedness is read from the classes: a hand's pixels vote left or right with their
 class probabilities; the share of the winning side is its confidence. Joints are
 lifted to 3D with the sensor depth where it agrees with the predicted depth (the joint
@@ -34,7 +40,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import List, NamedTuple, Optional
+from typing import List, NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -59,6 +65,17 @@ JOINT_INSIDE_MM = 8.0
 ONNX_OUTPUTS = ["classes", "heat", "offset", "joint_depth"]
 #: Output stride of the network (input px per output cell).
 STRIDE = 2
+#: The hand classes' sides: class 1 + i is side i.
+_SIDES = ("left", "right")
+#: A hint's silhouette is widened by this many pixels (the hand's motion between frames),
+#: and its pixels farther than ``HINT_DEPTH_MM`` from its median depth are left out.
+HINT_DILATION_PX = 15
+HINT_DEPTH_MM = 150.0
+#: A hint gets a crop pass unless a hand found covers this share of its pixels (within
+#: HINT_DILATION_PX); a hand found through a hint is dropped when this share of its pixels
+#: belongs to a hand found already (:meth:`HandLocaliser._hint_blobs`,
+#: :meth:`HandLocaliser._add_hinted`).
+HINT_COVERED = 0.5
 
 
 def _shipped(name: str) -> Path:
@@ -231,6 +248,7 @@ class LocatedHand(NamedTuple):
         box: (r0, r1, c0, c1) the window of the crop pass.
         uv: (21, 2) image positions (px) of the standard joints; z: (21,) their depth
             (mm); confidence: (21,) the heat-map peak of each (0 .. 1).
+        hinted: found by the crop pass of a hint (the frame pass had no blob there).
     """
 
     side: str
@@ -241,6 +259,7 @@ class LocatedHand(NamedTuple):
     uv: np.ndarray
     z: np.ndarray
     confidence: np.ndarray
+    hinted: bool = False
 
     @property
     def model(self) -> str:
@@ -324,8 +343,13 @@ class HandLocaliser:
 
         return cls(forward, net.config, **kwargs)
 
-    def locate(self, depth: np.ndarray) -> Localisation:
-        """Classes and hands of one (H, W) depth frame in mm (0 = no measurement)."""
+    def locate(self, depth: np.ndarray, hints: Sequence[np.ndarray] = ()) -> Localisation:
+        """Classes and hands of one (H, W) depth frame in mm (0 = no measurement).
+
+        ``hints``: (H, W) depth maps (mm, 0 where none) of where hands are expected, e.g.
+        a tracker's render of each hand at its previous pose; a hint that no hand found
+        from the frame pass's blobs covers gets a crop pass of its own
+        (:meth:`_hint_blobs`, :meth:`_add_hinted`)."""
         depth = np.asarray(depth)
         if depth.ndim != 2:
             raise ValueError(f"depth must be one (H, W) frame in mm, got shape {depth.shape} (colour given as depth?)")
@@ -336,19 +360,89 @@ class HandLocaliser:
         valid = d[d > 0]
         if len(valid) and float(np.median(valid)) < 20.0:
             raise ValueError(f"depth looks like metres (median {float(np.median(valid)):.3g}): expected millimetres")
-        H, W = d.shape
         labels = np.where(d > 0, self._frame_pass(d), 0).astype(np.uint8)
-        comps = self._components(labels)
-        windows = [self._window(d, comp, box) for comp, box in comps]
-        hands = []
-        if windows:  # every blob's window in one batch
-            outs = self._forward(np.stack([w[0] for w in windows])[:, None], np.array([w[1] for w in windows]))
-            for i, ((comp, _), (_, ref, side, r0, c0)) in enumerate(zip(comps, windows)):
-                hand = self._crop_pass(d, comp, labels, [o[i] for o in outs], ref, side, r0, c0)
-                if hand is not None:
-                    hands.append(hand)
+        hands = self._hands(d, self._components(labels))
+        for h in hands:
+            labels[h.mask] = 1 + _SIDES.index(h.side)
+        blobs, merged = self._hint_blobs(d, hints, hands)
+        for hand in self._hands(d, blobs, within=True):
+            new = hand._replace(hinted=True)
+            hands = self._add_hinted(hands, new, merged)
+            if hands[-1] is new:
+                labels[new.mask] = 1 + _SIDES.index(new.side)
         hands.sort(key=lambda h: -h.score * h.mask.sum() ** 0.25)
         return Localisation(labels, hands[: self.max_hands])
+
+    def _hands(self, d: np.ndarray, comps: List[tuple], within: bool = False) -> List[LocatedHand]:
+        """The hands of blobs ``comps`` (:meth:`_components`): every blob's window in one
+        batch through the crop pass; ``within``: each hand's pixels inside its blob only (a
+        hint's blob: a hand touching another is cut from it there)."""
+        if not comps:
+            return []
+        windows = [self._window(d, comp, box) for comp, box in comps]
+        outs = self._forward(np.stack([w[0] for w in windows])[:, None], np.array([w[1] for w in windows]))
+        hands = []
+        for i, ((comp, _), (_, ref, side, r0, c0)) in enumerate(zip(comps, windows)):
+            hand = self._crop_pass(d, comp, [o[i] for o in outs], ref, side, r0, c0, within)
+            if hand is not None:
+                hands.append(hand)
+        return hands
+
+    def _hint_blobs(self, d: np.ndarray, hints: Sequence[np.ndarray], hands: List[LocatedHand]) -> tuple:
+        """(the blobs, as :meth:`_components` gives them, of the hints that no hand of
+        ``hands`` covers, or that one hand covers with another hint (two hands found as
+        one); the ids of those hands). A blob is the hint's silhouette widened by
+        :data:`HINT_DILATION_PX`, its measured pixels within :data:`HINT_DEPTH_MM` of the
+        hint's median depth. A hand covers a hint when :data:`HINT_COVERED` of the
+        hint's pixels lie within :data:`HINT_DILATION_PX` of it."""
+        H, W = d.shape
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * HINT_DILATION_PX + 1,) * 2)
+        found = []
+        for k, hint in enumerate(hints):
+            hint = np.asarray(hint, np.float32)
+            if hint.shape != d.shape:
+                raise ValueError(f"hints[{k}] has shape {hint.shape}, the depth {d.shape}")
+            seen = hint > 0
+            n_seen = int(seen.sum())
+            if not n_seen:
+                continue
+            rows, cols = np.flatnonzero(seen.any(1)), np.flatnonzero(seen.any(0))  # the work: the hint's box
+            r0, r1 = max(int(rows[0]) - HINT_DILATION_PX, 0), min(int(rows[-1]) + HINT_DILATION_PX + 1, H)
+            c0, c1 = max(int(cols[0]) - HINT_DILATION_PX, 0), min(int(cols[-1]) + HINT_DILATION_PX + 1, W)
+            box = seen[r0:r1, c0:c1]
+            cover = [id(h) for h in hands if (box & (cv2.dilate(h.mask[r0:r1, c0:c1].view(np.uint8), kernel) > 0)
+                                              ).sum() >= HINT_COVERED * n_seen]
+            z, win = float(np.median(hint[seen])), d[r0:r1, c0:c1]
+            comp = np.zeros(d.shape, bool)
+            comp[r0:r1, c0:c1] = ((cv2.dilate(box.view(np.uint8), kernel) > 0) & (np.abs(win - z) <= HINT_DEPTH_MM)
+                                  & (win > 0))
+            found.append((cover, comp))
+        covers = [c for cover, _ in found for c in cover]
+        merged = {c for c in covers if covers.count(c) >= 2}
+        out = []
+        for cover, comp in found:
+            if (not cover or merged & set(cover)) and comp.sum() >= self.min_hand_px:
+                rows, cols = np.flatnonzero(comp.any(1)), np.flatnonzero(comp.any(0))
+                out.append((comp, (int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1),
+                                   int(cols[-1] - cols[0] + 1))))
+        return out, merged
+
+    def _add_hinted(self, hands: List[LocatedHand], new: LocatedHand, merged: set) -> List[LocatedHand]:
+        """``hands`` with a hand found through a hint: left out when :data:`HINT_COVERED`
+        of it belongs to a hand found already, unless that hand covered two hints
+        (``merged``, ids): then it gives up the new hand's pixels, and is dropped when
+        fewer than ``min_hand_px`` remain."""
+        out = []
+        for h in hands:
+            if (h.mask & new.mask).sum() >= HINT_COVERED * new.mask.sum():
+                if id(h) not in merged:
+                    return hands
+                h = h._replace(mask=h.mask & ~new.mask)
+                if h.mask.sum() < self.min_hand_px:
+                    continue
+                merged = merged | {id(h)}
+            out.append(h)
+        return out + [new]
 
     def _frame_pass(self, d: np.ndarray) -> np.ndarray:
         """(H, W) the most probable class of each pixel, from the reduced frame (its
@@ -402,9 +496,10 @@ class HandLocaliser:
         ref = np.float32(np.median(zs) if len(zs) else np.median(x[x > 0]) if (x > 0).any() else 600.0)
         return x, ref, side, r0, c0
 
-    def _crop_pass(self, d: np.ndarray, comp: np.ndarray, frame_labels: np.ndarray, out: list, ref: np.float32,
-                   side: int, r0: int, c0: int) -> Optional[LocatedHand]:
-        """The hand of a blob from the network's outputs ``out`` on its window."""
+    def _crop_pass(self, d: np.ndarray, comp: np.ndarray, out: list, ref: np.float32,
+                   side: int, r0: int, c0: int, within: bool = False) -> Optional[LocatedHand]:
+        """The hand of a blob from the network's outputs ``out`` on its window (its
+        pixels connected to the blob; ``within``: inside it)."""
         H, W = d.shape
         sr, sc = slice(max(r0, 0), min(r0 + side, H)), slice(max(c0, 0), min(c0 + side, W))
         classes, heat, offset, dz = out
@@ -424,12 +519,13 @@ class HandLocaliser:
         n, lab = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
         keep = np.unique(lab[mask & comp])
         mask &= np.isin(lab, keep[keep > 0])
+        if within:
+            mask &= comp
         if mask.sum() < self.min_hand_px:
             return None
         uv, z = uv.astype(np.float32), self._lift(d, mask, uv, z).astype(np.float32)
         score = float(hand_p[mask[sr, sc]].mean())
-        frame_labels[mask] = 1 + k
-        return LocatedHand(("left", "right")[k], handedness, score, mask, (r0, r0 + side, c0, c0 + side), uv, z,
+        return LocatedHand(_SIDES[k], handedness, score, mask, (r0, r0 + side, c0, c0 + side), uv, z,
                            conf.astype(np.float32))
 
     def _joints(self, heat, offset, dz, own: np.ndarray, ref: float, side: int, r0: int, c0: int) -> tuple:

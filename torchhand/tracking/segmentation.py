@@ -185,14 +185,17 @@ def _skin_blobs(d: np.ndarray, valid: np.ndarray, rgb: Optional[np.ndarray], han
 
 def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = SegmentConfig(),
                   frame: Optional[str] = None, rgb: Optional[np.ndarray] = None, sides: Sequence[str] = (),
-                  localiser=None) -> Segmentation:
+                  localiser=None, hints: Sequence[np.ndarray] = ()) -> Segmentation:
     """Segment the hands of one depth map (H, W) in mm (0 = no measurement).
 
     ``frame`` names the frame in error messages; ``rgb``: the (H, W, 3) uint8 colour
     frame, needed by ``mode="skin"``; ``sides``: the scene's hands (``"left"`` /
     ``"right"``, one per hand model) that the localiser looks for; ``localiser``: a
     :class:`~torchhand.salient.localiser.HandLocaliser` (default: the shipped one,
-    loaded once per process). Raises :class:`SegmentationError` when no hand is found,
+    loaded once per process); ``hints``: (H, W) depth maps of where the hands are
+    expected (the previous frame's tracked hands, rendered), where the localiser looks
+    again (:meth:`~torchhand.salient.localiser.HandLocaliser.locate`). Raises
+    :class:`SegmentationError` when no hand is found,
     or (``strict``) when more blobs than hands stand in front.
     """
     where = f"{frame}: " if frame else ""
@@ -215,7 +218,7 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     fx, fy = camera.fx, camera.fy
     note, labels = "", None
     if config.mode == "auto":
-        found = locate_hands(d, camera, config, sides, localiser, where)
+        found = locate_hands(d, camera, config, sides, localiser, where, hints)
         if found.source == "localiser":
             return found
         note = f"the hand localiser found no hand scoring {config.min_score:g} or more; the blob rules decided"
@@ -448,7 +451,7 @@ def _forearm_direction(blob: np.ndarray, cut: np.ndarray, labels: np.ndarray, d:
 
 
 def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Sequence[str] = (),
-                 localiser=None, where: str = "") -> Segmentation:
+                 localiser=None, where: str = "", hints: Sequence[np.ndarray] = ()) -> Segmentation:
     """The localiser's segmentation of a range-clipped depth map ``d`` (see the module).
 
     Raises :class:`SegmentationError` when it finds no hand at all (a frame of body,
@@ -456,7 +459,7 @@ def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Se
     its hands all score below ``config.min_score``, returns an empty segmentation of
     ``source="none"`` holding only its ``labels`` (the caller's blob rules decide).
     """
-    loc = (localiser or shared_localiser()).locate(d)
+    loc = (localiser or shared_localiser()).locate(d, hints)
     labels = np.where(d > 0, loc.labels, 255).astype(np.uint8)
     if not loc.hands:
         raise SegmentationError(f"{where}the hand localiser found no hand in view (--segment blobs takes the "
