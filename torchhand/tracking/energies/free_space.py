@@ -113,7 +113,7 @@ class FreeSpace(VertexPixelTerm):
 
     def prepare(self, state: TrackState) -> PixelPairs:
         scene, B, dev, dt, data, p = begin(state, self, self._build)
-        depth, nearest, distance = data.depth[p], data.nearest[p], data.distance[p]
+        depth = data.depth[p]  # the pairs' nearest pixels are gathered below, not whole maps copied
         r0, c0 = data.origin
         h, w = depth.shape[1:]
         rend = window(state.render, (r0, r0 + h, c0, c0 + w))  # the data side's box
@@ -127,8 +127,8 @@ class FreeSpace(VertexPixelTerm):
         model = torch.arange(K, device=dev).repeat_interleave(M)[None].expand(B, -1)
         b = torch.arange(B, device=dev)[:, None]
         pr, pc = pos // w, pos % w
-        q = nearest[b, model, pr, pc]  # (B, K M, 2) image (row, col)
-        dist = distance[b, model, pr, pc].to(dt)
+        q = data.nearest[p[:, None], model, pr, pc]  # (B, K M, 2) image (row, col)
+        dist = data.distance[p[:, None], model, pr, pc].to(dt)
         rc = torch.stack([pr + r0, pc + c0], -1)
         keep = slot & (dist <= self.radius) & (dist > self.tolerance)
         gap = (rc - q).to(dt)  # (row, col) from the data pixel to the free one
