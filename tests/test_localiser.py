@@ -278,13 +278,14 @@ def test_hints_find_the_hands_the_frame_pass_missed():
 @pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
 def test_the_runner_hints_the_frame_after_a_good_fit(tmp_path, monkeypatch):
     """Tracked with ``--segment auto``, each frame after a fit that passes its check is
-    segmented with the tracked hand's render as a hint."""
+    segmented with the tracked hand's render as a hint, in every view of a rig."""
+    import dataclasses
     import json
 
     import torchhand.app.frames as frames_module
     from torchhand.app.runner import TrackOptions, track_sequences
     from torchhand.data.layout import read_poses
-    from torchhand.data.synth import SyntheticFrames, demo_motion, write_synthetic_sequence
+    from torchhand.data.synth import SyntheticFrames, demo_motion, with_camera_ring, write_synthetic_sequence
     from torchhand.model.scene import Scene
 
     demo = demo_motion(slice(0, 4))
@@ -302,6 +303,15 @@ def test_the_runner_hints_the_frame_after_a_good_fit(tmp_path, monkeypatch):
     monkeypatch.setattr(frames_module, "segment_hands", spy)
     track_sequences([seq], tmp_path / "out", TrackOptions(segment=SegmentConfig(mode="auto")), progress=False)
     assert given[0] == [] and all(g == [(480, 640)] for g in given[1:4]), given
+    # a rig of two depth cameras: each view is hinted with the hand as that camera sees it
+    ring = with_camera_ring(dataclasses.replace(frames, name="hinted_rig"), 2)
+    rig = write_synthetic_sequence(ring, tmp_path / "rig", noise="kinect", colour="shaded", depth=True,
+                                   progress=False)
+    (rig / "init_pose.json").write_text((seq / "init_pose.json").read_text())
+    given.clear()
+    track_sequences([rig], tmp_path / "out_rig", TrackOptions(segment=SegmentConfig(mode="auto")), progress=False)
+    assert len(given) == 8 and given[:2] == [[], []], given
+    assert all(g == [(480, 640)] for g in given[2:]), given
 
 
 def test_localiser_refuses_depth_it_cannot_read():

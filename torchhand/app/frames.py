@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from functools import lru_cache
 from pathlib import Path
-from typing import Dict, Iterator, List, NamedTuple, Optional
+from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -17,7 +17,7 @@ import torch
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb
 from torchhand.geometry.camera import project_points
-from torchhand.geometry.render import RenderResult
+from torchhand.geometry.render import RenderResult, window_map
 from torchhand.model.joints21 import is_hand, scene_standard_joints
 from torchhand.model.scene import Scene
 from torchhand.salient import SalientDetector
@@ -61,8 +61,9 @@ class FrameReader:
     every frame's segmentation masks are kept (packed) for the overlays (:meth:`masks_of`).
     ``first``: frame ``f`` of the reader is frame ``first + f`` of the sequences (a
     chunk of a sequence; records, masks and ``n_frames`` count from it). ``hints[i]``:
-    where sequence ``i``'s hands are expected in camera 0 (:func:`hand_hints` of the
-    previous frame's fit, set by the runner; empty: none), passed to the segmentation.
+    where sequence ``i``'s hands are expected, one tuple per camera (:func:`hand_hints`
+    of the previous frame's fit, set by the runner; empty: none), passed to the
+    segmentation of each view.
     """
 
     def __init__(self, roots: List[Path], infos: List[SequenceInfo], n_frames: int,
@@ -74,7 +75,7 @@ class FrameReader:
         self.keep_masks, self.views, self.depth, self.colour = keep_masks, views, depth, colour
         self.nails, self._nail_detector = nails, None
         self.masks: List[Dict[int, Optional[tuple]]] = [{} for _ in roots]  # per sequence, per frame
-        self.hints: List[tuple] = [() for _ in roots]
+        self.hints: List[list] = [[] for _ in roots]
         self._last: Optional[FrameRecord] = None
         self._detections: Dict[tuple, Optional[list]] = {}
 
@@ -92,7 +93,7 @@ class FrameReader:
             if g < info.frames:
                 try:
                     if self.depth and self.views == 1:
-                        depth, s = read_frame(root, info, g, seg, self.hints[i])
+                        depth, s = read_frame(root, info, g, seg, self.hints[i][0] if self.hints[i] else ())
                         view = depth
                     elif self.depth:
                         view, s = read_rig_frame(root, info, g, seg, self.hints[i])
@@ -197,10 +198,10 @@ def read_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Segment
     return seg.apply(depth), seg
 
 
-def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig], hints: tuple = ()
+def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[SegmentConfig], hints: Sequence = ()
                    ) -> tuple:
     """(depth mm of every view, camera 0's segmentation or None) of a camera rig's frame
-    (``hints``: camera 0's, :func:`hand_hints`).
+    (``hints``: each camera's, :func:`hand_hints`; empty: none).
 
     Segmented, each view keeps its hands' pixels; a view in which no hand is found is
     all unknown (NaN), so it costs nothing, and the frame fails only when no view finds
@@ -213,7 +214,7 @@ def read_rig_frame(root: Path, info: SequenceInfo, f: int, segment: Optional[Seg
     for c, depth in enumerate(views):
         try:
             sg = segment_hands(depth, info.cameras[c], segment, frame=str(seq.depth(f, c)),
-                               sides=model_sides(tuple(info.models)), hints=hints if c == 0 else ())
+                               sides=model_sides(tuple(info.models)), hints=hints[c] if c < len(hints) else ())
             out.append(sg.apply(depth))
             segs.append(sg)
         except SegmentationError as err:
@@ -251,12 +252,17 @@ def render_pose(scene: Scene, renderer, theta: torch.Tensor, cam) -> RenderResul
         return renderer(scene(theta[None]).vertices, cam, normals=False)
 
 
-def hand_hints(scene: Scene, rendered: RenderResult) -> tuple:
-    """Where a render (:func:`render_pose`) shows each hand of the scene: one (H, W) depth
-    map (mm, 0 elsewhere) per hand model, scene order, left out where a hand is not in
-    view; the localiser's hints for the next frame
+def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = None) -> tuple:
+    """Where a render (:func:`render_pose`; its box only with ``crop``, then ``shape``
+    (H, W) is the image's) shows each hand of the scene: one (H, W) depth map (mm, 0
+    elsewhere) per hand model, scene order, left out where a hand is not in view; the
+    localiser's hints for the next frame
     (:meth:`~torchhand.salient.localiser.HandLocaliser.locate`)."""
-    ids, depth = rendered.model_id[0].cpu().numpy(), rendered.depth[0].cpu().numpy()
+    ids, depth = rendered.model_id[0], rendered.depth[0]
+    if rendered.origin is not None:
+        box = (0, shape[0], 0, shape[1])
+        ids, depth = window_map(ids, rendered.origin, box, -1), window_map(depth, rendered.origin, box, 0)
+    ids, depth = ids.cpu().numpy(), depth.cpu().numpy()
     hints = []
     for k, m in enumerate(scene.models):
         if is_hand(m):

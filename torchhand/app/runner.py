@@ -24,6 +24,7 @@ from torchhand.app.frames import (FrameReader, hand_hints, hand_sides, pose_fit,
 from torchhand.app.initialize import first_pose
 from torchhand.app.options import NAIL_DETECTIONS, NAIL_SCORE, NAIL_SOURCES, REINIT_IOU, TrackOptions
 from torchhand.app.outputs import TrackedSequence, failed, write_sequence
+from torchhand.core.check import skip_checks
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb, read_sequence_info
 from torchhand.model.scene import Scene
 from torchhand.scoring.metrics import FitCheck
@@ -231,7 +232,7 @@ def _track_frames(run: _Run, models: list, V: int, members: List[int], terms: Op
                          keep_masks=opt.viz, views=V, depth="depth" in needs, colour="colour" in needs,
                          nails=opt.nails if "salient" in needs else None, first=first)
     refit = _Refit(tracker, scene, cams, frames, initializer if opt.reinit_iou > 0 else None, opt.reinit_iou,
-                   [segment_for_search(segs[i], scene) for i in range(len(members))])
+                   [segment_for_search(segs[i], scene) for i in range(len(members))], rigs)
     bar = tqdm(total=n_frames * len(members), desc=f"track {'+'.join(models)}", unit="frame",
                disable=not run.progress)
     results: List[FrameResult] = []
@@ -364,17 +365,31 @@ class _Refit:
     (``reinitialized[f][i]``); see :func:`track_sequences`. The frame's depth maps and
     segmentations are the reader's record of the frame. A fit that passes its check
     (and has a silhouette IoU of :data:`HINT_MIN_IOU` or more) gives the localiser of
-    the next frame its hands as hints (:func:`~torchhand.app.frames.hand_hints`); a
-    failed one takes them back, so a wrong track does not hold the localiser to it."""
+    the next frame its hands as hints, in every view of a rig (``rigs``;
+    :func:`~torchhand.app.frames.hand_hints`); a failed one takes them back, so a wrong
+    track does not hold the localiser to it."""
 
     def __init__(self, tracker: Tracker, scene: Scene, cams: list, frames: FrameReader,
-                 initializer: Optional[Initializer], reinit_iou: float, search: List[SegmentConfig]):
-        self.tracker, self.scene, self.cams, self.frames = tracker, scene, cams, frames
+                 initializer: Optional[Initializer], reinit_iou: float, search: List[SegmentConfig],
+                 rigs: Optional[list] = None):
+        self.tracker, self.scene, self.cams, self.frames, self.rigs = tracker, scene, cams, frames, rigs
         self.initializer, self.reinit_iou, self.search = initializer, reinit_iou, search
         pre = tracker.config.preprocess
         self.near, self.far = pre.near, pre.far
         self.quality: List[List[tuple]] = []
         self.reinitialized: List[List[bool]] = []
+
+    def _hints(self, i: int, theta: torch.Tensor, rendered) -> list:
+        """Problem ``i``'s hints for the next frame, one tuple per camera: camera 0's from
+        the fit's render, the rig's other views' from a render of their hands' box."""
+        hints = [hand_hints(self.scene, rendered)]
+        if self.rigs is not None and len(self.rigs[i]) > 1:
+            with torch.no_grad(), skip_checks():
+                vertices = self.scene(theta[None]).vertices
+                for cam in self.rigs[i][1:]:
+                    view = self.tracker.renderer(vertices, cam, normals=False, crop=True)
+                    hints.append(hand_hints(self.scene, view, (cam.height, cam.width)))
+        return hints
 
     def fit(self, theta: torch.Tensor, i: int, data: np.ndarray, seg=None) -> tuple:
         """(fit check, render) of problem ``i``'s pose."""
@@ -389,7 +404,7 @@ class _Refit:
             if depth is None or not bool(res.valid[i]):
                 quality.append(FitCheck(float("nan"), float("nan")))
                 flags.append(False)
-                self.frames.hints[i] = ()  # no fit, no hint: a hand that left is not looked for there
+                self.frames.hints[i] = []  # no fit, no hint: a hand that left is not looked for there
                 continue
             seg = record.segmentations[i]
             if seg is not None and seg.note and not notes[i]:
@@ -399,7 +414,7 @@ class _Refit:
             if self.initializer is not None and f > 0 and (q.iou < self.reinit_iou or q.flagged):
                 q, flag, rendered = self._reinitialise(i, depth, seg, data, theta, q, rendered, notes)
             good = seg is not None and seg.labels is not None and not q.flagged and q.iou >= HINT_MIN_IOU
-            self.frames.hints[i] = hand_hints(self.scene, rendered) if good else ()
+            self.frames.hints[i] = self._hints(i, theta[i], rendered) if good else []
             quality.append(q)
             flags.append(flag)
         self.quality.append(quality)
