@@ -240,6 +240,22 @@ class RayCaster:
                                                     self.row_split)
         return Hits(face, t, bary, nrm)
 
+    def depth(self, vertices: torch.Tensor, views: Views) -> torch.Tensor:
+        """(B x C, H, W) float32 depth (mm; 0: none) of (B, V, 3) world-frame vertices in
+        every view: with ``"warp"`` the rasteriser's depth test alone (the face's plane
+        at the pixel centre, in float32: :func:`~torchhand.geometry.warp_kernels.
+        rasterize_depth`), else the exact hits' depth."""
+        if self.backend != "warp" or self.faces.shape[0] == 0:
+            return self(vertices, views).t
+        from torchhand.geometry import warp_kernels
+
+        vertices = vertices.to(torch.float32)
+        b = projected_boxes(vertices, views)
+        box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
+        return warp_kernels.rasterize_depth(vertices, self._faces_int32(vertices.device), views.intrinsics,
+                                            views.rotation, views.translation, views.views, views.height,
+                                            views.width, self.cull_back_faces, box)
+
     def _warp_raycast(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor]) -> Hits:
         from torchhand.geometry import warp_kernels
 

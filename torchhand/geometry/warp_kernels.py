@@ -530,6 +530,36 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     return face, t, bary, nrm
 
 
+def rasterize_depth(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Tensor, rotations: torch.Tensor,
+                    translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool,
+                    box: tuple) -> torch.Tensor:
+    """(B x ``views``, H, W) float32 depth (mm; 0: none) of the nearest face at each pixel
+    centre of ``box``, as :func:`rasterize`'s depth test finds it: the face's plane met
+    by the pixel's ray in float32, read from the z-buffer, without the exact float64 hit,
+    the ids or the barycentrics (arguments as :func:`rasterize`)."""
+    wp = _warp()
+    raster_kernel = _kernels()[3]
+    N = vertices.shape[0] * views
+    dev = vertices.device
+    r0, r1, c0, c1 = clamp_box(box, height, width)
+    depth = torch.zeros(N, height, width, dtype=torch.float32, device=dev)
+    if r1 == r0 or c1 == c0 or faces.shape[0] == 0:
+        return depth
+    zbuf = torch.full((N, r1 - r0, c1 - c0), EMPTY_KEY, dtype=torch.int64, device=dev)
+    with on_torch_stream(dev):
+        wp.launch(raster_kernel, dim=(N, faces.shape[0]),
+                  inputs=[wp.from_torch(vertices.to(torch.float32).contiguous(), dtype=wp.vec3),
+                          wp.from_torch(faces.contiguous()), wp.from_torch(intrinsics.contiguous()),
+                          wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
+                          wp.from_torch(translations.contiguous(), dtype=wp.vec3), views,
+                          intrinsics.shape[0] // views, int(cull_back_faces), r0, r1, c0, c1],
+                  outputs=[wp.from_torch(zbuf)], device=wp_device(dev))
+    # a key's high word holds the depth's float32 bits (the depth test orders them as integers)
+    z = (zbuf >> 32).to(torch.int32).view(torch.float32)
+    depth[:, r0:r1, c0:c1] = torch.where(zbuf == EMPTY_KEY, torch.zeros_like(z), z)
+    return depth
+
+
 def row_split_of(device: torch.device, width: int, split: Optional[int] = None) -> int:
     """Threads per box row of the pixel kernels: ``split`` (clamped to [1, width]), or
     when None, one on a CPU (a loop over the row) and one per pixel on a GPU. Every

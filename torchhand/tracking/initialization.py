@@ -20,7 +20,9 @@ Used when a sequence has no ``init_pose.json`` (``torchhand track``) and by
    seeds over FORTH's depth-discrepancy objective: the rendered depth of each particle
    against the segmented data at a low resolution (the blob's box at ``resolution`` px),
    ``mean over the union of both silhouettes of min(|d_model - d_data|, clamp) / clamp``
-   (a pixel in one silhouette only costs 1). All particles are rendered as one batch;
+   (a pixel in one silhouette only costs 1). All particles are rendered as one batch,
+   depth only (:meth:`~torchhand.geometry.render.Renderer.depth`: the rasteriser's depth
+   test, without the exact hits and maps the tracker needs);
 3. the best ``refine`` distinct particles are refined by the tracker's own objective
    (Algorithm 1, ``refine_iterations`` iterations, one batch) and the one with the
    lowest discrepancy at full resolution is kept, unless it is more than
@@ -318,9 +320,8 @@ class Initializer:
                  ) -> torch.Tensor:
             th = scene.clamp(pos.reshape(-1, D).to(dev, dt))
             with torch.no_grad(), skip_checks():
-                verts = models(th, validate=False).vertices
-                rend = renderer(verts, cam, normals=False)
-            return depth_discrepancy(rend.depth, data, config.clamp_mm).double().cpu().reshape(pos.shape[:2])
+                depth = renderer.depth(models(th, validate=False).vertices, cam)  # the depth test's depth alone
+            return depth_discrepancy(depth, data, config.clamp_mm).double().cpu().reshape(pos.shape[:2])
 
         picks, swarm_costs = [], []
         for r in range(config.restarts):  # independent swarms, their picks refined together
