@@ -243,18 +243,24 @@ class RayCaster:
     def depth(self, vertices: torch.Tensor, views: Views) -> torch.Tensor:
         """(B x C, H, W) float32 depth (mm; 0: none) of (B, V, 3) world-frame vertices in
         every view: with ``"warp"`` the rasteriser's depth test alone (the face's plane
-        at the pixel centre, in float32: :func:`~torchhand.geometry.warp_kernels.
-        rasterize_depth`), else the exact hits' depth."""
+        at the pixel centre, in float32, from :func:`~torchhand.geometry.warp_kernels.
+        zbuffer`), else the exact hits' depth."""
         if self.backend != "warp" or self.faces.shape[0] == 0:
             return self(vertices, views).t
         from torchhand.geometry import warp_kernels
 
         vertices = vertices.to(torch.float32)
         b = projected_boxes(vertices, views)
-        box = (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()))
-        return warp_kernels.rasterize_depth(vertices, self._faces_int32(vertices.device), views.intrinsics,
-                                            views.rotation, views.translation, views.views, views.height,
-                                            views.width, self.cull_back_faces, box)
+        r0, r1, c0, c1 = clamp_box((int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max())),
+                                   views.height, views.width)
+        depth = vertices.new_zeros(vertices.shape[0] * views.views, views.height, views.width)
+        if r1 > r0 and c1 > c0:
+            zbuf, _ = warp_kernels.zbuffer(vertices, self._faces_int32(vertices.device), views.intrinsics,
+                                           views.rotation, views.translation, views.views, self.cull_back_faces,
+                                           (r0, r1, c0, c1))
+            z = (zbuf >> 32).to(torch.int32).view(torch.float32)  # a key's high word: the depth's bits
+            depth[:, r0:r1, c0:c1] = torch.where(zbuf == warp_kernels.EMPTY_KEY, torch.zeros_like(z), z)
+        return depth
 
     def _warp_raycast(self, vertices: torch.Tensor, views: Views, slots: Optional[torch.Tensor]) -> Hits:
         from torchhand.geometry import warp_kernels

@@ -500,12 +500,11 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
         (B x views, H, W, 3) float32 (0: none) or None. H x W is h x w with ``crop``.
     """
     wp = _warp()
-    _, _, _, raster_kernel, resolve_kernel, _ = _kernels()
+    resolve_kernel = _kernels()[4]
     N = vertices.shape[0] * views
     dev = vertices.device
     r0, r1, c0, c1 = clamp_box(box, height, width)
     h, w = r1 - r0, c1 - c0
-    cam_batch = intrinsics.shape[0] // views
     H, W = (h, w) if crop else (height, width)
     face = torch.full((N, H, W), -1, dtype=torch.int64, device=dev)
     t = torch.zeros(N, H, W, dtype=torch.float32, device=dev)
@@ -513,51 +512,35 @@ def rasterize(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Ten
     nrm = torch.zeros(N, H, W, 3, dtype=torch.float32, device=dev) if normals else None
     if h == 0 or w == 0 or faces.shape[0] == 0:
         return face, t, bary, nrm
-    zbuf = torch.full((N, h, w), EMPTY_KEY, dtype=torch.int64, device=dev)
-    args = [wp.from_torch(vertices.contiguous(), dtype=wp.vec3), wp.from_torch(faces.contiguous()),
-            wp.from_torch(intrinsics.contiguous()), wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
-            wp.from_torch(translations.contiguous(), dtype=wp.vec3), views, cam_batch]
-    device = wp_device(dev)
+    zbuf, args = zbuffer(vertices, faces, intrinsics, rotations, translations, views, cull_back_faces,
+                          (r0, r1, c0, c1))
     out_r, out_c = (0, 0) if crop else (r0, c0)
     with on_torch_stream(dev):
-        wp.launch(raster_kernel, dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
-                  outputs=[wp.from_torch(zbuf)], device=device)
         split = row_split_of(dev, w, row_split)
         wp.launch(resolve_kernel, dim=(N, h, split),
                   inputs=[wp.from_torch(zbuf)] + args + [r0, c0, out_r, out_c, int(normals), split],
                   outputs=[wp.from_torch(face), wp.from_torch(t), wp.from_torch(bary),
-                           wp.from_torch(nrm if normals else bary.new_zeros(1, 1, 1, 3))], device=device)
+                           wp.from_torch(nrm if normals else bary.new_zeros(1, 1, 1, 3))], device=wp_device(dev))
     return face, t, bary, nrm
 
 
-def rasterize_depth(vertices: torch.Tensor, faces: torch.Tensor, intrinsics: torch.Tensor, rotations: torch.Tensor,
-                    translations: torch.Tensor, views: int, height: int, width: int, cull_back_faces: bool,
-                    box: tuple) -> torch.Tensor:
-    """(B x ``views``, H, W) float32 depth (mm; 0: none) of the nearest face at each pixel
-    centre of ``box``, as :func:`rasterize`'s depth test finds it: the face's plane met
-    by the pixel's ray in float32, read from the z-buffer, without the exact float64 hit,
-    the ids or the barycentrics (arguments as :func:`rasterize`)."""
+def zbuffer(vertices, faces, intrinsics, rotations, translations, views: int, cull_back_faces: bool,
+            box: tuple) -> tuple:
+    """The depth test of :func:`rasterize` (its arguments) over the clamped, non-empty
+    ``box``: the (N, h, w) int64 z-buffer of keys, each the float32 bits of the nearest
+    face's depth at the pixel centre in its high word and the face in its low word
+    (``EMPTY_KEY``: none), and the Warp arguments the kernels share."""
     wp = _warp()
-    raster_kernel = _kernels()[3]
-    N = vertices.shape[0] * views
-    dev = vertices.device
-    r0, r1, c0, c1 = clamp_box(box, height, width)
-    depth = torch.zeros(N, height, width, dtype=torch.float32, device=dev)
-    if r1 == r0 or c1 == c0 or faces.shape[0] == 0:
-        return depth
+    r0, r1, c0, c1 = box
+    N, dev = vertices.shape[0] * views, vertices.device
     zbuf = torch.full((N, r1 - r0, c1 - c0), EMPTY_KEY, dtype=torch.int64, device=dev)
+    args = [wp.from_torch(vertices.to(torch.float32).contiguous(), dtype=wp.vec3), wp.from_torch(faces.contiguous()),
+            wp.from_torch(intrinsics.contiguous()), wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
+            wp.from_torch(translations.contiguous(), dtype=wp.vec3), views, intrinsics.shape[0] // views]
     with on_torch_stream(dev):
-        wp.launch(raster_kernel, dim=(N, faces.shape[0]),
-                  inputs=[wp.from_torch(vertices.to(torch.float32).contiguous(), dtype=wp.vec3),
-                          wp.from_torch(faces.contiguous()), wp.from_torch(intrinsics.contiguous()),
-                          wp.from_torch(rotations.contiguous(), dtype=wp.mat33),
-                          wp.from_torch(translations.contiguous(), dtype=wp.vec3), views,
-                          intrinsics.shape[0] // views, int(cull_back_faces), r0, r1, c0, c1],
+        wp.launch(_kernels()[3], dim=(N, faces.shape[0]), inputs=args + [int(cull_back_faces), r0, r1, c0, c1],
                   outputs=[wp.from_torch(zbuf)], device=wp_device(dev))
-    # a key's high word holds the depth's float32 bits (the depth test orders them as integers)
-    z = (zbuf >> 32).to(torch.int32).view(torch.float32)
-    depth[:, r0:r1, c0:c1] = torch.where(zbuf == EMPTY_KEY, torch.zeros_like(z), z)
-    return depth
+    return zbuf, args
 
 
 def row_split_of(device: torch.device, width: int, split: Optional[int] = None) -> int:
