@@ -275,6 +275,7 @@ def test_hints_find_the_hands_the_frame_pass_missed():
         loc.locate(frames.depth[0].astype(np.float32), [np.zeros((10, 10), np.float32)])
 
 
+@pytest.mark.slow  # two short sequences tracked end to end
 @pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
 def test_the_runner_hints_the_frame_after_a_good_fit(tmp_path, monkeypatch):
     """Tracked with ``--segment auto``, each frame after a fit that passes its check is
