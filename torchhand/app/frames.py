@@ -246,14 +246,15 @@ def segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[S
     return None
 
 
-def render_pose(scene: Scene, renderer, theta: torch.Tensor, cam) -> RenderResult:
-    """The render of a scene at one pose (D,) in ``cam`` (whole images, no normals)."""
+def render_pose(scene: Scene, renderer, theta: torch.Tensor, cam) -> tuple:
+    """(the scene posed at one pose (D,), its render in ``cam``: whole images, no normals)."""
     with torch.no_grad():
-        return renderer(scene(theta[None]).vertices, cam, normals=False)
+        posed = scene(theta[None])
+        return posed, renderer(posed.vertices, cam, normals=False)
 
 
 def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = None) -> tuple:
-    """Where a render (:func:`render_pose`; its box only with ``crop``, then ``shape``
+    """Where a render (:func:`render_pose`'s; its box only with ``crop``, then ``shape``
     (H, W) is the image's) shows each hand of the scene: one (H, W) depth map (mm, 0
     elsewhere) per hand model, scene order, left out where a hand is not in view; the
     localiser's hints for the next frame
@@ -273,7 +274,7 @@ def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = No
 
 
 def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
-             segmentation: Optional[Segmentation] = None, rendered: Optional[RenderResult] = None) -> FitCheck:
+             segmentation: Optional[Segmentation] = None, rendered: Optional[tuple] = None) -> FitCheck:
     """The fit check of a scene at one pose (D,) against data (H, W) mm: the silhouette
     IoU and median depth residual, and, where the frame was segmented by the hand
     localiser, its independent measures (:func:`~torchhand.scoring.metrics.fit_check`;
@@ -281,14 +282,13 @@ def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
     its place; with the blob rules deciding after a localiser found too little, its
     classes still count). ``rendered``: the pose's :func:`render_pose`, where the
     caller has it."""
-    if rendered is None:
-        rendered = render_pose(scene, renderer, theta, cam)
-    model = rendered.depth[0].cpu().numpy()
+    posed, render = render_pose(scene, renderer, theta, cam) if rendered is None else rendered
+    model = render.depth[0].cpu().numpy()
     seg = segmentation
     if seg is None or seg.labels is None:
         return fit_check(model, data)
     with torch.no_grad():
-        joints = scene_standard_joints(scene, scene(theta[None]))[0]
+        joints = scene_standard_joints(scene, posed)[0]
         T = cam.T_cw.to(joints)
         uv = project_points(joints @ T[:3, :3].T + T[:3, 3], cam.K.to(joints)).cpu().numpy()
     hands = [m for m in scene.models if is_hand(m)]

@@ -379,20 +379,21 @@ class _Refit:
         self.quality: List[List[tuple]] = []
         self.reinitialized: List[List[bool]] = []
 
-    def _hints(self, i: int, theta: torch.Tensor, rendered) -> list:
-        """Problem ``i``'s hints for the next frame, one tuple per camera: camera 0's from
-        the fit's render, the rig's other views' from a render of their hands' box."""
-        hints = [hand_hints(self.scene, rendered)]
-        if self.rigs is not None and len(self.rigs[i]) > 1:
+    def _hints(self, i: int, rendered: tuple) -> list:
+        """Problem ``i``'s hints for the next frame, one tuple per camera, from the fit's
+        (posed scene, camera 0's render): the rig's other views' from a render of their
+        hands' box."""
+        posed, render = rendered
+        hints = [hand_hints(self.scene, render)]
+        if self.rigs is not None:
             with torch.no_grad(), skip_checks():
-                vertices = self.scene(theta[None]).vertices
                 for cam in self.rigs[i][1:]:
-                    view = self.tracker.renderer(vertices, cam, normals=False, crop=True)
+                    view = self.tracker.renderer(posed.vertices, cam, normals=False, crop=True)
                     hints.append(hand_hints(self.scene, view, (cam.height, cam.width)))
         return hints
 
     def fit(self, theta: torch.Tensor, i: int, data: np.ndarray, seg=None) -> tuple:
-        """(fit check, render) of problem ``i``'s pose."""
+        """(fit check, (posed scene, render)) of problem ``i``'s pose."""
         rendered = render_pose(self.scene, self.tracker.renderer, theta, self.cams[i])
         return pose_fit(self.scene, self.tracker.renderer, theta, self.cams[i], data, seg, rendered), rendered
 
@@ -414,7 +415,7 @@ class _Refit:
             if self.initializer is not None and f > 0 and (q.iou < self.reinit_iou or q.flagged):
                 q, flag, rendered = self._reinitialise(i, depth, seg, data, theta, q, rendered, notes)
             good = seg is not None and seg.labels is not None and not q.flagged and q.iou >= HINT_MIN_IOU
-            self.frames.hints[i] = self._hints(i, theta[i], rendered) if good else []
+            self.frames.hints[i] = self._hints(i, rendered) if good else []
             quality.append(q)
             flags.append(flag)
         self.quality.append(quality)

@@ -365,11 +365,11 @@ class HandLocaliser:
         for h in hands:
             labels[h.mask] = 1 + _SIDES.index(h.side)
         blobs, merged = self._hint_blobs(d, hints, hands)
-        for hand in self._hands(d, blobs, within=True):
-            new = hand._replace(hinted=True)
-            hands = self._add_hinted(hands, new, merged)
-            if hands[-1] is new:
-                labels[new.mask] = 1 + _SIDES.index(new.side)
+        found = [h._replace(hinted=True) for h in self._hands(d, blobs, within=True)]
+        hands = self._add_hinted(hands, found, merged)
+        for h in hands:
+            if h.hinted:
+                labels[h.mask] = 1 + _SIDES.index(h.side)
         hands.sort(key=lambda h: -h.score * h.mask.sum() ** 0.25)
         return Localisation(labels, hands[: self.max_hands])
 
@@ -391,7 +391,7 @@ class HandLocaliser:
     def _hint_blobs(self, d: np.ndarray, hints: Sequence[np.ndarray], hands: List[LocatedHand]) -> tuple:
         """(the blobs, as :meth:`_components` gives them, of the hints that no hand of
         ``hands`` covers, or that one hand covers with another hint (two hands found as
-        one); the ids of those hands). A blob is the hint's silhouette widened by
+        one); the indices in ``hands`` of those hands). A blob is the hint's silhouette widened by
         :data:`HINT_DILATION_PX`, its measured pixels within :data:`HINT_DEPTH_MM` of the
         hint's median depth. A hand covers a hint when :data:`HINT_COVERED` of the
         hint's pixels lie within :data:`HINT_DILATION_PX` of it."""
@@ -410,8 +410,8 @@ class HandLocaliser:
             r0, r1 = max(int(rows[0]) - HINT_DILATION_PX, 0), min(int(rows[-1]) + HINT_DILATION_PX + 1, H)
             c0, c1 = max(int(cols[0]) - HINT_DILATION_PX, 0), min(int(cols[-1]) + HINT_DILATION_PX + 1, W)
             box = seen[r0:r1, c0:c1]
-            cover = [id(h) for h in hands if (box & (cv2.dilate(h.mask[r0:r1, c0:c1].view(np.uint8), kernel) > 0)
-                                              ).sum() >= HINT_COVERED * n_seen]
+            cover = [j for j, h in enumerate(hands) if (box & (cv2.dilate(h.mask[r0:r1, c0:c1].view(np.uint8), kernel)
+                                                               > 0)).sum() >= HINT_COVERED * n_seen]
             z, win = float(np.median(hint[seen])), d[r0:r1, c0:c1]
             comp = np.zeros(d.shape, bool)
             comp[r0:r1, c0:c1] = ((cv2.dilate(box.view(np.uint8), kernel) > 0) & (np.abs(win - z) <= HINT_DEPTH_MM)
@@ -427,22 +427,22 @@ class HandLocaliser:
                                    int(cols[-1] - cols[0] + 1))))
         return out, merged
 
-    def _add_hinted(self, hands: List[LocatedHand], new: LocatedHand, merged: set) -> List[LocatedHand]:
-        """``hands`` with a hand found through a hint: left out when :data:`HINT_COVERED`
-        of it belongs to a hand found already, unless that hand covered two hints
-        (``merged``, ids): then it gives up the new hand's pixels, and is dropped when
-        fewer than ``min_hand_px`` remain."""
-        out = []
-        for h in hands:
-            if (h.mask & new.mask).sum() >= HINT_COVERED * new.mask.sum():
-                if id(h) not in merged:
-                    return hands
-                h = h._replace(mask=h.mask & ~new.mask)
-                if h.mask.sum() < self.min_hand_px:
-                    continue
-                merged = merged | {id(h)}
-            out.append(h)
-        return out + [new]
+    def _add_hinted(self, hands: List[LocatedHand], found: List[LocatedHand], merged: set) -> List[LocatedHand]:
+        """``hands`` with the hands ``found`` through hints. One is left out when
+        :data:`HINT_COVERED` of it belongs to a hand found already, unless that hand
+        covered two hints (its index in ``merged``): such hands give up the new hand's
+        pixels, and are dropped when fewer than ``min_hand_px`` remain."""
+        out: List[Optional[LocatedHand]] = list(hands)
+        for new in found:
+            under = [j for j, h in enumerate(out)
+                     if h is not None and (h.mask & new.mask).sum() >= HINT_COVERED * new.mask.sum()]
+            if any(j not in merged for j in under):
+                continue  # the same hand, found already
+            for j in under:
+                rest = out[j].mask & ~new.mask
+                out[j] = out[j]._replace(mask=rest) if rest.sum() >= self.min_hand_px else None
+            out.append(new)
+        return [h for h in out if h is not None]
 
     def _frame_pass(self, d: np.ndarray) -> np.ndarray:
         """(H, W) the most probable class of each pixel, from the reduced frame (its
