@@ -28,7 +28,9 @@ seeds, its speed, and the real SR305 frames.
    of the localiser's (what the search does given perfect joints). With
    ``--compare-blobs``, the same frames with the blob rules' seeds.
 3. **Speed**: the network at its input size (128 px crop, 160x120 frame) and the whole
-   ``locate`` of a 640x480 frame, ONNX Runtime on 2 threads.
+   ``locate`` of a 640x480 frame, with and without the test-time flip
+   (``HandLocaliser.flip_test``; ``--flip-test`` runs every section with it),
+   ONNX Runtime on 2 threads.
 4. **SR305** (``--sr305``): the 19 real frames through ``segment_hands`` (auto); the
    figure shows each frame's classes (green hand, blue arm/body) and joints. The fit
    of those frames is measured by ``eval/exp_real.py``.
@@ -223,17 +225,20 @@ def speed(loc: HandLocaliser, depth: np.ndarray, repeats: int = 30) -> dict:
     for name, shape in (("crop_128", (1, 1, 128, 128)), ("frame_160x120", (1, 1, 120, 160))):
         x = np.full(shape, 600.0, np.float32)
         ref = np.array([600.0], np.float32)
-        loc._forward(x, ref)
+        loc.network(x, ref)
         t0 = time.perf_counter()
         for _ in range(repeats):
-            loc._forward(x, ref)
+            loc.network(x, ref)
         out[f"network_{name}_ms"] = (time.perf_counter() - t0) / repeats * 1000
     out["network_fps_at_input_size"] = 1000.0 / out["network_crop_128_ms"]
-    loc.locate(depth)
-    t0 = time.perf_counter()
-    for _ in range(10):
+    flip = loc.flip_test
+    for loc.flip_test, key in ((flip, "locate_640x480_ms"), (not flip, f"locate_640x480_{'no_' * flip}flip_ms")):
         loc.locate(depth)
-    out["locate_640x480_ms"] = (time.perf_counter() - t0) / 10 * 1000
+        t0 = time.perf_counter()
+        for _ in range(10):
+            loc.locate(depth)
+        out[key] = (time.perf_counter() - t0) / 10 * 1000
+    loc.flip_test = flip
     # the per-frame segmentation the tracker runs: the localiser's against the blob rules'
     from torchhand.geometry.camera import kinect_camera
     from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
@@ -307,12 +312,13 @@ def main() -> None:
     ap.add_argument("--figure", type=Path, help="the SR305 frames' classes and joints, one PNG")
     ap.add_argument("--weights", type=Path, help="an .onnx localiser (default: the shipped one)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--flip-test", action="store_true", help="the localiser with its test-time flip")
     ap.add_argument("--seen", type=Path, help="a training cache's train.npz: section 5 on its first --seen-frames")
     ap.add_argument("--seen-frames", type=int, default=160)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    loc = HandLocaliser.load(args.weights, threads=args.threads)
-    out = {"test_set": test_set(loc, args.frames)}
+    loc = HandLocaliser.load(args.weights, threads=args.threads, flip_test=args.flip_test)
+    out = {"flip_test": loc.flip_test, "test_set": test_set(loc, args.frames)}
     print(json.dumps(out["test_set"], indent=2), flush=True)
     if args.seen is not None:
         out["seen_and_unseen"] = seen_and_unseen(loc, args.seen, args.seen_frames)

@@ -15,6 +15,9 @@ measured) whose depth lies within 15 mm of the sensor's.
     python eval/exp_real.py --sr305 ../shared/data/real/sr305 --out out/real/flow --json out/real/sr305.json \
         --figure docs/sr305_fit.png
 
+``--localiser ONNX`` / ``--localiser-flip``: import (and measure) with a localiser of
+one's own, or with its test-time flip (as ``torchhand import`` takes them).
+
 ``--figure``: the 19 frames' overlays (green: the segmented hand, red: the forearm cut
 away, the tracked skeleton), each cropped around its hand, in one PNG.
 """
@@ -51,6 +54,8 @@ def main() -> None:
     ap.add_argument("--reinit-iou", type=float, default=0.85)
     ap.add_argument("--figure", type=Path, help="write the overlays of all frames, cropped, to this PNG")
     ap.add_argument("--segment", default="auto", choices=("auto", "blobs"), help="the segmentation of import")
+    ap.add_argument("--localiser", type=Path, help="an .onnx hand localiser instead of the shipped one")
+    ap.add_argument("--localiser-flip", action="store_true", help="the localiser's test-time flip")
     args = ap.parse_args()
     recordings = sorted(p for p in args.sr305.iterdir() if p.is_dir())
     if not recordings:
@@ -59,7 +64,9 @@ def main() -> None:
         shutil.rmtree(args.out)
     seqs = []
     for rec in recordings:
-        run("import", rec, "--out", args.out / rec.name, "--segment", args.segment, *INTRINSICS)
+        run("import", rec, "--out", args.out / rec.name, "--segment", args.segment, *INTRINSICS,
+            *(["--localiser", args.localiser] if args.localiser else []),
+            *(["--localiser-flip"] if args.localiser_flip else []))
         seqs.append(args.out / rec.name)
     hand = args.out / "my_hand.npz"
     run("calibrate", seqs[0], "--model", "hand_right", "--out", hand)
@@ -74,7 +81,8 @@ def main() -> None:
             model = cv2.imread(str(OutputLayout(args.out / "track" / seq.name).render(f)),
                                cv2.IMREAD_UNCHANGED).astype(np.float32)
             try:
-                seg = segment_hands(depth, info.cameras[0], SegmentConfig(mode=args.segment), sides=("right",))
+                seg = segment_hands(depth, info.cameras[0], SegmentConfig.from_dict(info.segmentation),
+                                    sides=("right",))
             except SegmentationError as err:
                 rows.append({"recording": seq.name, "frame": f, "error": str(err)})
                 continue
@@ -96,6 +104,7 @@ def main() -> None:
                "min_precision": float(np.min([r["precision"] for r in ok])),
                "frames_precision_ge_0_8": int(sum(r["precision"] >= 0.8 for r in ok)),
                "fit_flagged_frames": int(sum(bool(r["fit_flagged"]) for r in ok)), "segment": args.segment,
+               "localiser": str(args.localiser or "shipped") + (" (flip)" if args.localiser_flip else ""),
                "median_depth_residual_mm": float(np.median([r["depth_residual_mm"] for r in ok])),
                "max_frame_depth_residual_mm": float(np.max([r["depth_residual_mm"] for r in ok])),
                "reinitialized_frames": int(sum(r["reinitialized"] for r in ok)),

@@ -89,6 +89,43 @@ def test_network_shapes_and_onnx_agree(tmp_path):
         LocaliserNet.load(tmp_path / "bad.pt")
 
 
+def _ideal_network(depth: np.ndarray, reference: np.ndarray) -> tuple:
+    """A network that answers exactly, as the localiser's outputs are defined: every
+    joint at the input's brightest pixel (heat map cell, sub-cell offset), its depth
+    there, and the pixels of the image's left half a right hand, of its right half a
+    left hand (a handedness that a mirror swaps)."""
+    B, _, H, W = depth.shape
+    h, w = H // 2, W // 2
+    classes, heat = np.zeros((B, 4, h, w), np.float32), np.full((B, 21, h, w), -9.0, np.float32)
+    offset, dz = np.zeros((B, 42, h, w), np.float32), np.zeros((B, 21, h, w), np.float32)
+    classes[:, 2, :, : w // 2], classes[:, 1, :, w // 2:] = 5.0, 5.0
+    for b in range(B):
+        v, u = np.unravel_index(np.argmax(depth[b, 0]), (H, W))
+        cy, cx = v // 2, u // 2
+        heat[b, :, cy, cx] = 3.0
+        offset[b, 0::2, cy, cx], offset[b, 1::2, cy, cx] = (u + 0.5) / 2 - cx - 0.5, (v + 0.5) / 2 - cy - 0.5
+        dz[b, :, cy, cx] = (depth[b, 0, v, u] - reference[b]) / 200.0
+    return classes, heat, offset, dz
+
+
+def test_the_test_time_flip_mirrors_the_outputs_back_exactly():
+    """An exact network's outputs are unchanged by the flip (its mirror's outputs, mirrored
+    back, are its own: classes swap sides, offsets across change sign), and the joints
+    read from them lie on the brightest pixel at every position, odd and even."""
+    loc = HandLocaliser(_ideal_network, LocaliserConfig(input_size=16), flip_test=True)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(400, 500, (3, 1, 16, 16)).astype(np.float32)
+    for b, (v, u) in enumerate([(3, 4), (8, 11), (15, 0)]):
+        x[b, 0, v, u] = 900.0
+    ref = np.full(3, 450.0, np.float32)
+    for a, b in zip(loc._forward(x, ref), _ideal_network(x, ref)):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    heat, offset, dz = (o[1] for o in loc._forward(x, ref)[1:])
+    uv, z, _ = loc._joints(heat, offset, dz, np.ones((8, 8), bool), 450.0, 16, 0, 0)
+    np.testing.assert_allclose(uv, np.tile([[11.0, 8.0]], (21, 1)), atol=1e-5)
+    np.testing.assert_allclose(z, 900.0, atol=1e-3)
+
+
 def test_widening_keeps_the_outputs_and_trains_the_new_channels():
     torch.manual_seed(0)
     small = LocaliserNet(LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8)))
@@ -252,7 +289,7 @@ def test_hints_find_the_hands_the_frame_pass_missed():
     finds the hand (most of its pixels on the true hand), marked as hinted; a hint the frame pass's blobs cover adds nothing."""
     frames = render_context_frames(16, seed=7, progress=False)
     loc = HandLocaliser.load()
-    blind = HandLocaliser(loc._forward, loc.config)
+    blind = HandLocaliser(loc.network, loc.config)
     blind._frame_pass = lambda d: np.zeros(d.shape, np.uint8)
     tried, found, copies = 0, 0, 0
     for f in range(len(frames.depth)):
@@ -349,6 +386,42 @@ def test_localiser_refuses_depth_it_cannot_read():
     with pytest.raises(ValueError, match="colour given as depth"):
         loc.locate(np.zeros((48, 64, 3), np.float32))
     assert loc.locate(np.zeros((48, 64), np.float32)).hands == []  # nothing in view: no hand, no crash
+
+
+def test_a_localiser_of_ones_own_is_imported_with_the_sequence_and_bad_ones_are_named(tmp_path, capsys):
+    """``import --localiser`` keeps the file's absolute path in sequence.json, the
+    segmentation of that sequence runs it (not the shipped one); a file without its .pt,
+    or ``--localiser`` given to track without ``--segment``, is a usage error naming it."""
+    import cv2
+
+    from torchhand.app.cli import main
+    from torchhand.data.layout import read_sequence_info
+    from torchhand.tracking.segmentation import shared_localiser
+
+    tiny = LocaliserNet(LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8))).eval()
+    onnx = export_localiser_onnx(tiny, tmp_path / "mine" / "loc.onnx", size=64)
+    tiny.save(tmp_path / "mine" / "loc.pt")
+    (tmp_path / "src").mkdir()
+    for k in range(2):
+        img = np.zeros((48, 64), np.uint16)
+        img[10:30, 10:30] = 600 + k
+        cv2.imwrite(str(tmp_path / "src" / f"{k}.png"), img)
+    cam = ["--fx", "60", "--fy", "60", "--cx", "31.5", "--cy", "23.5", "--depth-unit-mm", "1"]
+    assert main(["import", str(tmp_path / "src"), "--out", str(tmp_path / "seq"), *cam,
+                 "--localiser", str(tmp_path / "mine" / "loc.onnx"), "--localiser-flip"]) == 0
+    seg = read_sequence_info(tmp_path / "seq").segmentation
+    assert seg["localiser"] == str(onnx.resolve()) and seg["localiser_flip"] is True
+    cfg = SegmentConfig.from_dict(seg)
+    mine = shared_localiser(cfg.localiser, cfg.localiser_flip)
+    assert mine.config == tiny.config and mine.flip_test and mine is shared_localiser(cfg.localiser, True)
+    (tmp_path / "mine" / "loc.pt").unlink()
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "src"), "--out", str(tmp_path / "seq2"), *cam,
+                 "--localiser", str(tmp_path / "mine" / "loc.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert "--localiser" in err and "loc.pt" in err and not (tmp_path / "seq2").exists()
+    assert main(["track", str(tmp_path / "seq"), "--out", str(tmp_path / "t"), "--localiser", str(onnx)]) == 2
+    assert "give --segment auto too" in capsys.readouterr().err
 
 
 def test_keypoint_term_is_zero_at_the_detections_and_its_jacobian_is_exact():

@@ -55,6 +55,12 @@ def _segment_options(p: argparse.ArgumentParser, default: str | None) -> None:
     p.add_argument("--far", type=float, default=1500.0, help="farthest depth kept, mm")
     p.add_argument("--remove-plane", action="store_true", help="remove the dominant plane (a table), RANSAC")
     p.add_argument("--hands", type=int, default=1, choices=[1, 2], help="hands in the scene (auto segmentation)")
+    p.add_argument("--localiser", type=Path, metavar="ONNX",
+                   help="auto segmentation with this hand localiser (an .onnx file of python -m "
+                        "train.hand_localiser, its .pt beside it) instead of the shipped one")
+    p.add_argument("--localiser-flip", action="store_true",
+                   help="auto segmentation: run the localiser also on each frame mirrored and average "
+                        "(about 10 ms more per frame; docs/localiser.md)")
 
 
 def _positive_int(text: str) -> int:

@@ -237,7 +237,7 @@ def track(args) -> int:
                         prediction=args.prediction, prediction_limiter=args.prediction_limiter, seed=args.seed,
                         backend=args.backend, labels=args.labels, solver=args.solver, particles=args.particles,
                         generations=args.generations, limit_slack=args.limit_slack)
-    segment = segment_config(args, "none") if args.segment else None
+    segment = segment_config(args, "none") if _segment_given(args) else None
     dirs = list(args.dirs) + ([r[0] for r in read_list(args.list)] if args.list else [])
     options = TrackOptions(cfg, device=args.device, viz=args.viz, segment=segment, write_render=args.write_render,
                            write_vertices=args.write_vertices, reinit_iou=args.reinit_iou,
@@ -272,8 +272,25 @@ def track(args) -> int:
 def segment_config(args, default_mode: str):
     from torchhand.tracking.segmentation import SegmentConfig
 
+    localiser = ""
+    if args.localiser is not None:
+        onnx = Path(args.localiser).expanduser().resolve()
+        for need in (onnx, onnx.with_suffix(".pt")):
+            if onnx.suffix != ".onnx" or not need.is_file():
+                raise ValueError(f"--localiser {args.localiser}: expected an .onnx file with its .pt beside it "
+                                 f"(as python -m train.hand_localiser writes them); no {need}")
+        localiser = str(onnx)  # absolute: the sequence folder keeps it for later runs
     return SegmentConfig(mode=args.segment or default_mode, hands=args.hands, near=args.near, far=args.far,
-                         remove_plane=args.remove_plane)
+                         remove_plane=args.remove_plane, localiser=localiser, localiser_flip=args.localiser_flip)
+
+
+def _segment_given(args) -> bool:
+    """Whether the command line sets the segmentation (else the sequence folder's is
+    used); a localiser alone cannot be set on top of the folder's."""
+    if not args.segment and (args.localiser is not None or args.localiser_flip):
+        raise ValueError("--localiser and --localiser-flip set the segmentation of --segment auto: give "
+                         "--segment auto too (without --segment the sequence folder's own is used)")
+    return bool(args.segment)
 
 
 def import_dataset(args) -> int:
@@ -338,7 +355,8 @@ def import_folder(args) -> int:
 def init(args) -> int:
     from torchhand.app.initialize import initialize_sequence
 
-    res = initialize_sequence(args.seq, force=args.force, segment=segment_config(args, "auto") if args.segment else None)
+    segment = segment_config(args, "auto") if _segment_given(args) else None
+    res = initialize_sequence(args.seq, force=args.force, segment=segment)
     print(f"wrote {res['init_pose']} and {res['overlay']}: silhouette IoU {res['iou']:.2f}, median depth residual "
           f"{res['depth_residual_mm']:.1f} mm ({res['seconds']:.1f} s)")
     return 0
@@ -347,7 +365,7 @@ def init(args) -> int:
 def calibrate(args) -> int:
     from torchhand.app.calibrate import calibrate_sequence
 
-    segment = segment_config(args, "auto") if args.segment else None
+    segment = segment_config(args, "auto") if _segment_given(args) else None
     rep = calibrate_sequence(args.seq, args.model, args.out, frames=args.frames, force=args.force, segment=segment)
     fingers = ", ".join(f"{f} {v:.3f}" for f, v in rep["fingers"].items())
     print(f"wrote {rep['model']} and {rep['report']}: scale {rep['scale']:.3f}; finger lengths {fingers}; "

@@ -20,9 +20,7 @@ passes, at any distance. Its outputs are at stride 2 of its input.
 
 A tracker can give **hints**, where it expects a hand (the render of the pose it tracked
 in the previous frame): a hint that no hand found already covers gets a crop pass of its
-own, as a blob would. The crop pass sees the hand at several times the
-frame pass's resolution and finds hands the frame pass took for the body or missed
-(docs/localiser.md, "Hints").
+own, which finds hands the frame pass took for the body or missed (docs/localiser.md).
 
 Handedness is read from the classes: a hand's pixels vote left or right with their
 class probabilities; the share of the winning side is its confidence. Joints are
@@ -30,9 +28,9 @@ lifted to 3D with the sensor depth where it agrees with the predicted depth (the
 lies ``JOINT_INSIDE_MM`` behind the skin) and with the prediction where it does not
 (an occluded joint).
 
-Trained on renders only (``python -m train.hand_localiser``, docs/localiser.md);
-ships as ``models/hand_localiser.pt`` and its ONNX export, run with ONNX Runtime by
-default (:meth:`HandLocaliser.load`).
+Trained on renders, a share of them composited onto real depth frames (``python -m
+train.hand_localiser``, docs/localiser.md); ships as ``models/hand_localiser.pt`` and its
+ONNX export, run with ONNX Runtime by default (:meth:`HandLocaliser.load`).
 """
 
 from __future__ import annotations
@@ -54,7 +52,7 @@ from torchhand.salient.localiser_data import CLASSES, HANDS
 
 __all__ = ["LocaliserConfig", "LocaliserOutput", "LocaliserNet", "HandLocaliser", "Localisation", "LocatedHand",
            "export_localiser_onnx", "DEFAULT_LOCALISER", "DEFAULT_LOCALISER_ONNX", "LOCALISER_FORMAT",
-           "JOINT_INSIDE_MM", "normalise_input"]
+           "JOINT_INSIDE_MM", "normalise_input", "merge_mirrored"]
 
 #: Tag stored in weight files written by :meth:`LocaliserNet.save`.
 LOCALISER_FORMAT = "torchhand.salient.LocaliserNet/1"
@@ -224,6 +222,7 @@ class LocaliserNet(nn.Module):
 def export_localiser_onnx(net: LocaliserNet, path, size: int = 128, opset: int = 17) -> Path:
     """ONNX export with dynamic batch, height and width (inputs ``depth``, ``reference``)."""
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     net = net.eval()
     x = torch.zeros(1, 1, size, size)
     ref = torch.full((1,), 500.0)
@@ -280,6 +279,18 @@ class Localisation(NamedTuple):
         return next((h for h in self.hands if h.side == side), None)
 
 
+def merge_mirrored(out: tuple, mirrored: tuple) -> tuple:
+    """The mean of the network's outputs on a batch and on the same batch mirrored left
+    to right (a test-time flip). The mirror's outputs are mirrored back: a mirrored
+    right hand is a left hand (the two hand classes swap, as in training), the joints'
+    heat maps and depths are of either hand, and the sub-cell offsets across change
+    sign (a cell's centre maps onto the mirrored cell's centre)."""
+    classes, heat, offset, dz = (np.ascontiguousarray(o[..., ::-1]) for o in mirrored)
+    classes = classes[:, [0, 2, 1, 3]]
+    offset[:, 0::2] *= -1.0
+    return tuple((a + b) * np.float32(0.5) for a, b in zip(out, (classes, heat, offset, dz)))
+
+
 def _softmax(x: np.ndarray, axis: int = 0) -> np.ndarray:
     e = np.exp(x - x.max(axis=axis, keepdims=True))
     return e / e.sum(axis=axis, keepdims=True)
@@ -293,18 +304,32 @@ class HandLocaliser:
     """Runs :class:`LocaliserNet` on depth frames (module docstring).
 
     Args:
-        forward: ``(depth (B, 1, H, W) float32 mm, reference (B,) float32) -> the four
+        network: ``(depth (B, 1, H, W) float32 mm, reference (B,) float32) -> the four
             outputs as numpy arrays`` (torch or ONNX Runtime; :meth:`load`).
         config: the network's :class:`LocaliserConfig`.
         min_hand_px: a hand needs at least this many pixels at the frame's resolution.
         max_hands: at most this many hands are reported.
+        flip_test: run every input also mirrored left to right, in the same batch, and
+            average the two outputs (:func:`merge_mirrored`): ~10 ms more per frame; off
+            by default (better on renders, not on the real frames: docs/localiser.md).
     """
 
-    def __init__(self, forward, config: LocaliserConfig, min_hand_px: int = 150, max_hands: int = 2):
-        self._forward = forward
+    def __init__(self, network, config: LocaliserConfig, min_hand_px: int = 150, max_hands: int = 2,
+                 flip_test: bool = False):
+        self.network = network
         self.config = config
         self.min_hand_px = int(min_hand_px)
         self.max_hands = int(max_hands)
+        self.flip_test = bool(flip_test)
+
+    def _forward(self, depth: np.ndarray, reference: np.ndarray) -> tuple:
+        """The network's four outputs on a batch, averaged with its mirror's with
+        ``flip_test``."""
+        if not self.flip_test:
+            return self.network(depth, reference)
+        n = len(depth)
+        out = self.network(np.concatenate([depth, depth[..., ::-1]]), np.concatenate([reference, reference]))
+        return merge_mirrored(tuple(o[:n] for o in out), tuple(o[n:] for o in out))
 
     @classmethod
     def load(cls, path=None, onnx: bool = True, threads: int = 2, **kwargs) -> "HandLocaliser":
@@ -316,12 +341,14 @@ class HandLocaliser:
             onnx_path = Path(path) if path is not None else DEFAULT_LOCALISER_ONNX
             if onnx_path.suffix != ".onnx":
                 onnx_path = onnx_path.with_suffix(".onnx")
+            for need in (onnx_path, onnx_path.with_suffix(".pt")):
+                if not need.is_file():
+                    raise FileNotFoundError(f"{need}: no such file (a localiser is an .onnx file with its .pt "
+                                            "beside it, as python -m train.hand_localiser writes them)")
             config = LocaliserNet.load(onnx_path.with_suffix(".pt")).config
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = int(threads)
             opts.inter_op_num_threads = 1
-            if not onnx_path.is_file():
-                raise FileNotFoundError(f"{onnx_path}: no localiser ONNX file here")
             session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
 
             def forward(depth, reference):

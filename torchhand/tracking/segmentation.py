@@ -16,7 +16,9 @@ frame (:func:`segment_hands`):
    no model for, is reported in ``Segmentation.note`` and its pixels are unknown to the tracker); the arm's and
    body's pixels within a hand's window are ``cut`` (unknown, not free space). When it
    finds no hand scoring ``min_score`` or more, the blob rules below decide, and
-   ``note`` says so;
+   ``note`` says so. ``localiser``: the ``.onnx`` file of a localiser of one's own
+   (``python -m train.hand_localiser``; "" = the shipped one), ``localiser_flip``: its
+   test-time flip (:class:`~torchhand.salient.localiser.HandLocaliser`);
    ``mode="blobs"``: the hands are the ``hands`` nearest blobs (by their 5th percentile
    depth) whose area is that of a hand (``min_area_mm2`` .. ``max_area_mm2``, measured
    in the blob's own depth, so the choice does not depend on the distance); a blob
@@ -88,6 +90,8 @@ class SegmentConfig:
     wrist_cut_mm: float = 69.0
     strict: bool = False
     min_score: float = 0.5
+    localiser: str = ""
+    localiser_flip: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in SEGMENT_MODES:
@@ -391,22 +395,24 @@ def _wrist_cut(blob: np.ndarray, d: np.ndarray, points: np.ndarray, fx: float, c
     return palm, arm, keep
 
 
-_LOCALISER = None
+_LOCALISERS: Dict[tuple, object] = {}
 #: A hand of the other side than the scene's model is warned about when the localiser's
 #: handedness is at least this clear (its votes on real frames are often near 0.5).
 CLEAR_HANDEDNESS = 0.8
 
 
-def shared_localiser():
-    """The shipped :class:`~torchhand.salient.localiser.HandLocaliser` (ONNX Runtime),
-    loaded once per process with as many threads as torch has then (a scale-out worker
-    runs with one: two workers of two threads each on two cores wait on each other)."""
-    global _LOCALISER
-    if _LOCALISER is None:
+def shared_localiser(path: str = "", flip_test: bool = False):
+    """The shipped :class:`~torchhand.salient.localiser.HandLocaliser` (ONNX Runtime), or
+    the one of ``path`` (an ``.onnx`` file of ``python -m train.hand_localiser``, its
+    ``.pt`` beside it), loaded once per process with as many threads as torch has then
+    (a scale-out worker runs with one: two workers of two threads each on two cores wait
+    on each other); ``flip_test``: :class:`HandLocaliser`'s test-time flip."""
+    key = (str(path), bool(flip_test))
+    if key not in _LOCALISERS:
         from torchhand.salient.localiser import HandLocaliser
 
-        _LOCALISER = HandLocaliser.load(threads=torch.get_num_threads())
-    return _LOCALISER
+        _LOCALISERS[key] = HandLocaliser.load(path or None, threads=torch.get_num_threads(), flip_test=flip_test)
+    return _LOCALISERS[key]
 
 
 def _back_project(uv: np.ndarray, z: np.ndarray, camera: Camera) -> np.ndarray:
@@ -459,7 +465,7 @@ def locate_hands(d: np.ndarray, camera: Camera, config: SegmentConfig, sides: Se
     its hands all score below ``config.min_score``, returns an empty segmentation of
     ``source="none"`` holding only its ``labels`` (the caller's blob rules decide).
     """
-    loc = (localiser or shared_localiser()).locate(d, hints)
+    loc = (localiser or shared_localiser(config.localiser, config.localiser_flip)).locate(d, hints)
     labels = np.where(d > 0, loc.labels, 255).astype(np.uint8)
     if not loc.hands:
         raise SegmentationError(f"{where}the hand localiser found no hand in view (--segment blobs takes the "
