@@ -10,7 +10,8 @@ import torch
 from torchhand.data.stereo_noise import StereoNoise, apply_stereo_noise
 from torchhand.geometry.camera import kinect_camera
 from torchhand.salient.localiser import (DEFAULT_LOCALISER, DEFAULT_LOCALISER_ONNX, HandLocaliser, LocatedHand,
-                                         Localisation, LocaliserConfig, LocaliserNet, export_localiser_onnx)
+                                         Localisation)
+from torchhand.salient.localiser_net import LocaliserConfig, LocaliserNet, export_localiser_onnx
 from torchhand.salient.localiser_data import IGNORE, render_context_frames
 from torchhand.scoring.metrics import fit_check
 from torchhand.tracking.segmentation import SegmentConfig, segment_hands
@@ -117,11 +118,11 @@ def test_the_test_time_flip_mirrors_the_outputs_back_exactly():
     x = rng.uniform(400, 500, (3, 1, 16, 16)).astype(np.float32)
     for b, (v, u) in enumerate([(3, 4), (8, 11), (15, 0)]):
         x[b, 0, v, u] = 900.0
-    ref = np.full(3, 450.0, np.float32)
+    ref = np.array([450.0, 430.0, 470.0], np.float32)  # each input its own: the halves must not mix
     for a, b in zip(loc._forward(x, ref), _ideal_network(x, ref)):
         np.testing.assert_allclose(a, b, atol=1e-6)
     heat, offset, dz = (o[1] for o in loc._forward(x, ref)[1:])
-    uv, z, _ = loc._joints(heat, offset, dz, np.ones((8, 8), bool), 450.0, 16, 0, 0)
+    uv, z, _ = loc._joints(heat, offset, dz, np.ones((8, 8), bool), 430.0, 16, 0, 0)
     np.testing.assert_allclose(uv, np.tile([[11.0, 8.0]], (21, 1)), atol=1e-5)
     np.testing.assert_allclose(z, 900.0, atol=1e-3)
 
@@ -388,14 +389,19 @@ def test_localiser_refuses_depth_it_cannot_read():
     assert loc.locate(np.zeros((48, 64), np.float32)).hands == []  # nothing in view: no hand, no crash
 
 
-def test_a_localiser_of_ones_own_is_imported_with_the_sequence_and_bad_ones_are_named(tmp_path, capsys):
+def test_a_localiser_of_ones_own_is_imported_with_the_sequence_and_bad_ones_are_named(tmp_path, capsys,
+                                                                                       monkeypatch):
     """``import --localiser`` keeps the file's absolute path in sequence.json, the
-    segmentation of that sequence runs it (not the shipped one); a file without its .pt,
-    or ``--localiser`` given to track without ``--segment``, is a usage error naming it."""
+    segmentation of that sequence runs it (not the shipped one); a file that is no
+    localiser (not .onnx, unreadable, without its .pt), the option with another mode, or
+    given to track without ``--segment``, is a usage error naming it, nothing written; a
+    sequence whose localiser is gone says so."""
     import cv2
 
     from torchhand.app.cli import main
-    from torchhand.data.layout import read_sequence_info
+    from torchhand.app.frames import segment_of
+    from torchhand.data.layout import SequenceError, read_sequence_info
+    from torchhand.tracking import segmentation
     from torchhand.tracking.segmentation import shared_localiser
 
     tiny = LocaliserNet(LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8))).eval()
@@ -414,14 +420,32 @@ def test_a_localiser_of_ones_own_is_imported_with_the_sequence_and_bad_ones_are_
     cfg = SegmentConfig.from_dict(seg)
     mine = shared_localiser(cfg.localiser, cfg.localiser_flip)
     assert mine.config == tiny.config and mine.flip_test and mine is shared_localiser(cfg.localiser, True)
-    (tmp_path / "mine" / "loc.pt").unlink()
+    calls = []  # the segmentation of the sequence runs that localiser
+    monkeypatch.setitem(segmentation._LOCALISERS, (cfg.localiser, True),
+                        type("Spy", (), {"locate": lambda self, d, hints=(): calls.append(d.shape) or
+                                         Localisation(np.zeros(d.shape, np.uint8), [])})())
+    with pytest.raises(segmentation.SegmentationError, match="found no hand"):
+        segment_hands(np.full((48, 64), 600.0, np.float32), read_sequence_info(tmp_path / "seq").cameras[0], cfg)
+    assert calls == [(48, 64)]
     capsys.readouterr()
-    assert main(["import", str(tmp_path / "src"), "--out", str(tmp_path / "seq2"), *cam,
-                 "--localiser", str(tmp_path / "mine" / "loc.onnx")]) == 2
-    err = capsys.readouterr().err
-    assert "--localiser" in err and "loc.pt" in err and not (tmp_path / "seq2").exists()
+    bad = [(["--segment", "blobs"], "settings of --segment auto"), (["--localiser", str(tmp_path / "k.pt")], ".onnx file")]
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "loc.onnx").write_text("not a model")
+    (tmp_path / "junk" / "loc.pt").write_bytes((tmp_path / "mine" / "loc.pt").read_bytes())
+    bad.append((["--localiser", str(tmp_path / "junk" / "loc.onnx")], "not a readable ONNX model"))
+    (tmp_path / "mine" / "loc.pt").unlink()
+    bad.append((["--localiser", str(onnx)], "loc.pt: no such file"))
+    for k, (argv, message) in enumerate(bad):
+        if "--localiser" not in argv:
+            argv = argv + ["--localiser", str(onnx)]
+        assert main(["import", str(tmp_path / "src"), "--out", str(tmp_path / f"bad{k}"), *cam, *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert "--localiser" in err and message in err and not (tmp_path / f"bad{k}").exists(), err
     assert main(["track", str(tmp_path / "seq"), "--out", str(tmp_path / "t"), "--localiser", str(onnx)]) == 2
     assert "give --segment auto too" in capsys.readouterr().err
+    onnx.unlink()  # the sequence's localiser gone: its sequence says so, naming the file
+    with pytest.raises(SequenceError, match="its localiser .*loc.onnx is gone"):
+        segment_of(read_sequence_info(tmp_path / "seq"), None)
 
 
 def test_keypoint_term_is_zero_at_the_detections_and_its_jacobian_is_exact():

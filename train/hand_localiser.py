@@ -1,4 +1,4 @@
-"""Train the hand localiser (torchhand.salient.localiser.LocaliserNet) on rendered hands
+"""Train the hand localiser (torchhand.salient.localiser_net.LocaliserNet) on rendered hands
 in context (torchhand.salient.localiser_data): per-pixel classes (background, left
 hand, right hand, arm and body), the 21 standard joints of each hand, handedness.
 
@@ -44,7 +44,7 @@ import torch.distributed as dist
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from torchhand.salient.localiser import STRIDE, LocaliserConfig, LocaliserNet, export_localiser_onnx
+from torchhand.salient.localiser_net import STRIDE, LocaliserConfig, LocaliserNet, export_localiser_onnx
 from torchhand.salient.localiser_data import (IGNORE, ContextConfig, LocaliserFrames, concat_localiser_frames,
                                               load_localiser_frames, render_context_frames, save_localiser_frames)
 from train.trainer import RunConfig, Task, main as run_main

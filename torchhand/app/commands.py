@@ -272,16 +272,39 @@ def track(args) -> int:
 def segment_config(args, default_mode: str):
     from torchhand.tracking.segmentation import SegmentConfig
 
+    mode = args.segment or default_mode
     localiser = ""
+    if (args.localiser is not None or args.localiser_flip) and mode != "auto":
+        raise ValueError(f"--localiser and --localiser-flip are settings of --segment auto, not of --segment {mode}")
     if args.localiser is not None:
-        onnx = Path(args.localiser).expanduser().resolve()
-        for need in (onnx, onnx.with_suffix(".pt")):
-            if onnx.suffix != ".onnx" or not need.is_file():
-                raise ValueError(f"--localiser {args.localiser}: expected an .onnx file with its .pt beside it "
-                                 f"(as python -m train.hand_localiser writes them); no {need}")
-        localiser = str(onnx)  # absolute: the sequence folder keeps it for later runs
-    return SegmentConfig(mode=args.segment or default_mode, hands=args.hands, near=args.near, far=args.far,
+        localiser = str(Path(args.localiser).expanduser().resolve())  # the sequence folder keeps it for later runs
+        _check_localiser(args.localiser, localiser, args.localiser_flip)
+    return SegmentConfig(mode=mode, hands=args.hands, near=args.near, far=args.far,
                          remove_plane=args.remove_plane, localiser=localiser, localiser_flip=args.localiser_flip)
+
+
+def _check_localiser(given, path: str, flip: bool) -> None:
+    """Load the localiser of ``--localiser`` and run it once, so that a file that is not
+    one fails now, naming the option, not frames later."""
+    import numpy as np
+
+    from torchhand.tracking.segmentation import shared_localiser
+
+    onnx = Path(path)
+    if onnx.suffix != ".onnx":
+        raise ValueError(f"--localiser {given}: expected the .onnx file of a localiser (its .pt beside it), "
+                         f"as python -m train.hand_localiser writes them")
+    from onnxruntime.capi import onnxruntime_pybind11_state as ort_errors
+
+    try:
+        loc = shared_localiser(path, flip)
+        s = loc.config.input_size
+        out = loc.network(np.full((1, 1, s, s), 600.0, np.float32), np.array([600.0], np.float32))
+    except (ValueError, FileNotFoundError, ort_errors.InvalidArgument, ort_errors.Fail) as err:
+        raise ValueError(f"--localiser {given}: {err}") from None
+    if len(out) != 4 or out[0].shape[1] != 4 or out[1].shape[1] != 21:
+        raise ValueError(f"--localiser {given}: its outputs {[o.shape for o in out]} are not a hand localiser's "
+                         "(classes (B, 4, h, w), joints (B, 21, h, w), ...)")
 
 
 def _segment_given(args) -> bool:

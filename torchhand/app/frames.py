@@ -240,9 +240,13 @@ def segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[S
         return None if given.mode == "none" else given
     if info.segmentation:
         try:
-            return SegmentConfig.from_dict(info.segmentation)
+            cfg = SegmentConfig.from_dict(info.segmentation)
         except (TypeError, ValueError) as err:
             raise SequenceError(f"{info.name}: sequence.json segmentation: {err}") from None
+        if cfg.localiser and not Path(cfg.localiser).is_file():
+            raise SequenceError(f"{info.name}: sequence.json segmentation: its localiser {cfg.localiser} is gone "
+                                "(give --segment auto, with --localiser ONNX for another one)")
+        return cfg
     return None
 
 

@@ -1,7 +1,7 @@
 """Weight files of the project's networks: ``{"format", "config", "state_dict"}`` written
 with :func:`torch.save` and read back with ``weights_only=True``, every error naming the
 file and what is wrong. :class:`~torchhand.salient.detector.SalientNet` and
-:class:`~torchhand.salient.localiser.LocaliserNet` save and load through it."""
+:class:`~torchhand.salient.localiser_net.LocaliserNet` save and load through it."""
 
 from __future__ import annotations
 
