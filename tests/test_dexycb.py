@@ -310,6 +310,8 @@ def test_eval_dataset_imports_tracks_scores_and_resumes(sample, tmp_path, capsys
     assert json.loads((run / RESULTS_NAME).read_text())["sequences"] == table["sequences"]
     assert main(base + ["--energy", "LO"]) == 1  # other settings: that sequence is refused, named
     assert "tracked with other settings" in capsys.readouterr().err
+    assert main(base + ["--segment", "blobs"]) == 1  # imported with another segmentation: refused too
+    assert "imported with another segmentation" in capsys.readouterr().err
 
 
 def test_dataset_splits(tmp_path):

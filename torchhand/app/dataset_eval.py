@@ -36,7 +36,7 @@ from tqdm import tqdm
 from torchhand.app.options import TrackOptions
 from torchhand.app.scaleout import TaskFailure, run_tasks
 from torchhand.core.errors import UnknownName, UsageError
-from torchhand.data.layout import OutputLayout, SequenceLayout
+from torchhand.data.layout import OutputLayout, SequenceLayout, read_sequence_info
 from torchhand.scoring.sequences import JOINT_KEYS, summarize
 
 __all__ = ["evaluate_dataset", "split_sequences", "DatasetSequence", "DEXYCB_SPLITS", "RESULTS_NAME"]
@@ -139,6 +139,14 @@ def _tracked(target: Path, settings: dict) -> bool:
     return True
 
 
+def _segmentation(d: Optional[Dict]) -> Optional[Dict]:
+    """A segmentation as a sequence folder stores it, with every setting (one written
+    before a setting existed has its default)."""
+    from torchhand.tracking.segmentation import SegmentConfig
+
+    return SegmentConfig.from_dict(d).to_dict() if d else None
+
+
 def _sequence_task(spec: dict, report) -> dict:
     """Import, track and score one sequence (module docstring); what is complete is kept."""
     from torchhand.app.runner import track_sequences
@@ -148,9 +156,13 @@ def _sequence_task(spec: dict, report) -> dict:
     out, seq = spec["out"], spec["seq"]
     name, options = seq.name, spec["options"]
     seq_dir, scores = out / "sequences" / name, out / "scores" / f"{name}.json"
+    imported = SequenceLayout(seq_dir).info.is_file()
+    if imported and _segmentation(read_sequence_info(seq_dir).segmentation) != _segmentation(spec["segmentation"]):
+        raise UsageError(f"{seq_dir}: imported with another segmentation; choose another --out (eval-dataset "
+                         "resumes only a run of the same settings)")
     if scores.is_file() and _tracked(out / "track" / name, options.settings()):
         return json.loads(scores.read_text())
-    if not SequenceLayout(seq_dir).info.is_file():
+    if not imported:
         FORMATS[spec["format"]](seq.src, seq_dir, force=True, segmentation=spec["segmentation"], **seq.options)
     if not _tracked(out / "track" / name, options.settings()):
         res = track_sequences([seq_dir], out / "track", options, names=[name], force=True, progress=False,
