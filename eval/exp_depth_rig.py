@@ -16,6 +16,11 @@ every view whole (its whole image and every term's whole caps; ``whole_views_*``
 ``time_ratio`` is the rig's seconds per frame after frame 0 over camera 0's, measured
 side by side in one run; ``mm_ratio`` its mean error over camera 0's (at most 1 and at
 most 2 are the targets).
+
+``--profile``: each sequence's camera 0 and rig tracked once more under the project's
+stage recorder (:mod:`torchhand.core.profiling`, as ``eval/bench_track.py --profile``):
+the ms per frame of every stage after frame 0, side by side (``profile`` keys; the
+profiled run is slower than the unprofiled ones, so compare its stages with each other).
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine, set_threads, write_json  # noqa: E402
-from bench_track import scored_run  # noqa: E402
+from bench_track import print_table, scored_run, stage_table, throughput, timed_track  # noqa: E402
 
 from torchhand.data.synth import thesis_motion, with_camera_ring, write_synthetic_sequence  # noqa: E402
 from torchhand.tracking.tracker import TrackerConfig  # noqa: E402
@@ -50,6 +55,7 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--profile", action="store_true", help="also the stages of camera 0 and of the rig, side by side")
     ap.add_argument("--whole-views", action="store_true",
                     help="also track the rig with every view whole (its whole image, every term's whole caps), "
                          "side by side")
@@ -78,11 +84,28 @@ def main(argv=None) -> None:
                                                                       replace(cfg, crop_views=False, rig_budget=None))
                 row["whole_views_time_ratio"] = c["seconds_per_frame_after_first"] / a["seconds_per_frame_after_first"]
                 row["whole_views_mm_ratio"] = c["mean_mm"] / a["mean_mm"]
+            if args.profile:
+                row["profile"] = _profile({"camera_0": (single, a), f"rig_{args.views}": (rig, b)}, cfg, tmp)
             result["sequences"][spec] = row
             print(f"{spec}: camera 0 {a['mean_mm']:.2f} mm, {1000 * a['seconds_per_frame_after_first']:.0f} ms; "
                   f"{args.views} views {b['mean_mm']:.2f} mm, {1000 * b['seconds_per_frame_after_first']:.0f} ms",
                   flush=True)
     write_json(args.json, result)
+
+
+def _profile(runs: dict, cfg: TrackerConfig, tmp: Path) -> dict:
+    """``--profile``: name -> its stage table (``stage_table``), each run's sequence
+    tracked once under the stage recorder."""
+    from torchhand.core.profiling import recording
+
+    speed = throughput()
+    out = {}
+    for name, (root, scored) in runs.items():
+        with recording() as rec:
+            timed_track([root], tmp / f"profile_{name}", cfg)
+        out[name] = {**scored, **stage_table(rec, speed)}
+        print_table(name, out[name])
+    return out
 
 
 if __name__ == "__main__":
