@@ -3,6 +3,8 @@ joints, the segmentation that uses it (and falls back), and the fit check that c
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -433,6 +435,13 @@ def test_a_localiser_of_ones_own_is_imported_with_the_sequence_and_bad_ones_are_
     (tmp_path / "junk" / "loc.onnx").write_text("not a model")
     (tmp_path / "junk" / "loc.pt").write_bytes((tmp_path / "mine" / "loc.pt").read_bytes())
     bad.append((["--localiser", str(tmp_path / "junk" / "loc.onnx")], "not a readable ONNX model"))
+    (tmp_path / "other").mkdir()  # an ONNX model of something else: read, run once, refused
+    with warnings.catch_warnings():  # the legacy exporter announces its deprecation
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(torch.nn.Conv2d(1, 3, 1), (torch.zeros(1, 1, 8, 8),), str(tmp_path / "other" / "loc.onnx"),
+                          input_names=["depth"], dynamic_axes={"depth": {0: "b", 2: "h", 3: "w"}}, dynamo=False)
+    (tmp_path / "other" / "loc.pt").write_bytes((tmp_path / "mine" / "loc.pt").read_bytes())
+    bad.append((["--localiser", str(tmp_path / "other" / "loc.onnx")], "not a hand localiser's ONNX model"))
     (tmp_path / "mine" / "loc.pt").unlink()
     bad.append((["--localiser", str(onnx)], "loc.pt: no such file"))
     for k, (argv, message) in enumerate(bad):

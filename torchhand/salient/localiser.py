@@ -188,15 +188,23 @@ class HandLocaliser:
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = int(threads)
             opts.inter_op_num_threads = 1
+            errors = ort.capi.onnxruntime_pybind11_state
             try:
                 session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
-            except (ort.capi.onnxruntime_pybind11_state.InvalidProtobuf,
-                    ort.capi.onnxruntime_pybind11_state.Fail) as err:
+            except (errors.InvalidProtobuf, errors.Fail) as err:
                 raise ValueError(f"{onnx_path}: not a readable ONNX model ({err})") from None
 
             def forward(depth, reference):
                 return tuple(session.run(None, {"depth": depth, "reference": reference}))
 
+            s = config.input_size  # one crop through it: a model that is not a localiser fails here
+            try:
+                out = forward(np.full((1, 1, s, s), 600.0, np.float32), np.array([600.0], np.float32))
+            except (errors.InvalidArgument, errors.Fail) as err:
+                raise ValueError(f"{onnx_path}: not a hand localiser's ONNX model ({err})") from None
+            if len(out) != 4 or out[0].shape[1] != 4 or out[1].shape[1] != LocaliserNet.JOINTS:
+                raise ValueError(f"{onnx_path}: its outputs {[o.shape for o in out]} are not a hand localiser's "
+                                 "(classes (B, 4, h, w), joints (B, 21, h, w), ...)")
             return cls(forward, config, **kwargs)
         net = LocaliserNet.load(path if path is not None else DEFAULT_LOCALISER)
         return cls.from_net(net, **kwargs)
