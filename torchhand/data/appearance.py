@@ -99,24 +99,25 @@ def shade(result: RenderResult, vertices: torch.Tensor, faces: torch.Tensor, alb
     """
     dev = vertices.device
     hit = result.face_id >= 0
-    fid = result.face_id.clamp_min(0)
+    b, yy, xx = hit.nonzero(as_tuple=True)  # only the pixels that see a face are lit
+    fid = result.face_id[b, yy, xx]
     vn = vertex_normals(vertices, faces.to(dev))  # (B, V, 3) world
-    B = vertices.shape[0]
-    corners = faces.to(dev)[fid]  # (B, H, W, 3)
-    bidx = torch.arange(B, device=dev)[:, None, None, None]
-    nc = vn[bidx, corners]  # (B, H, W, 3 corners, 3)
-    u, v = result.barycentric[..., 0:1].to(nc), result.barycentric[..., 1:2].to(nc)
-    n = F.normalize((1 - u - v) * nc[..., 0, :] + u * nc[..., 1, :] + v * nc[..., 2, :], dim=-1)
+    corners = faces.to(dev)[fid]  # (N, 3)
+    nc = vn[b[:, None], corners]  # (N, 3 corners, 3)
+    bary = result.barycentric[b, yy, xx].to(nc)
+    u, v = bary[:, 0:1], bary[:, 1:2]
+    n = F.normalize((1 - u - v) * nc[:, 0] + u * nc[:, 1] + v * nc[:, 2], dim=-1)
     # towards the camera: the hit point seen from the camera centre
-    pc = vertices[bidx, corners]
-    p = (1 - u - v) * pc[..., 0, :] + u * pc[..., 1, :] + v * pc[..., 2, :]
+    pc = vertices[b[:, None], corners]
+    p = (1 - u - v) * pc[:, 0] + u * pc[:, 1] + v * pc[:, 2]
     view = p - camera.centre.to(p)
     n = torch.where(((n * view).sum(-1, keepdim=True) > 0), -n, n)
     light = torch.full(n.shape[:-1], float(ambient), dtype=n.dtype, device=dev)
     for direction, intensity in lights:
         d = F.normalize(torch.as_tensor(direction, dtype=n.dtype, device=dev), dim=0)
         light = light + float(intensity) * (n @ d).clamp_min(0)
-    rgb = albedo.to(n)[fid] * light[..., None]
-    bg = torch.full_like(rgb, 0.25) if background is None else background.to(rgb).expand_as(rgb)
-    rgb = torch.where(hit[..., None], rgb, bg)
+    shape = (*hit.shape, 3)
+    rgb = (torch.full(shape, 0.25, dtype=n.dtype, device=dev) if background is None
+           else background.to(n).expand(shape).clone())
+    rgb[b, yy, xx] = albedo.to(n)[fid] * light[:, None]
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8)
