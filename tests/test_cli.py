@@ -297,6 +297,7 @@ def test_track_fails_a_sequence_of_which_no_frame_is_tracked(sample_seq, tmp_pat
     assert not any(out.glob("*/theta.npy"))
 
 
+@pytest.mark.slow
 def test_track_writes_labelled_overlays_and_eval_counts_flagged_frames(tmp_path, capsys):
     seq = tmp_path / "seq"
     shutil.copytree(REPO / "datasets" / "sample", seq)

@@ -93,6 +93,7 @@ def test_detections_follow_the_protocol():
         structural_noise(img.astype(np.float32), rng, p)
 
 
+@pytest.mark.slow
 def test_synth_views_with_the_protocol(tmp_path):
     frames = with_camera_ring(demo_motion(slice(0, 2)), 3)
     clean = write_synthetic_sequence(frames, tmp_path / "clean", colour="shaded", depth=False, progress=False)
@@ -125,6 +126,7 @@ def test_synth_views_with_the_protocol(tmp_path):
     assert bg.std() > 10
 
 
+@pytest.mark.slow
 def test_synth_views_command_line(tmp_path, capsys):
     assert main(["synth", "--demo", "--frames", ":2", "--views", "2", "--depth", "--out", str(tmp_path / "s")]) == 0
     assert "2 colour and depth views" in capsys.readouterr().out

@@ -190,6 +190,7 @@ def test_track_with_segmentation_on_a_floating_render(tmp_path, capsys):
     assert log[2]["iou"] is None and log[0]["iou"] > 0.5 and log[0]["depth_residual_mm"] < 10
 
 
+@pytest.mark.slow
 def test_fit_quality_and_written_renders(tmp_path):
     from torchhand.scoring.metrics import fit_quality
 
@@ -220,6 +221,7 @@ def test_fit_quality_and_written_renders(tmp_path):
         assert iou > 0.6
 
 
+@pytest.mark.slow
 def test_automatic_initialisation_of_a_rendered_hand():
     """A right hand rendered at the pose of the sample's ground truth, found from its
     segmented depth alone: the particle swarm then LM land within 10 mm mean keypoint
@@ -258,6 +260,7 @@ def test_automatic_initialisation_of_a_rendered_hand():
     assert err < 40.0 and res.cost < 0.5
 
 
+@pytest.mark.slow
 def test_restarts_run_independent_swarms_and_refine_their_best_picks_together(monkeypatch):
     """InitConfig(restarts=2, seed=s) runs swarms seeded 2s and 2s + 1 and refines
     ``refine`` picks in all, shared among them, as one batch; the pose kept is the

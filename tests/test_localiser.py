@@ -70,6 +70,7 @@ def test_stereo_noise_cuts_range_and_leaves_holes_at_steps():
     assert (out2[0, :, 30:40] == 0).any()  # the occlusion shadow left of the near step
 
 
+@pytest.mark.slow
 def test_network_shapes_and_onnx_agree(tmp_path):
     net = LocaliserNet(LocaliserConfig(channels=(8, 12, 16), decoder=(12, 8))).eval()
     x = torch.rand(2, 1, 64, 96) * 1000
@@ -264,6 +265,7 @@ def test_fit_check_flags_a_model_on_the_wrong_blob():
     assert bad.iou > 0.99
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
 def test_shipped_localiser_finds_rendered_hands():
     """16 renders of a seed no training run used: the hands in view (500 or more
@@ -285,6 +287,7 @@ def test_shipped_localiser_finds_rendered_hands():
     assert total >= 12 and found >= 0.8 * total and np.median(errors) < 25.0
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SHIPPED, reason="no shipped localiser in models/")
 def test_hints_find_the_hands_the_frame_pass_missed():
     """A frame pass that sees no hand (forced here) finds nothing; given the true hand's

@@ -96,6 +96,7 @@ def test_pose_like_viewer_equals_model_for_exact_motion(rigid_model64):
     torch.testing.assert_close(model(theta).vertices, ref, rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_real_motion_sequence_01_posed_via_theta_matches_viewer(hia_root, real_right_hand):
     files = real_right_hand
     _, bounds = sequence_models(hia_root, "01")

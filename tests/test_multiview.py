@@ -48,6 +48,7 @@ def _keypoint_error(scene, a, b) -> float:
         return float((scene(a).keypoints - scene(b).keypoints).norm(dim=-1).mean())
 
 
+@pytest.mark.slow
 def test_a_rig_of_one_camera_is_the_single_camera_tracker(ring):
     scene, cams, gt, _, depth, _ = ring
     start = _shifted(scene, gt[:1], [4.0, -3.0, 5.0])
@@ -80,6 +81,7 @@ def test_a_rigs_views_are_cut_to_their_hands_with_the_same_geometry(ring):
     assert same[0][0][0] is depth[0][0] and same[1][0][0] is cams[0]
 
 
+@pytest.mark.slow
 def test_a_rig_tracked_on_cut_views_and_a_shared_budget_lands_where_whole_views_do(ring):
     scene, cams, gt, _, depth, _ = ring
     start = _shifted(scene, gt[:1], [4.0, -3.0, 5.0])
@@ -258,6 +260,7 @@ def test_track_command_on_colour_views(tmp_path, capsys):
     assert not (tmp_path / "lo" / name).exists()
 
 
+@pytest.mark.slow
 def test_nails_pull_the_salient_vertices_onto_their_detections(ring):
     from torchhand.tracking.energies import Nails
     from torchhand.tracking.preprocess import ColourView

@@ -145,6 +145,7 @@ def test_resume_after_an_interrupted_run(sequences, sequential, tmp_path):
         track_many(sequences, out, other, resume=True, progress=False)
 
 
+@pytest.mark.slow
 def test_one_sequence_in_this_process_writes_it_and_the_summary(sequences, tmp_path):
     """The default tier's run of track_many: one sequence, no worker processes."""
     job = TrackJob(TrackOptions(TrackerConfig(max_iterations=2, first_frame_iterations=2)))

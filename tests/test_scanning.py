@@ -159,6 +159,7 @@ def test_scan_with_the_true_hand_follows_the_object(scan_seq):
     assert res.mesh.watertight and res.fused.all()
 
 
+@pytest.mark.slow
 def test_scan_of_three_frames_registers_them(scan_seq):
     """The default tier's scan: the first three frames (11 degrees of turn) registered
     and fused, with the true hand, at a coarse resolution (3 mm voxels, 600 points)."""
@@ -174,6 +175,7 @@ def test_scan_of_three_frames_registers_them(scan_seq):
     assert res.fused.all() and res.mesh.watertight and 0 < len(res.mesh.faces) <= 1000
 
 
+@pytest.mark.slow
 def test_surface_errors_measure_a_known_offset(box_path):
     m = read_object_mesh(box_path)
     same = surface_errors(m.vertices, m.faces, m.vertices, m.faces)

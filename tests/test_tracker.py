@@ -222,6 +222,7 @@ def test_a_rejected_step_is_retried_before_convergence(hand_frame, monkeypatch):
     assert err < 2.0, err
 
 
+@pytest.mark.slow
 def test_batched_problems_are_independent(hand_frame):
     """Problems of a batch stop on their own (the others go on, solved as a smaller
     batch) and give what each gives alone, also with a box of their own (``reset``
@@ -653,6 +654,7 @@ def test_cuda_tracks_like_the_cpu(hand_frame):
     assert (kg - truth).norm(dim=-1).mean(-1).max() < 1.5
 
 
+@pytest.mark.slow
 def test_proximity_labels_of_one_model_mark_the_pixels_near_any_vertex(hand_frame):
     """With one model the labelling stops at the first vertex within the distance: the
     labels are those of the brute-force test (a vertex within 30 mm or none)."""

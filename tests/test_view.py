@@ -54,6 +54,7 @@ def _read(rrd):
     return {e: sorted(f) for e, f in frames.items()}, values
 
 
+@pytest.mark.slow
 def test_recording_has_every_entity_and_frame(tracked, tmp_path, capsys):
     pytest.importorskip("rerun")
     seq, out = tracked
@@ -75,6 +76,7 @@ def test_recording_has_every_entity_and_frame(tracked, tmp_path, capsys):
     assert min(scalars["/world/cam1/depth"]) > 10 and scalars["/world/joints21/tracked"] == [21] * FRAMES  # points
 
 
+@pytest.mark.slow
 def test_without_gt_the_log_names_the_sequence(tracked, tmp_path):
     pytest.importorskip("rerun")
     from torchhand.app.viewer import view_sequence
@@ -87,6 +89,7 @@ def test_without_gt_the_log_names_the_sequence(tracked, tmp_path):
     assert frames["/world/cam1/depth"] == list(range(FRAMES))
 
 
+@pytest.mark.slow
 def test_bad_input_is_one_line(tracked, tmp_path, capsys):
     seq, out = tracked
     (tmp_path / "taken.rrd").write_text("mine")
@@ -100,6 +103,7 @@ def test_bad_input_is_one_line(tracked, tmp_path, capsys):
     assert "is not a tracked sequence's output folder" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_missing_extra(tracked, tmp_path, monkeypatch, capsys):
     from torchhand.app.viewer import view_sequence
 
