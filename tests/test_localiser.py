@@ -16,7 +16,7 @@ from torchhand.salient.localiser import (DEFAULT_LOCALISER, DEFAULT_LOCALISER_ON
 from torchhand.salient.localiser_net import LocaliserConfig, LocaliserNet, export_localiser_onnx
 from torchhand.salient.localiser_data import IGNORE, render_context_frames
 from torchhand.scoring.metrics import fit_check
-from torchhand.tracking.segmentation import SegmentConfig, segment_hands
+from torchhand.tracking.segmentation import SegmentConfig, Segmentation, segment_hands
 
 SHIPPED = DEFAULT_LOCALISER.is_file() and DEFAULT_LOCALISER_ONNX.is_file()
 
@@ -263,6 +263,62 @@ def test_fit_check_flags_a_model_on_the_wrong_blob():
     assert turned.flagged and turned.explained > 0.9
     # its own segmentation agrees with the wrong blob: the IoU alone would call it good
     assert bad.iou > 0.99
+
+
+@pytest.fixture(scope="module")
+def posed_hand():
+    """The right hand 450 mm before the Kinect camera, palm towards it: (scene, camera,
+    pose (D,), renderer, its depth (H, W) mm)."""
+    from torchhand.app.frames import render_pose
+    from torchhand.geometry.render import Renderer
+    from torchhand.model.scene import Scene
+
+    scene = Scene.from_names(["hand_right"], dtype=torch.float64)
+    cam = kinect_camera(dtype=torch.float64)
+    theta = scene.zero_pose(1).double()[0]
+    with torch.no_grad():
+        centre = scene(theta[None]).vertices[0].mean(0)
+    theta[:3] = cam.T_wc[:3, :3] @ torch.tensor([0.0, 0.0, 450.0], dtype=torch.float64) + cam.T_wc[:3, 3] - centre
+    renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id)
+    return scene, cam, theta, renderer, render_pose(scene, renderer, theta, cam)[1].depth[0].numpy()
+
+
+def test_the_surround_flags_a_model_laid_on_a_surface_that_the_localiser_calls_hand(posed_hand):
+    from torchhand.app.frames import pose_fit
+    from torchhand.scoring.metrics import surrounded
+
+    scene, cam, theta, renderer, model = posed_hand
+    hand = model > 0
+    rows, cols = np.nonzero(hand)
+    end = cols > cols.max() - 15
+    # in the air: the hand before a wall, an arm going on from its right end at its depth
+    air = np.full(hand.shape, 1400.0)
+    middle = int(np.median(rows[end]))
+    air[middle - 12:middle + 12, cols.max() - 15:] = float(np.median(model[rows[end], cols[end]]))
+    air[hand] = model[hand]
+    # laid on a body: the surface the model lies on goes on all round it (each pixel at
+    # the depth of the model's nearest pixel)
+    from scipy.ndimage import distance_transform_edt
+
+    nearest = distance_transform_edt(~hand, return_distances=False, return_indices=True)
+    body = model[nearest[0], nearest[1]]
+    own_air = surrounded(hand, model, hand, air, float(cam.fx))
+    own_body = surrounded(hand, model, hand, body, float(cam.fx))
+    assert 0.02 < own_air < 0.3 and own_body > 0.9
+    # pixels without depth round the hand are no surface; another model's pixels are no surround
+    assert surrounded(hand, model, hand, np.where(hand, model, 0.0), float(cam.fx)) == 0.0
+    assert np.isnan(surrounded(np.zeros_like(hand), model, hand, body, float(cam.fx)))
+    assert np.isnan(surrounded(hand, model, np.ones_like(hand), body, float(cam.fx)))
+    # the localiser agrees with the model (its hand pixels, its joints): only the surround fails the body
+    labels = np.where(hand, 2, 0).astype(np.uint8)
+    for measured, flagged in ((air, False), (body, True)):
+        seg = Segmentation(hand, [hand], np.zeros((1, 3)), np.zeros((1, 3)), np.zeros_like(hand), labels=labels,
+                           source="localiser", measured=measured)
+        q = pose_fit(scene, renderer, theta, cam, np.where(hand, measured, 0.0), seg)
+        assert q.flagged == flagged and q.iou > 0.99
+        assert (q.surrounded > 0.9) == flagged
+    # without a segmentation (the blob rules' data, or a clean render), the depth given is what is measured
+    assert pose_fit(scene, renderer, theta, cam, body).flagged and not pose_fit(scene, renderer, theta, cam, air).flagged
 
 
 @pytest.mark.slow

@@ -21,7 +21,7 @@ from torchhand.geometry.render import RenderResult, window_map
 from torchhand.model.joints21 import is_hand, scene_standard_joints
 from torchhand.model.scene import Scene
 from torchhand.salient import SalientDetector
-from torchhand.scoring.metrics import FitCheck, fit_check
+from torchhand.scoring.metrics import FitCheck, fit_check, surrounded
 from torchhand.tracking.preprocess import ColourView
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 
@@ -280,17 +280,20 @@ def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = No
 def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
              segmentation: Optional[Segmentation] = None, rendered: Optional[tuple] = None) -> FitCheck:
     """The fit check of a scene at one pose (D,) against data (H, W) mm: the silhouette
-    IoU and median depth residual, and, where the frame was segmented by the hand
-    localiser, its independent measures (:func:`~torchhand.scoring.metrics.fit_check`;
-    each hand model is compared with the located hand of its side, else the one in
-    its place; with the blob rules deciding after a localiser found too little, its
-    classes still count). ``rendered``: the pose's :func:`render_pose`, where the
-    caller has it."""
+    IoU and median depth residual, how surrounded its hands are by the measured surface
+    (the segmentation's measured depth, else ``data``), and, where the frame was
+    segmented by the hand localiser, its independent measures
+    (:func:`~torchhand.scoring.metrics.fit_check`; each hand model is compared with the
+    located hand of its side, else the one in its place; with the blob rules deciding
+    after a localiser found too little, its classes still count). ``rendered``: the
+    pose's :func:`render_pose`, where the caller has it."""
     posed, render = render_pose(scene, renderer, theta, cam) if rendered is None else rendered
     model = render.depth[0].cpu().numpy()
     seg = segmentation
+    surround = _surround(scene, render, model, data if seg is None or seg.measured is None else seg.measured,
+                         float(cam.fx))
     if seg is None or seg.labels is None:
-        return fit_check(model, data)
+        return fit_check(model, data, surround=surround)
     with torch.no_grad():
         joints = scene_standard_joints(scene, posed)[0]
         T = cam.T_cw.to(joints)
@@ -305,7 +308,16 @@ def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
         if loc is not None:
             located_uv[21 * j:21 * j + 21], conf[21 * j:21 * j + 21] = loc.uv, loc.confidence
             z[21 * j:21 * j + 21] = loc.z
-    return fit_check(model, data, seg.mask, seg.labels, uv, located_uv, conf, z, float(cam.fx))
+    return fit_check(model, data, seg.mask, seg.labels, uv, located_uv, conf, z, float(cam.fx), surround=surround)
+
+
+def _surround(scene: Scene, render: RenderResult, model: np.ndarray, measured: np.ndarray, focal: float) -> float:
+    """The most surrounded hand of a render (:func:`~torchhand.scoring.metrics.surrounded`;
+    NaN without a hand in view)."""
+    ids = render.model_id[0].cpu().numpy()
+    shares = [surrounded(ids == k, model, ids >= 0, measured, focal) for k, m in enumerate(scene.models) if is_hand(m)]
+    shares = [s for s in shares if np.isfinite(s)]
+    return max(shares) if shares else float("nan")
 
 
 def hand_sides(scene: Scene) -> tuple:

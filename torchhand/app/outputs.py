@@ -131,11 +131,12 @@ def _write_motion(out: OutputLayout, scene: Scene, th: torch.Tensor) -> None:
 
 
 def _check_fields(q) -> dict:
-    """The localiser's side of a frame's fit check (:class:`~torchhand.scoring.metrics.FitCheck`)."""
+    """The fit check of a frame beyond IoU and residual (:class:`~torchhand.scoring.metrics.FitCheck`)."""
     return {"keypoint_px": _finite(getattr(q, "keypoint_px", float("nan"))),
             "keypoint_mm": _finite(getattr(q, "keypoint_mm", float("nan"))),
             "hand_explained": _finite(getattr(q, "explained", float("nan"))),
             "off_hand": _finite(getattr(q, "off_hand", float("nan"))),
+            "surrounded": _finite(getattr(q, "surrounded", float("nan"))),
             "fit_flagged": bool(getattr(q, "flagged", False))}
 
 

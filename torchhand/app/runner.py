@@ -430,7 +430,8 @@ class _Refit:
         less off it; else a higher silhouette IoU.
         Returns (fit check, re-initialised, render of the pose kept)."""
         why = (f"fit check (keypoints {q.keypoint_mm:.0f} mm from the localiser's, {q.explained:.2f} of its hand "
-               f"explained, {q.off_hand:.2f} off it)" if q.flagged else f"silhouette IoU {q.iou:.2f}")
+               f"explained, {q.off_hand:.2f} off it, {q.surrounded:.2f} surrounded by the measured surface)"
+               if q.flagged else f"silhouette IoU {q.iou:.2f}")
         try:
             if seg is None:
                 seg = segment_hands(depth, self.cams[i], self.search[i], sides=hand_sides(self.scene))
@@ -440,8 +441,10 @@ class _Refit:
             return q, False, rendered
         q2, rendered2 = self.fit(new.theta.to(theta), i, data, seg)
         by_check = q.flagged and np.isfinite(q.explained) and np.isfinite(q2.explained)
-        better = ((not q2.flagged, q2.explained - q2.off_hand) > (False, q.explained - q.off_hand) if by_check
-                  else q2.iou > q.iou)
+        if by_check:
+            better = (not q2.flagged, q2.explained - q2.off_hand) > (False, q.explained - q.off_hand)
+        else:  # a flag without the localiser's evidence (the surround): a pose that passes, else more IoU
+            better = (not q2.flagged, q2.iou) > (not q.flagged, q.iou)
         if better:
             what = (f"hand explained {q.explained:.2f} -> {q2.explained:.2f}, off it {q.off_hand:.2f} -> "
                     f"{q2.off_hand:.2f}" if by_check else f"silhouette IoU {q.iou:.2f} -> {q2.iou:.2f}")

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 __all__ = ["keypoint_errors", "pck_curve", "auc", "Penetration", "penetration", "max_depth", "model_pair_counts",
-           "PCK_THRESHOLDS_MM", "fit_quality", "fit_check", "FitCheck", "FitCheckLimits", "valid_joints", "joint_errors", "similarity_align", "mpjpe",
+           "PCK_THRESHOLDS_MM", "fit_quality", "fit_check", "surrounded", "FitCheck", "FitCheckLimits", "valid_joints", "joint_errors", "similarity_align", "mpjpe",
            "pa_mpjpe", "rr_mpjpe", "JointScores", "joint_scores", "mean_px", "per_joint_mean"]
 
 #: thresholds of the PCK curve, 0..50 mm in 1 mm steps
@@ -64,21 +64,29 @@ class FitCheckLimits:
             silhouette below which it is flagged;
         off_hand: the share of the model's silhouette on measured pixels that the
             localiser calls not hand (3 px of margin) above which it is flagged;
-        confidence: joints of the localiser below this confidence are not compared.
+        confidence: joints of the localiser below this confidence are not compared;
+        surrounded: the share of a hand's surround (:func:`surrounded`) where the measured
+            surface goes on at the hand's depth above which the fit is flagged: a hand
+            ends in depth edges except at the wrist and where it holds something (its
+            true fits ~0.1-0.4, docs/localiser.md), a model laid on a body, an arm or a
+            table is surrounded by that surface (~0.7-1). The one measure that needs no
+            localiser, so it also checks the blob rules' segmentation.
     """
 
     keypoint_mm: float = 40.0
     explained: float = 0.6
     off_hand: float = 0.3
     confidence: float = 0.3
+    surrounded: float = 0.6
 
 
 class FitCheck(NamedTuple):
     """One frame's fit check: the silhouette IoU and median depth residual of
     :func:`fit_quality`, and against the localiser (NaN without it): ``keypoint_px``
     (the median joint distance in px) and ``keypoint_mm`` (the same in mm at the joints'
-    depth), ``explained``, ``off_hand`` (see :class:`FitCheckLimits`); ``flagged``: a
-    limit is crossed (False without the localiser's evidence)."""
+    depth), ``explained``, ``off_hand``, and from the measured depth alone
+    ``surrounded`` (the most surrounded hand, :func:`surrounded`; NaN without it) (see
+    :class:`FitCheckLimits`); ``flagged``: a limit is crossed (False without evidence)."""
 
     iou: float
     residual_mm: float
@@ -87,15 +95,66 @@ class FitCheck(NamedTuple):
     explained: float = float("nan")
     off_hand: float = float("nan")
     flagged: bool = False
+    surrounded: float = float("nan")
+
+
+def surrounded(own: np.ndarray, model_depth: np.ndarray, models: np.ndarray, measured: np.ndarray, focal: float,
+               band_mm: tuple = (6.0, 20.0), tolerance_mm: float = 25.0) -> float:
+    """The share of a hand model's surround where the measured surface goes on at the
+    hand's depth: evidence, from the sensor alone, that the model lies on a surface
+    (a body, an arm, a table) rather than on a hand, which ends in depth edges.
+
+    Args:
+        own: (H, W) bool, the hand model's silhouette; model_depth: (H, W) the rendered
+            models' depth (mm, 0 = empty); models: (H, W) bool, every model's silhouette
+            (the other hands and objects are not surround).
+        measured: (H, W) the depth the frame measured (mm; 0 or NaN = nothing).
+        focal: the camera's focal length (px), to turn ``band_mm`` into pixels at the
+            hand's depth.
+        band_mm: the surround, from this far outside the silhouette (a good fit's few
+            pixels of misalignment) to that far.
+        tolerance_mm: how far from the nearby model depth a measured pixel still
+            continues the surface.
+    Returns:
+        continued pixels / surround pixels (pixels without depth count as not continued:
+        a hand before a far background leaves them empty); NaN without the hand.
+    """
+    own = np.asarray(own, bool)
+    if not own.any():
+        return float("nan")
+    z = float(np.median(np.asarray(model_depth)[own]))
+    r_in = max(2, int(round(band_mm[0] * focal / z)))
+    r_out = max(r_in + 2, int(round(band_mm[1] * focal / z)))
+    rows, cols = np.nonzero(own)
+    H, W = own.shape
+    r0, r1 = max(0, rows.min() - r_out - 1), min(H, rows.max() + r_out + 2)
+    c0, c1 = max(0, cols.min() - r_out - 1), min(W, cols.max() + r_out + 2)
+    box = (slice(r0, r1), slice(c0, c1))
+    hand = own[box].astype(np.uint8)
+
+    def disk(r: int) -> np.ndarray:
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+    inner = cv2.dilate(np.asarray(models, np.uint8)[box], disk(r_in)) > 0
+    ring = (cv2.dilate(hand, disk(r_out)) > 0) & ~inner
+    if not ring.any():
+        return float("nan")
+    zm = np.where(hand > 0, np.asarray(model_depth, np.float32)[box], 0).astype(np.float32)
+    hi = cv2.dilate(zm, disk(r_out))
+    lo = -cv2.dilate(np.where(hand > 0, -zm, np.float32(-1e9)), disk(r_out))
+    d = np.nan_to_num(np.asarray(measured, np.float32)[box], nan=0.0)
+    on = (d > 0) & (d >= lo - tolerance_mm) & (d <= hi + tolerance_mm)
+    return float((ring & on).sum()) / float(ring.sum())
 
 
 def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Optional[np.ndarray] = None,
               labels: Optional[np.ndarray] = None, model_uv: Optional[np.ndarray] = None,
               located_uv: Optional[np.ndarray] = None, located_confidence: Optional[np.ndarray] = None,
               located_z: Optional[np.ndarray] = None, focal: float = float("nan"),
-              limits: FitCheckLimits = FitCheckLimits()) -> FitCheck:
-    """A fit check that can fail: :func:`fit_quality` against the tracker's own data, and
-    three measures against the hand localiser's independent evidence.
+              limits: FitCheckLimits = FitCheckLimits(), surround: float = float("nan")) -> FitCheck:
+    """A fit check that can fail: :func:`fit_quality` against the tracker's own data,
+    :func:`surrounded` (``surround``, the caller's, NaN: not measured) from the measured
+    depth, and three measures against the hand localiser's independent evidence.
 
     Args:
         model_depth, data_depth: as :func:`fit_quality`.
@@ -109,8 +168,9 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
             the distances in mm.
     """
     iou, residual = fit_quality(model_depth, data_depth)
+    on_surface = bool(np.isfinite(surround) and surround > limits.surrounded)
     if hand_mask is None or labels is None:
-        return FitCheck(iou, residual)
+        return FitCheck(iou, residual, flagged=on_surface, surrounded=surround)
     model = np.asarray(model_depth) > 0
     hand = np.asarray(hand_mask, bool)
     explained = float((model & hand).sum()) / hand.sum() if hand.any() else float("nan")
@@ -128,8 +188,8 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
             kp_mm = float(np.median(d[use] * np.asarray(located_z, np.float64)[use] / focal))
     flagged = bool((np.isfinite(kp_mm) and kp_mm > limits.keypoint_mm) or not hand.any()
                    or (np.isfinite(explained) and explained < limits.explained)
-                   or (np.isfinite(off_hand) and off_hand > limits.off_hand))
-    return FitCheck(iou, residual, kp, kp_mm, explained, off_hand, flagged)
+                   or (np.isfinite(off_hand) and off_hand > limits.off_hand) or on_surface)
+    return FitCheck(iou, residual, kp, kp_mm, explained, off_hand, flagged, surround)
 
 
 def keypoint_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -125,7 +125,9 @@ class Segmentation(NamedTuple):
     class of every pixel (:data:`~torchhand.salient.localiser_data.CLASSES`; 255 where
     the sensor measured nothing: the fit check's evidence), ``source`` is
     ``"localiser"`` (``"blobs"`` for the blob rules, also as the fallback) and ``note``
-    says what a user should know (a fallback, an extra hand)."""
+    says what a user should know (a fallback, an extra hand). ``measured``: the depth
+    the hands were found in (mm, 0 outside the range and on a removed plane): what
+    surrounds them, for the fit check (:func:`~torchhand.scoring.metrics.surrounded`)."""
 
     mask: np.ndarray
     blobs: List[np.ndarray]
@@ -136,6 +138,7 @@ class Segmentation(NamedTuple):
     labels: Optional[np.ndarray] = None
     source: str = "blobs"
     note: str = ""
+    measured: Optional[np.ndarray] = None
 
     def apply(self, depth: np.ndarray) -> np.ndarray:
         """The depth the tracker sees: the hands' pixels, 0 elsewhere, and NaN on the
@@ -224,7 +227,7 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     if config.mode == "auto":
         found = locate_hands(d, camera, config, sides, localiser, where, hints)
         if found.source == "localiser":
-            return found
+            return found._replace(measured=d)
         note = f"the hand localiser found no hand scoring {config.min_score:g} or more; the blob rules decided"
         config, labels = replace(config, mode="blobs"), found.labels
     if config.mode in ("none", "range"):
@@ -250,7 +253,8 @@ def segment_hands(depth: np.ndarray, camera: Camera, config: SegmentConfig = Seg
     out = [out[k] for k in order]
     mask = np.any(out, 0) if out else empty
     return Segmentation(mask, out, np.array([palms[k] for k in order]).reshape(-1, 3),
-                        np.array([arms[k] for k in order]).reshape(-1, 3), cut, labels=labels, note=note)
+                        np.array([arms[k] for k in order]).reshape(-1, 3), cut, labels=labels, note=note,
+                        measured=d)
 
 
 def _column(p: np.ndarray, camera: Camera) -> float:
