@@ -18,6 +18,14 @@ measured) whose depth lies within 15 mm of the sensor's.
 ``--localiser ONNX`` / ``--localiser-flip``: import (and measure) with a localiser of
 one's own, or with its test-time flip (as ``torchhand import`` takes them).
 
+The fit check's surround (the share of the hand's surround where the measured surface
+goes on at its depth, ``surrounded`` in ``track_log.json``) is read for every tracked
+frame, and probed: the frame's fitted silhouette laid on the person's body (the
+localiser's arm-and-body pixels, at up to ``--probes`` places per frame where the whole
+silhouette lies on them, its depth the measured surface's), as a track of the wrong blob
+would lie; ``surround_on_body`` holds those values and ``probes_flagged`` the share
+above the fit check's limit.
+
 ``--figure``: the 19 frames' overlays (green: the segmented hand, red: the forearm cut
 away, the tracked skeleton), each cropped around its hand, in one PNG.
 """
@@ -34,7 +42,7 @@ import numpy as np
 
 from torchhand.app.cli import main as cli
 from torchhand.data.layout import OutputLayout, SequenceLayout, read_depth, read_sequence_info
-from torchhand.scoring.metrics import fit_quality
+from torchhand.scoring.metrics import FitCheckLimits, fit_quality, surrounded
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
 
 INTRINSICS = ["--fx", "476.007", "--fy", "476.007", "--cx", "313.683", "--cy", "242.755", "--depth-unit-mm", "0.125"]
@@ -56,6 +64,7 @@ def main() -> None:
     ap.add_argument("--segment", default="auto", choices=("auto", "blobs"), help="the segmentation of import")
     ap.add_argument("--localiser", type=Path, help="an .onnx hand localiser instead of the shipped one")
     ap.add_argument("--localiser-flip", action="store_true", help="the localiser's test-time flip")
+    ap.add_argument("--probes", type=int, default=5, help="wrong-blob probes per frame (0: none)")
     args = ap.parse_args()
     recordings = sorted(p for p in args.sr305.iterdir() if p.is_dir())
     if not recordings:
@@ -72,7 +81,7 @@ def main() -> None:
     run("calibrate", seqs[0], "--model", "hand_right", "--out", hand)
     run("track", *seqs, "--out", args.out / "track", "--models", hand, "--write-render", "--viz",
         "--reinit-iou", args.reinit_iou)
-    rows, tiles = [], []
+    rows, tiles, rng = [], [], np.random.default_rng(0)
     for seq in seqs:
         info = read_sequence_info(seq)
         log = json.loads(OutputLayout(args.out / "track" / seq.name).track_log.read_text())["frames"]
@@ -93,11 +102,15 @@ def main() -> None:
                                f"{seq.name[-6:]}/{f}: IoU {iou:.2f}"))
             rows.append({"recording": seq.name, "frame": f, "iou": iou, "depth_residual_mm": med,
                          "precision": precision, "reinitialized": log[f]["reinitialized"],
-                         "tracker_iou": log[f]["iou"], "fit_flagged": log[f].get("fit_flagged")})
+                         "tracker_iou": log[f]["iou"], "fit_flagged": log[f].get("fit_flagged"),
+                         "surrounded": log[f].get("surrounded"),
+                         "surround_on_body": _laid_on_the_body(model, depth, seg, float(info.cameras[0].fx), rng,
+                                                               args.probes)})
             print(f"{seq.name} frame {f}: IoU {iou:.2f}, precision {precision:.2f}, median depth residual {med:.1f} mm"
                   f"{' (re-initialised)' if log[f]['reinitialized'] else ''}", flush=True)
     ok = [r for r in rows if "iou" in r]
     calib = json.loads(hand.with_suffix(".json").read_text())
+    probes = [v for r in ok for v in r["surround_on_body"]]
     summary = {"frames": len(rows), "mean_iou": float(np.mean([r["iou"] for r in ok])),
                "min_iou": float(np.min([r["iou"] for r in ok])),
                "frames_iou_ge_0_8": int(sum(r["iou"] >= 0.8 for r in ok)),
@@ -111,7 +124,10 @@ def main() -> None:
                "calibration": {"scale": calib["scale"], "fingers": calib["fingers"],
                                "mean_iou_before": calib["mean_iou_before"],
                                "mean_iou_after": calib["mean_iou_after"]},
-               "reinit_iou": args.reinit_iou, "per_frame": rows}
+               "reinit_iou": args.reinit_iou, "surround_limit": FitCheckLimits().surrounded,
+               "surround_max": float(np.nanmax([np.nan if r["surrounded"] is None else r["surrounded"] for r in ok])),
+               "probes": len(probes), "probes_flagged": float(np.mean(np.array(probes) > FitCheckLimits().surrounded))
+               if probes else float("nan"), "per_frame": rows}
     if args.figure is not None:
         cols = 5
         tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
@@ -123,7 +139,38 @@ def main() -> None:
     print(f"mean IoU {summary['mean_iou']:.2f} (min {summary['min_iou']:.2f}, {summary['frames_iou_ge_0_8']} of "
           f"{len(ok)} frames >= 0.8), precision min {summary['min_precision']:.2f} "
           f"({summary['frames_precision_ge_0_8']} frames >= 0.8), median depth residual {summary['median_depth_residual_mm']:.1f} mm (worst "
-          f"frame {summary['max_frame_depth_residual_mm']:.1f} mm) -> {args.json}")
+          f"frame {summary['max_frame_depth_residual_mm']:.1f} mm); surround of the fits max "
+          f"{summary['surround_max']:.2f}, of {summary['probes']} silhouettes laid on the body "
+          f"{summary['probes_flagged']:.2f} flagged (limit {summary['surround_limit']:g}) -> {args.json}")
+
+
+def _laid_on_the_body(model: np.ndarray, depth: np.ndarray, seg, focal: float, rng, probes: int,
+                      tries: int = 200) -> list:
+    """The surround of the fitted silhouette (``model``, mm) moved onto the localiser's
+    arm-and-body pixels (class 3) at up to ``probes`` random places where all of it lies
+    on them, its depth the measured surface there (within its 5-95th percentiles): a
+    model tracking the wrong blob. Empty without the localiser's classes."""
+    own = model > 0
+    if seg.labels is None or not own.any() or probes <= 0:
+        return []
+    body = (seg.labels == 3) & (depth > 0)
+    rows, cols = np.nonzero(own)
+    r0, c0 = int(rows.mean()), int(cols.mean())
+    places = np.argwhere(body)
+    H, W = own.shape
+    out = []
+    for _ in range(tries):
+        if len(out) == probes or not len(places):
+            break
+        r, c = places[rng.integers(len(places))]
+        rr, cc = rows + r - r0, cols + c - c0
+        if rr.min() < 0 or cc.min() < 0 or rr.max() >= H or cc.max() >= W or not body[rr, cc].all():
+            continue
+        laid = np.zeros_like(own)
+        laid[rr, cc] = True
+        lo, hi = np.percentile(depth[laid], [5, 95])
+        out.append(surrounded(laid, np.where(laid, np.clip(depth, lo, hi), 0), laid, depth, focal))
+    return out
 
 
 def _tile(path: Path, mask: np.ndarray, label: str, size: int = 220) -> np.ndarray:
