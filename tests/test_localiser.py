@@ -317,6 +317,14 @@ def test_the_surround_flags_a_model_laid_on_a_surface_that_the_localiser_calls_h
         q = pose_fit(scene, renderer, theta, cam, np.where(hand, measured, 0.0), seg)
         assert q.flagged == flagged and q.iou > 0.99
         assert (q.surrounded > 0.9) == flagged
+    # the localiser's confident joints on the model's vouch for a surrounded hand (a grasp, a
+    # hand on a table); a few confident joints do not
+    model_uv = np.stack([np.linspace(cols.min(), cols.max(), 21), np.full(21, float(rows.mean()))], 1)
+    z = np.full(21, 450.0)
+    args = (model, np.where(hand, body, 0.0), hand, labels, model_uv, model_uv + 1.0)
+    assert not fit_check(*args, np.ones(21), z, float(cam.fx), surround=0.9).flagged
+    assert fit_check(*args, np.r_[np.ones(5), np.zeros(16)], z, float(cam.fx), surround=0.9).flagged
+    assert not fit_check(*args, np.ones(21), z, float(cam.fx), surround=0.5).flagged
     # without a segmentation (the blob rules' data, or a clean render), the depth given is what is measured
     assert pose_fit(scene, renderer, theta, cam, body).flagged and not pose_fit(scene, renderer, theta, cam, air).flagged
 

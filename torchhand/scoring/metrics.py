@@ -70,7 +70,9 @@ class FitCheckLimits:
             ends in depth edges except at the wrist and where it holds something (its
             true fits ~0.1-0.4, docs/localiser.md), a model laid on a body, an arm or a
             table is surrounded by that surface (~0.7-1). The one measure that needs no
-            localiser, so it also checks the blob rules' segmentation.
+            localiser, so it also checks the blob rules' segmentation; it does not flag a
+            fit whose joints at least ``vouching_joints`` confident joints of the
+            localiser place within half of ``keypoint_mm`` (a grasp, a hand on a table).
     """
 
     keypoint_mm: float = 40.0
@@ -78,6 +80,7 @@ class FitCheckLimits:
     off_hand: float = 0.3
     confidence: float = 0.3
     surrounded: float = 0.6
+    vouching_joints: int = 10
 
 
 class FitCheck(NamedTuple):
@@ -178,7 +181,7 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
     near_hand = cv2.dilate(any_hand, np.ones((7, 7), np.uint8)) > 0
     on_model = model & (np.asarray(labels) != 255)
     off_hand = float((on_model & ~near_hand).sum()) / on_model.sum() if on_model.any() else float("nan")
-    kp, kp_mm = float("nan"), float("nan")
+    kp, kp_mm, use = float("nan"), float("nan"), np.zeros(0, bool)
     if model_uv is not None and located_uv is not None:
         conf = np.ones(len(located_uv)) if located_confidence is None else np.asarray(located_confidence)
         d = np.linalg.norm(np.asarray(model_uv, np.float64) - np.asarray(located_uv, np.float64), axis=-1)
@@ -186,9 +189,13 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
         kp = float(np.median(d[use])) if use.any() else float("nan")
         if located_z is not None and use.any():
             kp_mm = float(np.median(d[use] * np.asarray(located_z, np.float64)[use] / focal))
+    # a hand whose joints the localiser places, confidently, within half the limit of the
+    # model's is vouched for: a grasp or a hand on a table may be surrounded, a body is not
+    # jointed like a hand
+    vouched = bool(np.isfinite(kp_mm) and kp_mm <= limits.keypoint_mm / 2 and use.sum() >= limits.vouching_joints)
     flagged = bool((np.isfinite(kp_mm) and kp_mm > limits.keypoint_mm) or not hand.any()
                    or (np.isfinite(explained) and explained < limits.explained)
-                   or (np.isfinite(off_hand) and off_hand > limits.off_hand) or on_surface)
+                   or (np.isfinite(off_hand) and off_hand > limits.off_hand) or (on_surface and not vouched))
     return FitCheck(iou, residual, kp, kp_mm, explained, off_hand, flagged, surround)
 
 
