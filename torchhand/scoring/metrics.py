@@ -116,8 +116,8 @@ def surrounded(own: np.ndarray, model_depth: np.ndarray, models: np.ndarray, mea
             hand's depth.
         band_mm: the surround, from this far outside the silhouette (a good fit's few
             pixels of misalignment) to that far.
-        tolerance_mm: how far from the nearby model depth a measured pixel still
-            continues the surface.
+        tolerance_mm: how far from the depth of the nearest model pixel a measured pixel
+            still continues the surface.
     Returns:
         continued pixels / surround pixels (pixels without depth count as not continued:
         a hand before a far background leaves them empty); NaN without the hand.
@@ -125,29 +125,27 @@ def surrounded(own: np.ndarray, model_depth: np.ndarray, models: np.ndarray, mea
     own = np.asarray(own, bool)
     if not own.any():
         return float("nan")
-    z = float(np.median(np.asarray(model_depth)[own]))
+    c0, r0, w, h = cv2.boundingRect(np.ascontiguousarray(own).view(np.uint8))
+    depth = np.asarray(model_depth, np.float32)
+    z = float(np.median(depth[r0:r0 + h, c0:c0 + w][own[r0:r0 + h, c0:c0 + w]]))
     r_in = max(2, int(round(band_mm[0] * focal / z)))
     r_out = max(r_in + 2, int(round(band_mm[1] * focal / z)))
-    rows, cols = np.nonzero(own)
     H, W = own.shape
-    r0, r1 = max(0, rows.min() - r_out - 1), min(H, rows.max() + r_out + 2)
-    c0, c1 = max(0, cols.min() - r_out - 1), min(W, cols.max() + r_out + 2)
-    box = (slice(r0, r1), slice(c0, c1))
-    hand = own[box].astype(np.uint8)
-
-    def disk(r: int) -> np.ndarray:
-        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-
-    inner = cv2.dilate(np.asarray(models, np.uint8)[box], disk(r_in)) > 0
-    ring = (cv2.dilate(hand, disk(r_out)) > 0) & ~inner
+    m = r_out + r_in + 1  # other models up to r_in beyond the surround count too
+    box = (slice(max(0, r0 - m), min(H, r0 + h + m)), slice(max(0, c0 - m), min(W, c0 + w + m)))
+    hand = own[box]
+    # the distance of every pixel to the hand and the hand pixel it is nearest (labels
+    # count the hand's pixels in raster order), and its distance to any model
+    dist, nearest = cv2.distanceTransformWithLabels((~hand).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+    apart = cv2.distanceTransform((~np.asarray(models, bool)[box]).astype(np.uint8), cv2.DIST_L2, 5)
+    ring = (dist > r_in) & (dist <= r_out) & (apart > r_in)
     if not ring.any():
         return float("nan")
-    zm = np.where(hand > 0, np.asarray(model_depth, np.float32)[box], 0).astype(np.float32)
-    hi = cv2.dilate(zm, disk(r_out))
-    lo = -cv2.dilate(np.where(hand > 0, -zm, np.float32(-1e9)), disk(r_out))
-    d = np.nan_to_num(np.asarray(measured, np.float32)[box], nan=0.0)
-    on = (d > 0) & (d >= lo - tolerance_mm) & (d <= hi + tolerance_mm)
-    return float((ring & on).sum()) / float(ring.sum())
+    near = depth[box][hand][nearest[ring] - 1]  # the depth of the nearest hand pixel
+    d = np.nan_to_num(np.asarray(measured, np.float32)[box][ring], nan=0.0)
+    on = (d > 0) & (np.abs(d - near) <= tolerance_mm)
+    return float(on.sum()) / float(ring.sum())
 
 
 def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Optional[np.ndarray] = None,
