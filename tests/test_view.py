@@ -33,7 +33,8 @@ def tracked(tmp_path_factory):
     j3, j2 = read_joints21(out.root)
     write_joints21(out.root, j3 + np.array([3.0, 4.0, 0.0]), j2)
     out.track_log.write_text(json.dumps({"sequence": "seq", "source": str(seq), "frames": [
-        {"frame": f, "iou": 0.9 - 0.1 * f, "depth_residual_mm": 2.0 + f} for f in range(FRAMES)]}))
+        {"frame": f, "iou": 0.9 - 0.1 * f, "depth_residual_mm": 2.0 + f, "surrounded": 0.2 * f, "keypoint_mm": None,
+         "fit_flagged": f == 2} for f in range(FRAMES)]}))
     return seq, out.root
 
 
@@ -73,6 +74,9 @@ def test_recording_has_every_entity_and_frame(tracked, tmp_path, capsys):
         assert frames.get(entity) == [], entity
     assert scalars["/metrics/mpjpe_mm"] == pytest.approx([5.0] * FRAMES)
     assert scalars["/metrics/iou"] == pytest.approx([0.9, 0.8, 0.7])
+    assert scalars["/metrics/surrounded"] == pytest.approx([0.0, 0.2, 0.4])
+    assert scalars["/metrics/fit_flagged"] == [0.0, 0.0, 1.0]
+    assert "/metrics/keypoint_mm" not in frames and "/metrics/off_hand" not in frames  # no frame has them
     assert min(scalars["/world/cam1/depth"]) > 10 and scalars["/world/joints21/tracked"] == [21] * FRAMES  # points
 
 

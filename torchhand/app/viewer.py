@@ -16,8 +16,10 @@ synthesis: x right, y down, z forward), in mm:
   frame the standard 21 joints of each hand (points), and ``.../bones`` the five finger
   chains from the wrist (line strips); absent ground-truth joints are left out;
 - ``metrics/mpjpe_mm`` (with ground truth): each frame's mean 21-joint error, camera 0;
-  ``metrics/iou`` and ``metrics/depth_residual_mm``: the fit check of ``track_log.json``
-  (the silhouette IoU of models and data, the median depth residual), as time series.
+  ``metrics/<key>``: the fit check of ``track_log.json`` as time series, for each of
+  :data:`FIT_KEYS` that the log holds (the silhouette IoU of models and data, the median
+  depth residual, the surround, the measures against the hand localiser, and
+  ``fit_flagged`` as 0 / 1).
 
 The ``.rrd`` is written to a hidden file beside ``FILE`` and renamed when complete.
 """
@@ -37,12 +39,14 @@ from torchhand.data.layout import (OutputLayout, SequenceInfo, SequenceLayout, r
                                    read_joints21_valid, read_poses, read_rgb, read_sequence_info)
 from torchhand.geometry.camera import unproject_pixels
 
-__all__ = ["view_sequence", "ViewSources", "view_sources", "FINGER_CHAINS", "ENTITY_ROOTS"]
+__all__ = ["view_sequence", "ViewSources", "view_sources", "FINGER_CHAINS", "ENTITY_ROOTS", "FIT_KEYS"]
 
 #: the five finger chains of the standard 21 joints, each from the wrist to the tip
 FINGER_CHAINS = [[0, 1 + 4 * f, 2 + 4 * f, 3 + 4 * f, 4 + 4 * f] for f in range(5)]
 #: the entity trees of a recording (module docstring)
 ENTITY_ROOTS = ("world", "metrics")
+#: the fit check's per-frame keys of ``track_log.json`` that the recording plots
+FIT_KEYS = ("iou", "depth_residual_mm", "surrounded", "keypoint_mm", "hand_explained", "off_hand", "fit_flagged")
 
 
 class ViewSources(NamedTuple):
@@ -125,13 +129,19 @@ def _log_joints(rr, rec, path: str, joints: np.ndarray, colour) -> None:
 
 
 def _fit_check(out: OutputLayout, frames: int) -> Dict[str, List[Optional[float]]]:
-    """Per frame ``iou`` and ``depth_residual_mm`` of ``track_log.json`` (None where absent)."""
+    """Per frame each of :data:`FIT_KEYS` of ``track_log.json`` (None where absent or
+    not a number; ``fit_flagged`` as 0 / 1); keys that no frame has are left out."""
     try:
         log = json.loads(out.track_log.read_text())["frames"]
     except (OSError, ValueError, KeyError, TypeError):
         return {}
-    return {key: [log[f].get(key) if f < len(log) else None for f in range(frames)]
-            for key in ("iou", "depth_residual_mm")}
+
+    def value(f: int, key: str) -> Optional[float]:
+        v = log[f].get(key) if f < len(log) and isinstance(log[f], dict) else None
+        return float(v) if isinstance(v, (int, float)) else None  # bool is an int: flagged 0 / 1
+
+    series = {key: [value(f, key) for f in range(frames)] for key in FIT_KEYS}
+    return {key: v for key, v in series.items() if any(x is not None for x in v)}
 
 
 def _per_frame_error(src: ViewSources, pred21) -> Optional[np.ndarray]:
