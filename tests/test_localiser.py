@@ -269,7 +269,7 @@ def test_fit_check_flags_a_model_on_the_wrong_blob():
 def posed_hand():
     """The right hand 450 mm before the Kinect camera, palm towards it: (scene, camera,
     pose (D,), renderer, its depth (H, W) mm)."""
-    from torchhand.app.frames import render_pose
+    from torchhand.app.frames import render_pose, whole_maps
     from torchhand.geometry.render import Renderer
     from torchhand.model.scene import Scene
 
@@ -280,7 +280,7 @@ def posed_hand():
         centre = scene(theta[None]).vertices[0].mean(0)
     theta[:3] = cam.T_wc[:3, :3] @ torch.tensor([0.0, 0.0, 450.0], dtype=torch.float64) + cam.T_wc[:3, 3] - centre
     renderer = Renderer(scene.faces, scene.face_model_id, scene.face_bone_id)
-    return scene, cam, theta, renderer, render_pose(scene, renderer, theta, cam)[1].depth[0].numpy()
+    return scene, cam, theta, renderer, whole_maps(render_pose(scene, renderer, theta, cam)[1], (480, 640))[0]
 
 
 def test_the_surround_flags_a_model_laid_on_a_surface_that_the_localiser_calls_hand(posed_hand):

@@ -26,7 +26,7 @@ from torchhand.tracking.preprocess import ColourView
 from torchhand.tracking.segmentation import Segmentation, SegmentConfig, SegmentationError, segment_hands
 
 __all__ = ["FrameRecord", "FrameReader", "unpack_masks", "read_frame", "read_rig_frame", "read_colour", "segment_of",
-           "segment_for_search", "pose_fit", "render_pose", "hand_hints", "hand_sides", "model_sides"]
+           "segment_for_search", "pose_fit", "render_pose", "whole_maps", "hand_hints", "hand_sides", "model_sides"]
 
 
 class FrameRecord(NamedTuple):
@@ -251,10 +251,22 @@ def segment_of(info: SequenceInfo, given: Optional[SegmentConfig]) -> Optional[S
 
 
 def render_pose(scene: Scene, renderer, theta: torch.Tensor, cam) -> tuple:
-    """(the scene posed at one pose (D,), its render in ``cam``: whole images, no normals)."""
+    """(the scene posed at one pose (D,), its render in ``cam``: the maps of the models'
+    pixel box only (``RenderResult.origin`` says where it lies; :func:`whole_maps` pastes
+    it into the image), no normals)."""
     with torch.no_grad():
         posed = scene(theta[None])
-        return posed, renderer(posed.vertices, cam, normals=False)
+        return posed, renderer(posed.vertices, cam, normals=False, crop=True)
+
+
+def whole_maps(render: RenderResult, shape: tuple) -> tuple:
+    """(depth (H, W) mm, 0 elsewhere; model ids (H, W), -1 elsewhere) of a render's first
+    problem as numpy images of ``shape``, from a cropped render or a whole one."""
+    ids, depth = render.model_id[0], render.depth[0]
+    if render.origin is not None:
+        box = (0, shape[0], 0, shape[1])
+        ids, depth = window_map(ids, render.origin, box, -1), window_map(depth, render.origin, box, 0)
+    return depth.cpu().numpy(), ids.cpu().numpy()
 
 
 def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = None) -> tuple:
@@ -263,11 +275,7 @@ def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = No
     elsewhere) per hand model, scene order, left out where a hand is not in view; the
     localiser's hints for the next frame
     (:meth:`~torchhand.salient.localiser.HandLocaliser.locate`)."""
-    ids, depth = rendered.model_id[0], rendered.depth[0]
-    if rendered.origin is not None:
-        box = (0, shape[0], 0, shape[1])
-        ids, depth = window_map(ids, rendered.origin, box, -1), window_map(depth, rendered.origin, box, 0)
-    ids, depth = ids.cpu().numpy(), depth.cpu().numpy()
+    depth, ids = whole_maps(rendered, shape)
     hints = []
     for k, m in enumerate(scene.models):
         if is_hand(m):
@@ -288,9 +296,9 @@ def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
     after a localiser found too little, its classes still count). ``rendered``: the
     pose's :func:`render_pose`, where the caller has it."""
     posed, render = render_pose(scene, renderer, theta, cam) if rendered is None else rendered
-    model = render.depth[0].cpu().numpy()
+    model, ids = whole_maps(render, (cam.height, cam.width))
     seg = segmentation
-    surround = _surround(scene, render, model, data if seg is None or seg.measured is None else seg.measured,
+    surround = _surround(scene, ids, model, data if seg is None or seg.measured is None else seg.measured,
                          float(cam.fx))
     if seg is None or seg.labels is None:
         return fit_check(model, data, surround=surround)
@@ -311,10 +319,9 @@ def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
     return fit_check(model, data, seg.mask, seg.labels, uv, located_uv, conf, z, float(cam.fx), surround=surround)
 
 
-def _surround(scene: Scene, render: RenderResult, model: np.ndarray, measured: np.ndarray, focal: float) -> float:
-    """The most surrounded hand of a render (:func:`~torchhand.scoring.metrics.surrounded`;
-    NaN without a hand in view)."""
-    ids = render.model_id[0].cpu().numpy()
+def _surround(scene: Scene, ids: np.ndarray, model: np.ndarray, measured: np.ndarray, focal: float) -> float:
+    """The most surrounded hand of a render's model ids and depth (:func:`whole_maps`;
+    :func:`~torchhand.scoring.metrics.surrounded`; NaN without a hand in view)."""
     shares = [surrounded(ids == k, model, ids >= 0, measured, focal) for k, m in enumerate(scene.models) if is_hand(m)]
     shares = [s for s in shares if np.isfinite(s)]
     return max(shares) if shares else float("nan")

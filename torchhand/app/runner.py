@@ -384,7 +384,8 @@ class _Refit:
         (posed scene, camera 0's render): the rig's other views' from a render of their
         hands' box."""
         posed, render = rendered
-        hints = [hand_hints(self.scene, render)]
+        cam0 = self.cams[i]
+        hints = [hand_hints(self.scene, render, (cam0.height, cam0.width))]
         if self.rigs is not None:
             with torch.no_grad(), skip_checks():
                 for cam in self.rigs[i][1:]:
