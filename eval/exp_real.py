@@ -104,7 +104,7 @@ def main() -> None:
                          "precision": precision, "reinitialized": log[f]["reinitialized"],
                          "tracker_iou": log[f]["iou"], "fit_flagged": log[f].get("fit_flagged"),
                          "surrounded": log[f].get("surrounded"),
-                         "surround_on_body": _laid_on_the_body(model, depth, seg, float(info.cameras[0].fx), rng,
+                         "surround_on_body": _laid_on_the_body(model, seg, float(info.cameras[0].fx), rng,
                                                                args.probes)})
             print(f"{seq.name} frame {f}: IoU {iou:.2f}, precision {precision:.2f}, median depth residual {med:.1f} mm"
                   f"{' (re-initialised)' if log[f]['reinitialized'] else ''}", flush=True)
@@ -144,15 +144,16 @@ def main() -> None:
           f"{summary['probes_flagged']:.2f} flagged (limit {summary['surround_limit']:g}) -> {args.json}")
 
 
-def _laid_on_the_body(model: np.ndarray, depth: np.ndarray, seg, focal: float, rng, probes: int,
-                      tries: int = 200) -> list:
+def _laid_on_the_body(model: np.ndarray, seg, focal: float, rng, probes: int, tries: int = 200) -> list:
     """The surround of the fitted silhouette (``model``, mm) moved onto the localiser's
     arm-and-body pixels (class 3) at up to ``probes`` random places where all of it lies
     on them, its depth the measured surface there (within its 5-95th percentiles): a
-    model tracking the wrong blob. Empty without the localiser's classes."""
+    model tracking the wrong blob. The depth is the segmentation's ``measured``, as the
+    tracker's fit check reads it. Empty without the localiser's classes."""
     own = model > 0
-    if seg.labels is None or not own.any() or probes <= 0:
+    if seg.labels is None or seg.measured is None or not own.any() or probes <= 0:
         return []
+    depth = seg.measured
     body = (seg.labels == 3) & (depth > 0)
     rows, cols = np.nonzero(own)
     r0, c0 = int(rows.mean()), int(cols.mean())

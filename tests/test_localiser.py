@@ -322,9 +322,17 @@ def test_the_surround_flags_a_model_laid_on_a_surface_that_the_localiser_calls_h
     model_uv = np.stack([np.linspace(cols.min(), cols.max(), 21), np.full(21, float(rows.mean()))], 1)
     z = np.full(21, 450.0)
     args = (model, np.where(hand, body, 0.0), hand, labels, model_uv, model_uv + 1.0)
-    assert not fit_check(*args, np.ones(21), z, float(cam.fx), surround=0.9).flagged
-    assert fit_check(*args, np.r_[np.ones(5), np.zeros(16)], z, float(cam.fx), surround=0.9).flagged
-    assert not fit_check(*args, np.ones(21), z, float(cam.fx), surround=0.5).flagged
+    assert not fit_check(*args, np.ones(21), z, float(cam.fx), surround=[0.9]).flagged
+    assert fit_check(*args, np.r_[np.ones(5), np.zeros(16)], z, float(cam.fx), surround=[0.9]).flagged
+    assert not fit_check(*args, np.ones(21), z, float(cam.fx), surround=[0.5]).flagged
+    # two hands: each is vouched for by its own joints only (the left's 21 agree, the right
+    # was not located: the right, on a surface, is flagged)
+    two = (model, np.where(hand, body, 0.0), hand, labels, np.r_[model_uv, model_uv],
+           np.r_[model_uv + 1.0, np.full((21, 2), np.nan)])
+    assert fit_check(*two, np.ones(42), np.r_[z, z], float(cam.fx), surround=[0.1, 0.9]).flagged
+    assert not fit_check(*two, np.ones(42), np.r_[z, z], float(cam.fx), surround=[0.9, 0.1]).flagged
+    q = fit_check(*two, np.ones(42), np.r_[z, z], float(cam.fx), surround=[0.1, float("nan")])
+    assert not q.flagged and q.surrounded == pytest.approx(0.1)
     # without a segmentation (the blob rules' data, or a clean render), the depth given is what is measured
     assert pose_fit(scene, renderer, theta, cam, body).flagged and not pose_fit(scene, renderer, theta, cam, air).flagged
 

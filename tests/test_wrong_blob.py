@@ -33,9 +33,9 @@ def _hand_before_a_body(root):
     return seq, read_poses(seq / "gt")
 
 
-def _track(seq, out, start) -> tuple:
+def _track(seq, out, start, reinit_iou: float = 0.0) -> tuple:
     (seq / "init_pose.json").write_text(json.dumps({"theta": [float(x) for x in start]}))
-    [summary] = track_sequences([seq], out, TrackOptions(reinit_iou=0.0), progress=False)
+    [summary] = track_sequences([seq], out, TrackOptions(reinit_iou=reinit_iou), progress=False)
     log = json.loads((out / "body" / "track_log.json").read_text())["frames"]
     return summary, log, read_poses(out / "body")
 
@@ -59,3 +59,11 @@ def test_a_track_on_the_body_is_flagged_on_every_frame_it_stays_there(tmp_path):
     assert all(log[f]["fit_flagged"] and log[f]["surrounded"] > 0.6 for f in np.flatnonzero(away)), \
         [(r["surrounded"], r["iou"]) for r in log]
     assert summary["fit_flagged_frames"] >= int(away.sum())
+    # with re-initialisation (the default): the flag starts a search, which segments the
+    # frame automatically and finds the hand; the pose kept passes the check
+    summary, log, pred = _track(seq, tmp_path / "refit", start, reinit_iou=0.5)
+    err = np.linalg.norm(pred.keypoints_3d - gt.keypoints_3d, axis=-1).mean((1, 2))
+    assert log[0]["fit_flagged"]  # frame 0 is not searched again
+    back = [r["frame"] for r in log if r["reinitialized"]]
+    assert back and back[0] == 1 and "surround is measured surface" in log[1]["notes"], log[1]["notes"]
+    assert err[1:].max() < 10.0 and not any(r["fit_flagged"] for r in log[1:]), (err, log[1]["notes"])

@@ -259,19 +259,22 @@ def render_pose(scene: Scene, renderer, theta: torch.Tensor, cam) -> tuple:
         return posed, renderer(posed.vertices, cam, normals=False, crop=True)
 
 
-def whole_maps(render: RenderResult, shape: tuple) -> tuple:
+def whole_maps(render: RenderResult, shape: Optional[tuple]) -> tuple:
     """(depth (H, W) mm, 0 elsewhere; model ids (H, W), -1 elsewhere) of a render's first
-    problem as numpy images of ``shape``, from a cropped render or a whole one."""
+    problem as numpy images of ``shape`` (H, W), from a cropped render or a whole one
+    (``shape`` may then be None)."""
     ids, depth = render.model_id[0], render.depth[0]
     if render.origin is not None:
+        if shape is None:
+            raise ValueError("a cropped render (RenderResult.origin set) needs the image's shape (H, W)")
         box = (0, shape[0], 0, shape[1])
         ids, depth = window_map(ids, render.origin, box, -1), window_map(depth, render.origin, box, 0)
     return depth.cpu().numpy(), ids.cpu().numpy()
 
 
-def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple] = None) -> tuple:
-    """Where a render (:func:`render_pose`'s; its box only with ``crop``, then ``shape``
-    (H, W) is the image's) shows each hand of the scene: one (H, W) depth map (mm, 0
+def hand_hints(scene: Scene, rendered: RenderResult, shape: Optional[tuple]) -> tuple:
+    """Where a render (:func:`render_pose`'s, cropped; ``shape``: the image's (H, W);
+    None only for a whole render) shows each hand of the scene: one (H, W) depth map (mm, 0
     elsewhere) per hand model, scene order, left out where a hand is not in view; the
     localiser's hints for the next frame
     (:meth:`~torchhand.salient.localiser.HandLocaliser.locate`)."""
@@ -319,12 +322,10 @@ def pose_fit(scene: Scene, renderer, theta: torch.Tensor, cam, data: np.ndarray,
     return fit_check(model, data, seg.mask, seg.labels, uv, located_uv, conf, z, float(cam.fx), surround=surround)
 
 
-def _surround(scene: Scene, ids: np.ndarray, model: np.ndarray, measured: np.ndarray, focal: float) -> float:
-    """The most surrounded hand of a render's model ids and depth (:func:`whole_maps`;
-    :func:`~torchhand.scoring.metrics.surrounded`; NaN without a hand in view)."""
-    shares = [surrounded(ids == k, model, ids >= 0, measured, focal) for k, m in enumerate(scene.models) if is_hand(m)]
-    shares = [s for s in shares if np.isfinite(s)]
-    return max(shares) if shares else float("nan")
+def _surround(scene: Scene, ids: np.ndarray, model: np.ndarray, measured: np.ndarray, focal: float) -> list:
+    """Each hand model's :func:`~torchhand.scoring.metrics.surrounded` in a render's model
+    ids and depth (:func:`whole_maps`), scene order (NaN: not in view)."""
+    return [surrounded(ids == k, model, ids >= 0, measured, focal) for k, m in enumerate(scene.models) if is_hand(m)]
 
 
 def hand_sides(scene: Scene) -> tuple:

@@ -27,7 +27,7 @@ from torchhand.app.outputs import TrackedSequence, failed, write_sequence
 from torchhand.core.check import skip_checks
 from torchhand.data.layout import SequenceError, SequenceInfo, SequenceLayout, read_depth, read_rgb, read_sequence_info
 from torchhand.model.scene import Scene
-from torchhand.scoring.metrics import FitCheck
+from torchhand.scoring.metrics import FitCheck, FitCheckLimits
 from torchhand.tracking.energies import EnergyTerm, parse_energy
 from torchhand.tracking.initialization import Initializer
 from torchhand.tracking.segmentation import SegmentConfig, SegmentationError, segment_hands
@@ -359,6 +359,20 @@ def _starts(run: _Run, members: List[int], scene: Scene, initializer: Optional[I
     return torch.as_tensor(np.stack(starts), dtype=torch.float32, device=run.options.device), notes
 
 
+def _failed(q: FitCheck, limits: FitCheckLimits = FitCheckLimits()) -> str:
+    """What a flagged fit check crossed, in words (only the measures past their limit)."""
+    parts = []
+    if np.isfinite(q.surrounded) and q.surrounded > limits.surrounded:
+        parts.append(f"{q.surrounded:.2f} of a hand's surround is measured surface at its depth")
+    if np.isfinite(q.keypoint_mm) and q.keypoint_mm > limits.keypoint_mm:
+        parts.append(f"joints {q.keypoint_mm:.0f} mm from the localiser's")
+    if np.isfinite(q.explained) and q.explained < limits.explained:
+        parts.append(f"{q.explained:.2f} of the localiser's hand explained")
+    if np.isfinite(q.off_hand) and q.off_hand > limits.off_hand:
+        parts.append(f"{q.off_hand:.2f} of the model off its hand")
+    return ", ".join(parts) or "the localiser found none of the tracked hands' pixels"
+
+
 class _Refit:
     """After each frame: every sequence's fit quality (``quality[f][i]``: silhouette IoU,
     median depth residual) and, below ``reinit_iou``, its re-initialisation
@@ -426,20 +440,40 @@ class _Refit:
     def _reinitialise(self, i: int, depth: np.ndarray, seg, data: np.ndarray, theta: torch.Tensor, q: FitCheck,
                       rendered, notes: list) -> tuple:
         """The search around problem ``i``'s pose (seeded from the localiser's joints where
-        it found them); its pose replaces ``theta[i]`` when it fits better: for a failed
+        it found them); its pose replaces ``theta[i]`` when it fits better than the
+        current pose judged on the same evidence (a frame without a segmentation is
+        segmented for the search, and the current pose scored again with it): for a failed
         fit check, one that passes it or explains more of the localiser's hand and lies
-        less off it; else a higher silhouette IoU.
+        less off it (with the localiser's evidence), else one that passes it with a
+        silhouette IoU of :data:`HINT_MIN_IOU` or the current one's; for a low IoU, a
+        higher silhouette IoU.
         Returns (fit check, re-initialised, render of the pose kept)."""
-        why = (f"fit check (keypoints {q.keypoint_mm:.0f} mm from the localiser's, {q.explained:.2f} of its hand "
-               f"explained, {q.off_hand:.2f} off it, {q.surrounded:.2f} surrounded by the measured surface)"
-               if q.flagged else f"silhouette IoU {q.iou:.2f}")
+        why = f"fit check: {_failed(q)}" if q.flagged else f"silhouette IoU {q.iou:.2f}"
         try:
+            now = q
             if seg is None:
                 seg = segment_hands(depth, self.cams[i], self.search[i], sides=hand_sides(self.scene))
+                now = self.fit(theta[i], i, data, seg)[0]
             new = self.initializer(depth, self.cams[i], seg, around=theta[i])
         except (SegmentationError, ValueError) as err:
             notes[i] = f"{why}; no re-initialisation: {err}"
             return q, False, rendered
+        q2, rendered2 = self.fit(new.theta.to(theta), i, data, seg)
+        by_check = q.flagged and np.isfinite(now.explained) and np.isfinite(q2.explained)
+        if by_check:
+            better = (not q2.flagged, q2.explained - q2.off_hand) > (not now.flagged, now.explained - now.off_hand)
+        elif q.flagged:  # flagged by the surround alone: a pose that passes and still fits the data
+            better = not q2.flagged and (now.flagged or q2.iou > now.iou) and q2.iou >= min(now.iou, HINT_MIN_IOU)
+        else:
+            better = q2.iou > now.iou
+        if better:
+            what = (f"hand explained {now.explained:.2f} -> {q2.explained:.2f}, off it {now.off_hand:.2f} -> "
+                    f"{q2.off_hand:.2f}" if by_check else f"silhouette IoU {now.iou:.2f} -> {q2.iou:.2f}"
+                    + (", passes the fit check" if q.flagged else ""))
+            notes[i] = f"re-initialised ({why}): {what} ({new.seconds:.1f} s)"
+            theta[i] = new.theta.to(theta)
+            return q2, True, rendered2
+        return q, False, rendered
         q2, rendered2 = self.fit(new.theta.to(theta), i, data, seg)
         by_check = q.flagged and np.isfinite(q.explained) and np.isfinite(q2.explained)
         if by_check:

@@ -71,8 +71,9 @@ class FitCheckLimits:
             true fits ~0.1-0.4, docs/localiser.md), a model laid on a body, an arm or a
             table is surrounded by that surface (~0.7-1). The one measure that needs no
             localiser, so it also checks the blob rules' segmentation; it does not flag a
-            fit whose joints at least ``vouching_joints`` confident joints of the
-            localiser place within half of ``keypoint_mm`` (a grasp, a hand on a table).
+            hand for which at least ``vouching_joints`` of the localiser's confident
+            joints of that hand lie a median half of ``keypoint_mm`` or less from the
+            model's (a grasp, a hand on a table).
     """
 
     keypoint_mm: float = 40.0
@@ -152,10 +153,10 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
               labels: Optional[np.ndarray] = None, model_uv: Optional[np.ndarray] = None,
               located_uv: Optional[np.ndarray] = None, located_confidence: Optional[np.ndarray] = None,
               located_z: Optional[np.ndarray] = None, focal: float = float("nan"),
-              limits: FitCheckLimits = FitCheckLimits(), surround: float = float("nan")) -> FitCheck:
+              limits: FitCheckLimits = FitCheckLimits(), surround: Sequence[float] = ()) -> FitCheck:
     """A fit check that can fail: :func:`fit_quality` against the tracker's own data,
-    :func:`surrounded` (``surround``, the caller's, NaN: not measured) from the measured
-    depth, and three measures against the hand localiser's independent evidence.
+    :func:`surrounded` from the measured depth, and three measures against the hand
+    localiser's independent evidence.
 
     Args:
         model_depth, data_depth: as :func:`fit_quality`.
@@ -167,11 +168,16 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
             located_confidence: (P,) the localiser's confidences; located_z: (P,) its
             joints' depth (mm) and ``focal`` the camera's focal length (px), to measure
             the distances in mm.
+        surround: the caller's :func:`surrounded` of each hand model (NaN: not in view),
+            in the order of the joints' blocks of 21 rows; a hand above the limit is
+            vouched for only by its own block's joints.
     """
     iou, residual = fit_quality(model_depth, data_depth)
-    on_surface = bool(np.isfinite(surround) and surround > limits.surrounded)
+    shares = np.asarray(surround, np.float64).reshape(-1)
+    worst = float(np.nanmax(shares)) if np.isfinite(shares).any() else float("nan")
+    on_surface = np.isfinite(shares) & (shares > limits.surrounded)  # per hand
     if hand_mask is None or labels is None:
-        return FitCheck(iou, residual, flagged=on_surface, surrounded=surround)
+        return FitCheck(iou, residual, flagged=bool(on_surface.any()), surrounded=worst)
     model = np.asarray(model_depth) > 0
     hand = np.asarray(hand_mask, bool)
     explained = float((model & hand).sum()) / hand.sum() if hand.any() else float("nan")
@@ -179,22 +185,31 @@ def fit_check(model_depth: np.ndarray, data_depth: np.ndarray, hand_mask: Option
     near_hand = cv2.dilate(any_hand, np.ones((7, 7), np.uint8)) > 0
     on_model = model & (np.asarray(labels) != 255)
     off_hand = float((on_model & ~near_hand).sum()) / on_model.sum() if on_model.any() else float("nan")
-    kp, kp_mm, use = float("nan"), float("nan"), np.zeros(0, bool)
+    kp, kp_mm, mm = float("nan"), float("nan"), None
     if model_uv is not None and located_uv is not None:
         conf = np.ones(len(located_uv)) if located_confidence is None else np.asarray(located_confidence)
         d = np.linalg.norm(np.asarray(model_uv, np.float64) - np.asarray(located_uv, np.float64), axis=-1)
         use = np.isfinite(d) & (conf >= limits.confidence)
         kp = float(np.median(d[use])) if use.any() else float("nan")
-        if located_z is not None and use.any():
-            kp_mm = float(np.median(d[use] * np.asarray(located_z, np.float64)[use] / focal))
-    # a hand whose joints the localiser places, confidently, within half the limit of the
-    # model's is vouched for: a grasp or a hand on a table may be surrounded, a body is not
-    # jointed like a hand
-    vouched = bool(np.isfinite(kp_mm) and kp_mm <= limits.keypoint_mm / 2 and use.sum() >= limits.vouching_joints)
+        if located_z is not None:
+            mm = np.where(use, d * np.asarray(located_z, np.float64) / focal, np.nan)
+            kp_mm = float(np.median(mm[use])) if use.any() else float("nan")
+    surrounded_alone = any(on and not _vouched(mm, k, limits) for k, on in enumerate(on_surface))
     flagged = bool((np.isfinite(kp_mm) and kp_mm > limits.keypoint_mm) or not hand.any()
                    or (np.isfinite(explained) and explained < limits.explained)
-                   or (np.isfinite(off_hand) and off_hand > limits.off_hand) or (on_surface and not vouched))
-    return FitCheck(iou, residual, kp, kp_mm, explained, off_hand, flagged, surround)
+                   or (np.isfinite(off_hand) and off_hand > limits.off_hand) or surrounded_alone)
+    return FitCheck(iou, residual, kp, kp_mm, explained, off_hand, flagged, worst)
+
+
+def _vouched(mm: Optional[np.ndarray], k: int, limits: FitCheckLimits) -> bool:
+    """Hand ``k``'s own confident joints (``mm``: each joint's distance in mm, NaN where not
+    compared) lie within half the joints' limit of the model's: a grasp or a hand on a
+    table may be surrounded, a body is not jointed like a hand."""
+    if mm is None or len(mm) < 21 * (k + 1):
+        return False
+    own = mm[21 * k:21 * k + 21]
+    own = own[np.isfinite(own)]
+    return len(own) >= limits.vouching_joints and float(np.median(own)) <= limits.keypoint_mm / 2
 
 
 def keypoint_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
