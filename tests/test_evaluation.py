@@ -238,6 +238,7 @@ def _write_two_hand_pair(tmp_path, name, offset_mm):
     return tmp_path / name
 
 
+@pytest.mark.slow
 def test_penetration_of_overlapping_and_separate_hands(tmp_path):
     inside = _write_two_hand_pair(tmp_path, "inside", 0.0)
     r = evaluate_sequence(inside, inside)
@@ -251,6 +252,7 @@ def test_penetration_of_overlapping_and_separate_hands(tmp_path):
     assert "penetration" not in evaluate_sequence(apart, apart, with_penetration=False)
 
 
+@pytest.mark.slow
 def test_penetration_metric_on_meshes():
     scene, theta = _two_hands(300.0)
     with torch.no_grad():

@@ -89,6 +89,7 @@ def _track(scene, theta, cam, depths, **cfg):
     return torch.stack([o.theta[0] for o in out]), [int(o.iterations[0]) for o in out]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cap,min_motion", [(1, 0.2), (3, 0.0)])
 def test_fused_tracking_gives_the_torch_theta(one_hand, cap, min_motion, monkeypatch):
     """The tracker's poses with ``fused`` equal the torch objective's, to 1e-5 rad and

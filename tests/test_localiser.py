@@ -579,6 +579,7 @@ def test_keypoint_term_is_zero_at_the_detections_and_its_jacobian_is_exact():
 SR305 = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "sr305"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (SHIPPED and SR305.is_dir()), reason="needs the shipped localiser and the shared SR305 frames")
 def test_shipped_localiser_finds_the_hand_of_every_real_frame():
     """The 19 real SR305 frames (a right hand before a standing person): the localiser
@@ -721,6 +722,7 @@ def test_real_backgrounds_read_their_hand_masks_and_refuse_what_does_not_match(t
         task.check_config(LocaliserTrainConfig(backgrounds=[{"frames": str(frames)}], p_background=0.3))
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (SHIPPED and SR305.is_dir()), reason="needs the shipped localiser and the shared SR305 frames")
 def test_shipped_localiser_keeps_to_the_hands_of_the_held_out_real_frames():
     """The real validation of the training run on the recording it never saw as a

@@ -130,6 +130,7 @@ def test_colour_views_are_tracked_by_edges_and_flow(ring, energy, limit):
     assert np.mean(errors) < limit, errors
 
 
+@pytest.mark.slow
 def test_models_outside_the_view_find_no_pairs_and_stay_in_place(ring):
     """Models beside the view (in front of the camera, outside its image): the cropped
     renders are empty, and the frame stays where it was (only the priors act) with a

@@ -567,6 +567,7 @@ def colour_frames():
     return render_salient_frames(demo_motion(frames=slice(30, 34)), seed=3, progress=False, modality="colour")
 
 
+@pytest.mark.slow
 def test_colour_frames_label_the_visible_nails(colour_frames):
     from torchhand.data.synth import demo_motion
     from torchhand.salient.training_data import VISIBLE_NAIL_MM2, render_salient_frames, visible_mm2

@@ -261,6 +261,7 @@ def motion16(hia_root):
     return thesis_motion(hia_root, "16", slice(0, 3))
 
 
+@pytest.mark.slow
 def test_thesis_motion_16(motion16):
     m = motion16
     assert m.scene.names == ["hand_right", "hand_left", "ball"]
@@ -277,6 +278,7 @@ def test_thesis_motion_16(motion16):
     assert step[:, trans].max() < 20 and step[:, ~trans].max() < 0.3
 
 
+@pytest.mark.slow
 def test_thesis_sequence_written_with_its_camera(motion16, tmp_path):
     one = _one(motion16)
     out = write_synthetic_sequence(one, tmp_path / "hia", noise="none", rgb=False, progress=False)

@@ -598,6 +598,7 @@ def test_one_host_sync_per_outer_iteration(hand_frame, monkeypatch, fused):
     assert "levenberg_marquardt" in extra[0] and "tolist" in extra[0]
 
 
+@pytest.mark.slow
 def test_a_hand_near_the_image_border_is_tracked(hand_frame):
     """The solve's render box, widened by the margin, is clamped to the image: a box
     starting above the first row once emptied the visible vertices (negative slice)."""
