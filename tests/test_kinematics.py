@@ -158,7 +158,7 @@ def test_so3_left_jacobian_matches_finite_difference_of_spatial_angular_velocity
 
 
 # ====================================================== forward kinematics
-@pytest.mark.parametrize("name", ["hand_right", "rope"])
+@pytest.mark.parametrize("name", [pytest.param("hand_right", marks=pytest.mark.slow), "rope"])
 def test_forward_kinematics_gradcheck_wrt_theta(model64, name):
     model = model64(name)
     tree = model.tree
@@ -176,7 +176,7 @@ def test_forward_kinematics_at_zero_is_identity(model64, name):
     torch.testing.assert_close(fk.G, torch.eye(4, dtype=F64).expand_as(fk.G), rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("name", ["hand_right", "hand_left", "pipe", "rope"])
+@pytest.mark.parametrize("name", [pytest.param("hand_right", marks=pytest.mark.slow), "hand_left", "pipe", "rope"])
 def test_twists_equal_autograd_derivative_of_attached_points(model64, name):
     """d(G_j x0)/d theta_d == omega_d x (G_j x0) + u_d if DoF d drives bone j, else 0."""
     model = model64(name)

@@ -26,6 +26,7 @@ def frames():
     return render_context_frames(6, seed=7, progress=False)
 
 
+@pytest.mark.slow
 def test_context_frames_label_hands_and_place_their_joints(frames):
     assert frames.depth.dtype == np.uint16 and frames.labels.shape == frames.depth.shape
     assert set(np.unique(frames.labels)) <= {0, 1, 2, 3, IGNORE}

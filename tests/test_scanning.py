@@ -26,6 +26,9 @@ from torchhand.reconstruction.registration import RegistrationConfig, kabsch
 from torchhand.scoring.surfaces import score_scan, surface_errors
 from torchhand.tracking.segmentation import skin_mask
 
+# in-hand scanning end to end: rendered scans registered and fused (the slow tier)
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def box_path(tmp_path_factory):
