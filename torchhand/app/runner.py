@@ -462,7 +462,7 @@ class _Refit:
         by_check = q.flagged and np.isfinite(now.explained) and np.isfinite(q2.explained)
         if by_check:
             better = (not q2.flagged, q2.explained - q2.off_hand) > (not now.flagged, now.explained - now.off_hand)
-        elif q.flagged:  # flagged by the surround alone: a pose that passes and still fits the data
+        elif q.flagged:  # no localiser evidence to compare (the surround flagged it): a pose that passes and fits
             better = not q2.flagged and (now.flagged or q2.iou > now.iou) and q2.iou >= min(now.iou, HINT_MIN_IOU)
         else:
             better = q2.iou > now.iou
@@ -470,19 +470,6 @@ class _Refit:
             what = (f"hand explained {now.explained:.2f} -> {q2.explained:.2f}, off it {now.off_hand:.2f} -> "
                     f"{q2.off_hand:.2f}" if by_check else f"silhouette IoU {now.iou:.2f} -> {q2.iou:.2f}"
                     + (", passes the fit check" if q.flagged else ""))
-            notes[i] = f"re-initialised ({why}): {what} ({new.seconds:.1f} s)"
-            theta[i] = new.theta.to(theta)
-            return q2, True, rendered2
-        return q, False, rendered
-        q2, rendered2 = self.fit(new.theta.to(theta), i, data, seg)
-        by_check = q.flagged and np.isfinite(q.explained) and np.isfinite(q2.explained)
-        if by_check:
-            better = (not q2.flagged, q2.explained - q2.off_hand) > (False, q.explained - q.off_hand)
-        else:  # a flag without the localiser's evidence (the surround): a pose that passes, else more IoU
-            better = (not q2.flagged, q2.iou) > (not q.flagged, q.iou)
-        if better:
-            what = (f"hand explained {q.explained:.2f} -> {q2.explained:.2f}, off it {q.off_hand:.2f} -> "
-                    f"{q2.off_hand:.2f}" if by_check else f"silhouette IoU {q.iou:.2f} -> {q2.iou:.2f}")
             notes[i] = f"re-initialised ({why}): {what} ({new.seconds:.1f} s)"
             theta[i] = new.theta.to(theta)
             return q2, True, rendered2

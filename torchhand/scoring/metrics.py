@@ -67,9 +67,9 @@ class FitCheckLimits:
         confidence: joints of the localiser below this confidence are not compared;
         surrounded: the share of a hand's surround (:func:`surrounded`) where the measured
             surface goes on at the hand's depth above which the fit is flagged: a hand
-            ends in depth edges except at the wrist and where it holds something (its
-            true fits ~0.1-0.4, docs/localiser.md), a model laid on a body, an arm or a
-            table is surrounded by that surface (~0.7-1). The one measure that needs no
+            ends in depth edges except at the wrist and where it holds something (the
+            tracked SR305 frames at most 0.24, docs/localiser.md), a model laid on a body
+            or a table is surrounded by that surface (0.80-0.96 on the SR305 body). The one measure that needs no
             localiser, so it also checks the blob rules' segmentation; it does not flag a
             hand for which at least ``vouching_joints`` of the localiser's confident
             joints of that hand lie a median half of ``keypoint_mm`` or less from the
