@@ -118,6 +118,17 @@ def test_depth_to_points_matches_reference(gen):
     torch.testing.assert_close(depth_to_points(depth, K.expand(2, 3, 3)), points)
 
 
+def test_depth_to_points_honours_skew():
+    """Back-projected pixels project back onto themselves with a skewed camera."""
+    K = _K(skew=1.5)
+    depth = torch.full((1, 6, 8), 700.0, dtype=torch.float64)
+    depth[0, 2, 3] = 650.0
+    points = depth_to_points(depth, K)
+    v, u = torch.meshgrid(torch.arange(6.0), torch.arange(8.0), indexing="ij")
+    uv = project_points(points[0].reshape(-1, 3), K)
+    torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(-1, 2).double(), rtol=0, atol=1e-9)
+
+
 def test_points_and_normals_match_kornia(gen):
     """The shared back-projection gives depth_to_points and kornia's Sobel normals
     (flipped towards the camera, zero next to invalid pixels)."""
@@ -135,6 +146,27 @@ def test_points_and_normals_match_kornia(gen):
     bad = torch.nn.functional.max_pool2d((~(depth > 0))[:, None].double(), 3, 1, 1)[:, 0] > 0
     torch.testing.assert_close(normals[~bad], ref[~bad], rtol=0, atol=1e-12)
     assert (normals[bad] == 0).all() and bool(bad[0, 3:9, 9:16].all()) and bool(bad[1, 11:14, 2:5].all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_opencv_points_and_normals_match_the_torch_backend(gen, dtype):
+    """The host backend of preprocessing gives the torch backend's points exactly and
+    its normals to float rounding, with the same zeros (invalid pixels, their 3x3
+    neighbours, an image edge), for a skewed camera and batched intrinsics."""
+    depth = (torch.rand(2, 20, 30, generator=gen, dtype=torch.float64) * 50 + 500).to(dtype)
+    depth[0, 4:8, 10:15] = 0.0
+    depth[1, 12, 3] = float("nan")
+    depth[1, 0, 7] = 0.0
+    K = torch.tensor([[[300.0, 2.0, 14.5], [0.0, 310.0, 9.5], [0.0, 0.0, 1.0]],
+                      [[280.0, 0.0, 11.0], [0.0, 280.0, 8.0], [0.0, 0.0, 1.0]]], dtype=dtype)
+    points, normals = depth_to_points_and_normals(depth, K)
+    p, n = depth_to_points_and_normals(depth, K, backend="opencv")
+    assert p.dtype == n.dtype == dtype and p.shape == n.shape == (2, 20, 30, 3)
+    torch.testing.assert_close(p, points, rtol=0, atol=1e-9 if dtype == torch.float64 else 1e-4)
+    torch.testing.assert_close(n, normals, rtol=0, atol=1e-9 if dtype == torch.float64 else 5e-5)
+    assert torch.equal(n.norm(dim=-1) == 0, normals.norm(dim=-1) == 0)
+    with pytest.raises(ValueError, match="backend"):
+        depth_to_points_and_normals(depth, K, backend="cuda")
 
 
 def test_max_filter_equals_max_pool(gen):

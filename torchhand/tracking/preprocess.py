@@ -137,21 +137,24 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     avg = np.where(n > 0, s / np.maximum(n, 1e-6), 0)
     rc = np.argwhere(edges)
 
-    dt = torch.as_tensor(d, dtype=dtype, device=device)
-    K = camera.K.to(device=device, dtype=dtype).clone()
+    # points and normals on the host, as the filters above; the whole images filled
+    # there (numpy's zeros are pages zeroed when first touched, and the terms read few
+    # pixels outside the box), then moved as they are
+    dt = torch.as_tensor(d, dtype=dtype)
+    K = camera.K.detach().cpu().to(dtype).clone()
     K[0, 2] -= c0  # the crop's intrinsics
     K[1, 2] -= r0
     H, W = valid_full.shape
-    full_depth = torch.zeros(H, W, dtype=dtype, device=device)
-    points = torch.zeros(H, W, 3, dtype=dtype, device=device)
-    normals = torch.zeros(H, W, 3, dtype=dtype, device=device)
-    full_depth[r0:r1, c0:c1] = dt
+    p, n = depth_to_points_and_normals(dt[None], K, backend="opencv")
+    full = []
+    for crop in (dt.numpy(), p[0].numpy(), n[0].numpy()):
+        whole = np.zeros((H, W) + crop.shape[2:], crop.dtype)
+        whole[r0:r1, c0:c1] = crop
+        full.append(torch.as_tensor(whole, device=device))
     covered = np.zeros((H, W), bool)
     covered[r0:r1, c0:c1] = closed.astype(bool)
     covered |= np.isnan(depth)
-    p, n = depth_to_points_and_normals(dt[None], K)
-    points[r0:r1, c0:c1], normals[r0:r1, c0:c1] = p[0], n[0]
-    return DepthFrame(full_depth, torch.as_tensor(valid_full, device=device), points, normals,
+    return DepthFrame(full[0], torch.as_tensor(valid_full, device=device), full[1], full[2],
                       torch.as_tensor(rc + [r0, c0], dtype=torch.int64, device=device).reshape(-1, 2),
                       torch.as_tensor(avg[rc[:, 0], rc[:, 1]], dtype=dtype, device=device),
                       torch.as_tensor(_within(depth, _TINY, _HUGE), device=device),
