@@ -81,9 +81,10 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, ids: Optional[to
         if ids.dim() == 1:  # index_select: see face_corners
             r = ring.index_select(0, ids)  # (N, R)
             n = fn.index_select(1, r.reshape(-1)).view(fn.shape[0], *r.shape, 3).sum(-2)
-        else:
-            r = ring[ids]  # (B, N, R)
-            n = fn[torch.arange(fn.shape[0], device=fn.device)[:, None, None], r].sum(-2)
+        else:  # one index_select on the flattened problems (as above; faster than fn[b, r])
+            r = ring.index_select(0, ids.reshape(-1)).view(*ids.shape, ring.shape[1])  # (B, N, R)
+            r = r + (torch.arange(B, device=fn.device) * fn.shape[1]).view(B, 1, 1)
+            n = fn.reshape(-1, 3).index_select(0, r.reshape(-1)).view(*r.shape, 3).sum(-2)
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 

@@ -109,23 +109,29 @@ class ModelToData(EnergyTerm):
         visible = state.visible_vertices()
         V = state.posed.vertices
         batch = torch.arange(B, device=dev)[:, None]
+        cut = self.max_distance
+        # every model's candidates first, then their normals and their nearest data points
+        # in one pass each for all models (the same values as model by model: each
+        # vertex's normal and each query's answer do not depend on the others)
+        picks = [stride_subsample(visible[:, scene.vertex_slices[name]], capped(self.max_vertices, state.share))
+                 for name in scene.names]  # (local (B, M), slot (B, M)) per model
+        ids = torch.cat([local + scene.vertex_slices[name].start for name, (local, _) in zip(scene.names, picks)], 1)
+        groups = torch.cat([torch.where(slot, torch.full_like(local, k), -1) for k, (local, slot) in enumerate(picks)], 1)
+        Vq = V[batch, ids]  # (B, sum M, 3)
+        normals = vertex_normals(V, scene.faces, ids, scene.vertex_faces)
+        if data.index is None:  # no labelled data (e.g. every model far from it)
+            nearest = torch.full_like(ids, -1)
+        else:
+            nearest = data.index.nearest(Vq, problems, groups, cut)
+        sizes = [local.shape[1] for local, _ in picks]
         count = torch.zeros(B, dtype=torch.int64, device=dev)
         candidates = torch.zeros(B, dtype=torch.int64, device=dev)
         unmatched = torch.zeros(B, dtype=torch.float64, device=dev)
-        cut = self.max_distance
         rows = []
-        for k, (name, model) in enumerate(zip(scene.names, scene.models)):  # models: a handful, static
-            vs = scene.vertex_slices[name]
-            local, slot = stride_subsample(visible[:, vs], capped(self.max_vertices, state.share))  # (B, M)
-            ids = local + vs.start
-            Vk = V[batch, ids]  # (B, M, 3)
-            nV = vertex_normals(V, scene.faces, ids, scene.vertex_faces)
-            if data.index is None:
-                j = torch.full_like(ids, -1)
-            else:
-                j = data.index.nearest(Vk, problems, torch.where(slot, torch.full_like(ids, k), -1), cut)
+        for model, (local, slot), Vk, nV, j in zip(scene.models, picks, Vq.split(sizes, 1), normals.split(sizes, 1),
+                                                   nearest.split(sizes, 1)):  # models: a handful, static
             found = j >= 0
-            if data.index is None:  # no labelled data (e.g. every model far from it)
+            if data.index is None:
                 X, nX = torch.zeros_like(Vk), torch.zeros_like(Vk)
             else:
                 X, nX = data.points[j.clamp(min=0)], data.normals[j.clamp(min=0)]
@@ -136,7 +142,7 @@ class ModelToData(EnergyTerm):
             count += keep.sum(1)
             # a candidate without a pair is charged min(distance, cut-off)^2
             unmatched += torch.where(slot & ~keep, d.clamp(max=cut) ** 2, torch.zeros_like(d)).sum(1).double()
-            rows.append(SurfaceRows(local, X.to(dt), nV, keep.to(dt)))
+            rows.append(SurfaceRows(local, X.to(dt), nV.contiguous(), keep.to(dt)))
         return ModelRows(counts(B, correspondences=count, candidates=candidates, unmatched=unmatched), scene,
                             tuple(rows))
 
