@@ -39,6 +39,14 @@ seeds, its speed, and the real SR305 frames.
    of the training noise family (Kinect; seed 777, the held-out motions): equal figures
    mean the network underfits (more capacity or steps help), far better seen figures
    that it overfits (more renders help).
+6. **The surround** (the fit check's measure from the sensor alone,
+   :func:`torchhand.scoring.metrics.surrounded`) on section 1's frames: of every hand in
+   view, its true silhouette with the measured depth as its depth (a perfect fit, in
+   context: tables, held objects, arms and bodies behind and beside it), and that
+   silhouette laid on the frame's arm-and-body pixels at up to ``SURROUND_PROBES`` places
+   (a track of the wrong blob, as ``eval/exp_real.py`` probes the real frames):
+   ``true_hands_flagged`` is the share of good fits the check would flag,
+   ``probes_flagged`` the share of wrong-blob fits it flags.
 """
 
 from __future__ import annotations
@@ -67,6 +75,8 @@ UNSEEN_SEED = 777
 IN_VIEW_PX = 500
 #: The simulated hints of section 1 are the true hand moved by up to this many px.
 HINT_MOTION_PX = 15.0
+#: Section 6 lays each hand's silhouette on the body at up to this many places.
+SURROUND_PROBES = 3
 
 
 def _motions() -> dict:
@@ -144,6 +154,35 @@ def test_set(loc: HandLocaliser, n: int, frames=None, blobs: bool = True) -> dic
             "hands_found_in_view_with_hint": found_hinted / max(in_view, 1),
             "hand_iou_mean_with_hint": float(np.mean(hinted_ious)),
             "confidence_error_correlation": float(np.corrcoef(np.concatenate(conf), e2)[0, 1])}
+
+
+def surround_in_context(fr) -> dict:
+    """Section 6 of the module docstring, on the frames ``fr`` of section 1."""
+    from types import SimpleNamespace
+
+    from exp_real import laid_on_the_body
+    from torchhand.scoring.metrics import FitCheckLimits, surrounded
+
+    limit = FitCheckLimits().surrounded
+    rng = np.random.default_rng(TEST_SEED)
+    true, probes = [], []
+    for f in range(len(fr.depth)):
+        depth, labels, focal = fr.depth[f].astype(np.float32), fr.labels[f], float(fr.K[f][0, 0])
+        models = np.isin(labels, (1, 2))
+        for k in range(2):
+            own = labels == 1 + k
+            if own.sum() < IN_VIEW_PX:
+                continue
+            model = np.where(own, depth, 0)
+            true.append(surrounded(own, model, models, depth, focal))
+            probes += laid_on_the_body(model, SimpleNamespace(labels=labels, measured=depth), focal, rng,
+                                       SURROUND_PROBES)
+    true, probes = np.array(true, float), np.array(probes, float)
+    return {"limit": limit, "true_hands": len(true), "true_hands_median": float(np.nanmedian(true)),
+            "true_hands_p95": float(np.nanpercentile(true, 95)), "true_hands_max": float(np.nanmax(true)),
+            "true_hands_flagged": float(np.mean(true > limit)), "probes": len(probes),
+            "probes_median": float(np.nanmedian(probes)) if len(probes) else None,
+            "probes_flagged": float(np.mean(probes > limit)) if len(probes) else None}
 
 
 def _moved_hint(depth: np.ndarray, hand: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -318,8 +357,11 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     loc = HandLocaliser.load(args.weights, threads=args.threads, flip_test=args.flip_test)
-    out = {"flip_test": loc.flip_test, "test_set": test_set(loc, args.frames)}
+    frames = render_context_frames(args.frames, TEST_SEED, ContextConfig(noise="stereo"), _motions(), name="test")
+    out = {"flip_test": loc.flip_test, "test_set": test_set(loc, args.frames, frames)}
     print(json.dumps(out["test_set"], indent=2), flush=True)
+    out["surround"] = surround_in_context(frames)
+    print(out["surround"], flush=True)
     if args.seen is not None:
         out["seen_and_unseen"] = seen_and_unseen(loc, args.seen, args.seen_frames)
         print(out["seen_and_unseen"], flush=True)

@@ -104,7 +104,7 @@ def main() -> None:
                          "precision": precision, "reinitialized": log[f]["reinitialized"],
                          "tracker_iou": log[f]["iou"], "fit_flagged": log[f].get("fit_flagged"),
                          "surrounded": log[f].get("surrounded"),
-                         "surround_on_body": _laid_on_the_body(model, seg, float(info.cameras[0].fx), rng,
+                         "surround_on_body": laid_on_the_body(model, seg, float(info.cameras[0].fx), rng,
                                                                args.probes)})
             print(f"{seq.name} frame {f}: IoU {iou:.2f}, precision {precision:.2f}, median depth residual {med:.1f} mm"
                   f"{' (re-initialised)' if log[f]['reinitialized'] else ''}", flush=True)
@@ -144,7 +144,7 @@ def main() -> None:
           f"{summary['probes_flagged']:.2f} flagged (limit {summary['surround_limit']:g}) -> {args.json}")
 
 
-def _laid_on_the_body(model: np.ndarray, seg, focal: float, rng, probes: int, tries: int = 200) -> list:
+def laid_on_the_body(model: np.ndarray, seg, focal: float, rng, probes: int, tries: int = 200) -> list:
     """The surround of the fitted silhouette (``model``, mm) moved onto the localiser's
     arm-and-body pixels (class 3) at up to ``probes`` random places where all of it lies
     on them, its depth the measured surface there (within its 5-95th percentiles): a
