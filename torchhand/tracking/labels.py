@@ -81,9 +81,11 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     """
     B, V = vertices.shape[:2]
     dev, dt = vertices.device, vertices.dtype
-    index = PointIndex(vertices.detach().reshape(-1, 3), torch.arange(B, device=dev).repeat_interleave(V),
-                       torch.zeros(B * V, dtype=torch.int64, device=dev), B, 1, distance, backend,
-                       cell=distance / 2)  # near data ends its search early, far data scans 5^3 cells
+    flat_v, problem_v = vertices.detach().reshape(-1, 3), torch.arange(B, device=dev).repeat_interleave(V)
+    zero_v = torch.zeros(B * V, dtype=torch.int64, device=dev)
+    # cells of half the distance: a pixel far from every model (a wall behind the hands)
+    # scans 5^3 cells at the full distance, one near a model stops at the first vertex
+    index = PointIndex(flat_v, problem_v, zero_v, B, 1, distance, backend, cell=distance / 2)
     H, W = frames[0].mask.shape
     labels = torch.full((B, H, W), -1, dtype=torch.int64, device=dev)
     pts: List[torch.Tensor] = []
@@ -100,9 +102,15 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     groups = torch.full((B, n), -1, dtype=torch.int64, device=dev)
     for b, p in enumerate(pts):
         queries[b, :len(p)], groups[b, :len(p)] = p, 0
-    # with one model any vertex within the distance gives the label: the search stops there
-    one_model = bool((vertex_model == vertex_model[0]).all())
-    nearest = index.nearest(queries, torch.arange(B, device=dev), groups, distance, any_point=one_model)  # into B*V
+    # any vertex within the distance: with one model that is the label; with several, the
+    # pixels that have one look for the nearest in cells of an eighth of the distance
+    # (near a surface the search ends in the first few small cells, where half-distance
+    # cells hold hundreds of vertices each; the same nearest vertex at any cell size)
+    problems = torch.arange(B, device=dev)
+    nearest = index.nearest(queries, problems, groups, distance, any_point=True)  # into B*V
+    if not bool((vertex_model == vertex_model[0]).all()):
+        fine = PointIndex(flat_v, problem_v, zero_v, B, 1, distance, backend, cell=distance / 8)
+        nearest = fine.nearest(queries, problems, torch.where(nearest >= 0, groups, -1), distance)
     model = torch.where(nearest >= 0, vertex_model.to(dev)[(nearest % V).clamp(min=0)], -1)
     flat = labels.view(B, -1)
     for b, s in enumerate(sel):
