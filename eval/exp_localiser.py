@@ -165,7 +165,7 @@ def surround_in_context(fr) -> dict:
 
     limit = FitCheckLimits().surrounded
     rng = np.random.default_rng(TEST_SEED)
-    true, probes = [], []
+    true, probes, high = [], [], []
     for f in range(len(fr.depth)):
         depth, labels, focal = fr.depth[f].astype(np.float32), fr.labels[f], float(fr.K[f][0, 0])
         models = np.isin(labels, (1, 2))
@@ -175,14 +175,17 @@ def surround_in_context(fr) -> dict:
                 continue
             model = np.where(own, depth, 0)
             true.append(surrounded(own, model, models, depth, focal))
+            if true[-1] > 0.3:
+                high.append({"frame": f, "hand": ("left", "right")[k], "surround": true[-1]})
             probes += laid_on_the_body(model, SimpleNamespace(labels=labels, measured=depth), focal, rng,
                                        SURROUND_PROBES)
     true, probes = np.array(true, float), np.array(probes, float)
-    return {"limit": limit, "true_hands": len(true), "true_hands_median": float(np.nanmedian(true)),
-            "true_hands_p95": float(np.nanpercentile(true, 95)), "true_hands_max": float(np.nanmax(true)),
-            "true_hands_flagged": float(np.mean(true > limit)), "probes": len(probes),
-            "probes_median": float(np.nanmedian(probes)) if len(probes) else None,
-            "probes_flagged": float(np.mean(probes > limit)) if len(probes) else None}
+    true, probes = true[np.isfinite(true)], probes[np.isfinite(probes)]  # NaN: no surround to measure
+    stats = lambda v, key: ({f"{key}_median": float(np.median(v)), f"{key}_p95": float(np.percentile(v, 95)),
+                             f"{key}_max": float(np.max(v)), f"{key}_flagged": float(np.mean(v > limit))}
+                            if len(v) else {})
+    return {"limit": limit, "true_hands": len(true), **stats(true, "true_hands"), "true_hands_above_0_3": high,
+            "probes": len(probes), **stats(probes, "probes")}
 
 
 def _moved_hint(depth: np.ndarray, hand: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -162,11 +162,13 @@ def test_opencv_points_and_normals_match_the_torch_backend(gen, dtype):
     points, normals = depth_to_points_and_normals(depth, K)
     p, n = depth_to_points_and_normals(depth, K, backend="opencv")
     assert p.dtype == n.dtype == dtype and p.shape == n.shape == (2, 20, 30, 3)
-    torch.testing.assert_close(p, points, rtol=0, atol=1e-9 if dtype == torch.float64 else 1e-4)
+    torch.testing.assert_close(p, points, rtol=0, atol=0)
     torch.testing.assert_close(n, normals, rtol=0, atol=1e-9 if dtype == torch.float64 else 5e-5)
     assert torch.equal(n.norm(dim=-1) == 0, normals.norm(dim=-1) == 0)
     with pytest.raises(ValueError, match="backend"):
         depth_to_points_and_normals(depth, K, backend="cuda")
+    with pytest.raises(ValueError, match="float32 or float64"):
+        depth_to_points_and_normals(depth.half(), K.half(), backend="opencv")
 
 
 def test_max_filter_equals_max_pool(gen):

@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, NamedTuple
 
-import cv2
 import kornia.filters
 import numpy as np
 import torch
@@ -239,15 +238,20 @@ def _points_and_normals_opencv(depth: torch.Tensor, K: torch.Tensor) -> tuple[to
     back-projection by broadcasting, OpenCV's Sobel with replicated borders (kornia's
     stencil; its 1/8 scale cancels in the normalisation), the normals kept where the
     3x3 neighbourhood is valid (an erosion ignoring the outside, as ``max_filter_3x3``)."""
+    import cv2
+
+    if depth.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"the opencv backend needs float32 or float64 depth, got {depth.dtype} "
+                         "(use backend='torch')")
     d_all = depth.detach().cpu().numpy()
-    K_all = K.detach().cpu().double().numpy()
+    K_all = K.detach().cpu().to(depth.dtype).numpy()  # the torch backend's arithmetic, in the depth's dtype
     points, normals = np.zeros(d_all.shape + (3,), d_all.dtype), np.zeros(d_all.shape + (3,), d_all.dtype)
     H, W = d_all.shape[-2:]
     for b, (d, k) in enumerate(zip(d_all, K_all)):
         valid = d > 0  # NaN compares False
         z = np.where(valid, d, 0).astype(d.dtype)
-        y = ((np.arange(H) - k[1, 2]) / k[1, 1]).astype(d.dtype)[:, None]
-        x = ((np.arange(W)[None, :] - k[0, 2] - k[0, 1] * y) / k[0, 0]).astype(d.dtype)
+        y = ((np.arange(H, dtype=d.dtype) - k[1, 2]) / k[1, 1])[:, None]
+        x = (np.arange(W, dtype=d.dtype)[None, :] - k[0, 2] - k[0, 1] * y) / k[0, 0]
         planes = (x * z, y * z, z)  # contiguous planes: OpenCV and the products below run fastest on them
         a = [cv2.Sobel(c, -1, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE) for c in planes]  # d/du
         g = [cv2.Sobel(c, -1, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE) for c in planes]  # d/dv

@@ -59,6 +59,22 @@ def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torc
     return torch.as_tensor(labels, device=model_id.device)
 
 
+def _nearest_in_steps(coarse: PointIndex, fine: PointIndex, queries: torch.Tensor, problems: torch.Tensor,
+                      groups: torch.Tensor, distance: float) -> torch.Tensor:
+    """The nearest vertex within ``distance`` of every query, in three steps that give
+    the same answer as one search at any cell size (each is exact within its radius):
+    whether any vertex lies within the distance (``coarse``, half-distance cells,
+    stopping at the first: a pixel far from every model, such as a wall behind the hands,
+    scans 5^3 cells at most); for those that have one, the nearest within a quarter of
+    the distance in ``fine``'s eighth-distance cells (a pixel on a model's surface ends
+    there, where a half-distance cell holds hundreds of vertices); the rest, the
+    nearest within the distance in ``coarse``."""
+    nearest = coarse.nearest(queries, problems, groups, distance, any_point=True)
+    near = fine.nearest(queries, problems, torch.where(nearest >= 0, groups, -1), distance / 4)
+    rest = torch.where((nearest >= 0) & (near < 0), groups, -1)
+    return torch.where(near >= 0, near, coarse.nearest(queries, problems, rest, distance))
+
+
 def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], vertices: torch.Tensor,
                        vertex_model: torch.Tensor, distance: float, backend: Optional[str] = None) -> torch.Tensor:
     """Label every valid data pixel with the model of the nearest posed vertex in 3D
@@ -102,15 +118,13 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     groups = torch.full((B, n), -1, dtype=torch.int64, device=dev)
     for b, p in enumerate(pts):
         queries[b, :len(p)], groups[b, :len(p)] = p, 0
-    # any vertex within the distance: with one model that is the label; with several, the
-    # pixels that have one look for the nearest in cells of an eighth of the distance
-    # (near a surface the search ends in the first few small cells, where half-distance
-    # cells hold hundreds of vertices each; the same nearest vertex at any cell size)
     problems = torch.arange(B, device=dev)
-    nearest = index.nearest(queries, problems, groups, distance, any_point=True)  # into B*V
-    if not bool((vertex_model == vertex_model[0]).all()):
-        fine = PointIndex(flat_v, problem_v, zero_v, B, 1, distance, backend, cell=distance / 8)
-        nearest = fine.nearest(queries, problems, torch.where(nearest >= 0, groups, -1), distance)
+    one_model = bool((vertex_model == vertex_model[0]).all())
+    if one_model or index.backend != "warp":  # any vertex gives the label / the KD-tree's nearest is exact
+        nearest = index.nearest(queries, problems, groups, distance, any_point=one_model)  # into B*V
+    else:
+        nearest = _nearest_in_steps(index, PointIndex(flat_v, problem_v, zero_v, B, 1, distance, backend,
+                                                      cell=distance / 8), queries, problems, groups, distance)
     model = torch.where(nearest >= 0, vertex_model.to(dev)[(nearest % V).clamp(min=0)], -1)
     flat = labels.view(B, -1)
     for b, s in enumerate(sel):

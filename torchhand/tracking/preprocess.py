@@ -137,9 +137,9 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     avg = np.where(n > 0, s / np.maximum(n, 1e-6), 0)
     rc = np.argwhere(edges)
 
-    # points and normals on the host, as the filters above; the whole images filled
-    # there (numpy's zeros are pages zeroed when first touched, and the terms read few
-    # pixels outside the box), then moved as they are
+    # points and normals on the host, as the filters above, then the crop pasted into
+    # whole images: on the host for a CPU tracker, on the device for another (only the
+    # crop crosses to it)
     dt = torch.as_tensor(d, dtype=dtype)
     K = camera.K.detach().cpu().to(dtype).clone()
     K[0, 2] -= c0  # the crop's intrinsics
@@ -147,10 +147,10 @@ def preprocess_depth(depth: np.ndarray, camera: Camera, config: PreprocessConfig
     H, W = valid_full.shape
     p, n = depth_to_points_and_normals(dt[None], K, backend="opencv")
     full = []
-    for crop in (dt.numpy(), p[0].numpy(), n[0].numpy()):
-        whole = np.zeros((H, W) + crop.shape[2:], crop.dtype)
-        whole[r0:r1, c0:c1] = crop
-        full.append(torch.as_tensor(whole, device=device))
+    for crop in (dt, p[0], n[0]):
+        whole = torch.zeros((H, W) + crop.shape[2:], dtype=dtype, device=device)
+        whole[r0:r1, c0:c1] = crop.to(device)
+        full.append(whole)
     covered = np.zeros((H, W), bool)
     covered[r0:r1, c0:c1] = closed.astype(bool)
     covered |= np.isnan(depth)
