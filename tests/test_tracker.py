@@ -678,3 +678,38 @@ def test_proximity_labels_of_one_model_mark_the_pixels_near_any_vertex(hand_fram
         assert torch.equal(labels[0][frame.mask], want)
         assert (labels[0][~frame.mask] == -1).all()
     assert int((want < 0).sum()) > 0 and int((want == 0).sum()) > 1000
+
+
+@pytest.mark.parametrize("backend", ["warp", "cpu"])
+def test_proximity_labels_of_several_models_are_the_nearest_vertexs_model(scene_at, backend):
+    """With several models each pixel takes the model of its nearest vertex within the
+    distance (Warp: in steps, each exact within its radius; the KD-tree: one search),
+    for points on the surfaces, a few mm off, up to the cut-off and beyond it."""
+    from torchhand.geometry.camera import kinect_camera
+    from torchhand.tracking.labels import label_by_proximity
+    from torchhand.tracking.preprocess import DepthFrame
+
+    if backend == "warp":
+        pytest.importorskip("warp")
+    scene, theta = scene_at(("hand_right", "ball"), [(0.0, 0.0, 500.0), (70.0, 0.0, 500.0)])
+    with torch.no_grad():
+        vertices = scene(theta).vertices
+    g = torch.Generator().manual_seed(5)
+    H, W = 60, 80
+    base = vertices[0, torch.randint(0, vertices.shape[1], (H * W,), generator=g)]
+    direction = torch.nn.functional.normalize(torch.randn(H * W, 3, generator=g, dtype=F64), dim=1)
+    offset = torch.tensor([0.0, 0.5, 3.0, 6.0, 9.0, 14.0, 22.0, 28.0, 36.0, 60.0], dtype=F64)
+    points = (base + direction * offset[torch.arange(H * W) % len(offset), None]).view(H, W, 3)
+    mask = torch.ones(H, W, dtype=torch.bool)
+    mask[0, :5] = False
+    zero = torch.zeros(H, W, dtype=F64)
+    frame = DepthFrame(zero, mask, points, points, torch.zeros(0, 2, dtype=torch.int64), zero[:0, 0])
+    cam = kinect_camera(dtype=F64)  # identity pose: the points are in the world frame
+    labels = label_by_proximity([frame], [cam], vertices, scene.vertex_model_id, 30.0, backend)
+    d = torch.cdist(points.view(-1, 3), vertices[0], compute_mode="donot_use_mm_for_euclid_dist")
+    dist, j = d.min(1)
+    want = torch.where(dist <= 30.0, scene.vertex_model_id[j], -1).view(H, W)
+    assert torch.equal(labels[0][mask], want[mask])
+    assert (labels[0][~mask] == -1).all()
+    counts = torch.bincount(want[mask] + 1)
+    assert counts.numel() == 3 and bool((counts > 100).all())  # none, the hand, the ball
