@@ -234,37 +234,31 @@ def depth_to_points_and_normals(depth: torch.Tensor, K: torch.Tensor,
 
 
 def _points_and_normals_opencv(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``"opencv"`` backend of :func:`depth_to_points_and_normals`: per image, the
-    back-projection by broadcasting, OpenCV's Sobel with replicated borders (kornia's
-    stencil; its 1/8 scale cancels in the normalisation), the normals kept where the
-    3x3 neighbourhood is valid (an erosion ignoring the outside, as ``max_filter_3x3``)."""
+    """The ``"opencv"`` backend of :func:`depth_to_points_and_normals`: the points of
+    :func:`depth_to_points` on the host, then per image OpenCV's Sobel of their planes
+    with replicated borders (kornia's stencil; its 1/8 scale cancels in the
+    normalisation), the normals kept where the 3x3 neighbourhood is valid (an erosion
+    ignoring the outside, as ``max_filter_3x3``)."""
     import cv2
 
     if depth.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"the opencv backend needs float32 or float64 depth, got {depth.dtype} "
                          "(use backend='torch')")
-    d_all = depth.detach().cpu().numpy()
-    K_all = K.detach().cpu().to(depth.dtype).numpy()  # the torch backend's arithmetic, in the depth's dtype
-    points, normals = np.zeros(d_all.shape + (3,), d_all.dtype), np.zeros(d_all.shape + (3,), d_all.dtype)
-    H, W = d_all.shape[-2:]
-    for b, (d, k) in enumerate(zip(d_all, K_all)):
-        valid = d > 0  # NaN compares False
-        z = np.where(valid, d, 0).astype(d.dtype)
-        y = ((np.arange(H, dtype=d.dtype) - k[1, 2]) / k[1, 1])[:, None]
-        x = (np.arange(W, dtype=d.dtype)[None, :] - k[0, 2] - k[0, 1] * y) / k[0, 0]
-        planes = (x * z, y * z, z)  # contiguous planes: OpenCV and the products below run fastest on them
+    host = depth.detach().cpu()
+    points = depth_to_points(host, K.detach().cpu())
+    normals = np.zeros(tuple(points.shape), host.numpy().dtype)
+    for b, (d, p) in enumerate(zip(host.numpy(), points.numpy())):
+        planes = [np.ascontiguousarray(p[..., c]) for c in range(3)]  # OpenCV and the products run fastest on planes
         a = [cv2.Sobel(c, -1, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE) for c in planes]  # d/du
         g = [cv2.Sobel(c, -1, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE) for c in planes]  # d/dv
         # d/du x d/dv points away from the camera: flipped, as the torch backend
         n = (a[2] * g[1] - a[1] * g[2], a[0] * g[2] - a[2] * g[0], a[1] * g[0] - a[0] * g[1])
         scale = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-        keep = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        keep = cv2.erode((d > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)  # NaN compares False
         scale = np.where(keep, 1 / np.maximum(scale, 1e-12), 0).astype(d.dtype)
         for c in range(3):
-            points[b, ..., c] = planes[c]
             normals[b, ..., c] = n[c] * scale
-    return (torch.as_tensor(points, device=depth.device, dtype=depth.dtype),
-            torch.as_tensor(normals, device=depth.device, dtype=depth.dtype))
+    return points.to(depth.device), torch.as_tensor(normals, device=depth.device)
 
 
 def pixel_rays(pixels: torch.Tensor, K: torch.Tensor, T_cw: torch.Tensor) -> PluckerRays:
