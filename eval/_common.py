@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 import platform
+import subprocess
+import tempfile
 import time
 from pathlib import Path
-from typing import Callable, List
+from typing import Callable, List, Sequence
 
 import torch
 
@@ -22,6 +24,30 @@ def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 1) -> f
         times.append(time.perf_counter() - t0)
     times.sort()
     return times[len(times) // 2]
+
+
+def run_together(commands: Sequence[Sequence[str]]) -> float:
+    """Start every command at once as its own process and wait for all: the wall
+    seconds until the last one ends. A command that fails raises with its stderr's end.
+
+    Two independent commands, each on half the work, side by side with one command on
+    all of it, measure what two cores give a workload when the processes share nothing
+    but the machine (its memory and caches, a neighbour's load): the reference for a
+    scale-out's speed-up, apart from how the scale-out distributes the work."""
+    with tempfile.TemporaryDirectory() as tmp:
+        logs = [open(Path(tmp) / f"stderr{k}", "w+") for k in range(len(commands))]  # pipes could fill and block
+        t0 = time.perf_counter()
+        procs = [subprocess.Popen([str(c) for c in cmd], stdout=subprocess.DEVNULL, stderr=log)
+                 for cmd, log in zip(commands, logs)]
+        codes = [p.wait() for p in procs]
+        wall = time.perf_counter() - t0
+        for cmd, log, code in zip(commands, logs, codes):
+            log.seek(0)
+            err = log.read()
+            log.close()
+            if code != 0:
+                raise RuntimeError(f"{' '.join(map(str, cmd))} exited {code}:\n{err[-2000:]}")
+    return wall
 
 
 def set_threads(n: int) -> None:

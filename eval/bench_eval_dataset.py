@@ -13,6 +13,13 @@ initialisation, tracking with the defaults and scoring of every sequence. Report
 each run's wall time (median of the repeats), ``speedup_2_workers`` (one worker's
 median over two workers'), and the overall MPJPE of both (the same numbers: the task
 does not depend on the worker count).
+
+The reference for the speed-up, in the same alternation: two independent
+``torchhand eval-dataset`` processes started at once, each with one worker on half of
+the split (``two_processes``; ``speedup_2_processes``: one worker's median over theirs).
+They share nothing but the machine, so their speed-up is what two cores give this work
+here; ``workers_vs_processes`` is the two workers' speed-up over it (1: the scale-out
+loses nothing to its distribution of the work).
 """
 
 from __future__ import annotations
@@ -20,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -30,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine, write_json  # noqa: E402
+from _common import machine, run_together, write_json  # noqa: E402
 
 from torchhand.data.datasets.dexycb import write_dexycb  # noqa: E402
 from torchhand.data.layout import SequenceLayout, read_depth, read_joints21, read_sequence_info  # noqa: E402
@@ -63,16 +69,27 @@ def write_root(hia_root: Path, motion: str, sequences: int, frames: int, root: P
     return split
 
 
+def command(root: Path, split: Path, out: Path, workers: int) -> list:
+    """The ``torchhand eval-dataset`` command line of a run."""
+    exe = Path(sys.executable).parent / "torchhand"
+    return [str(exe), "eval-dataset", "dexycb", str(root), "--split", str(split), "--out", str(out),
+            "--workers", str(workers)]
+
+
 def run(root: Path, split: Path, out: Path, workers: int) -> tuple:
     """(wall seconds, results.json) of one ``torchhand eval-dataset`` process."""
-    exe = Path(sys.executable).parent / "torchhand"
-    cmd = [str(exe), "eval-dataset", "dexycb", str(root), "--split", str(split), "--out", str(out),
-           "--workers", str(workers)]
-    t0 = time.perf_counter()
-    done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} exited {done.returncode}:\n{done.stderr[-2000:]}")
-    return time.perf_counter() - t0, json.loads((out / "results.json").read_text())
+    secs = run_together([command(root, split, out, workers)])
+    return secs, json.loads((out / "results.json").read_text())
+
+
+def halves(split: Path) -> tuple:
+    """The split file's sequences in two files, the first half and the rest."""
+    names = split.read_text().split()
+    out = []
+    for k, part in enumerate((names[: len(names) // 2], names[len(names) // 2:])):
+        out.append(split.with_name(f"{split.stem}_half{k}.txt"))
+        out[-1].write_text("\n".join(part) + "\n")
+    return tuple(out)
 
 
 def main(argv=None) -> None:
@@ -87,7 +104,8 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         split = write_root(args.hia_root, args.motion, args.sequences, args.frames, tmp)
-        times = {1: [], 2: []}
+        parts = halves(split)
+        times = {1: [], 2: [], "two_processes": []}
         overall = {}
         for r in range(args.repeats):
             for w in (1, 2):
@@ -96,10 +114,15 @@ def main(argv=None) -> None:
                 overall[w] = res["overall"]
                 mpjpe = res["overall"].get("mpjpe_mm", float("nan"))
                 print(f"workers {w}, repeat {r}: {secs:.1f} s, MPJPE {mpjpe:.2f} mm", flush=True)
+            secs = run_together([command(tmp / "dexycb", part, tmp / f"out_half{k}_{r}", 1)
+                                 for k, part in enumerate(parts)])
+            times["two_processes"].append(secs)
+            print(f"two processes on half the split each, repeat {r}: {secs:.1f} s", flush=True)
     med = {w: statistics.median(t) for w, t in times.items()}
     write_json(args.json, {"machine": machine(), "sequences": args.sequences, "frames": args.frames,
                            "motion": args.motion, "seconds": times, "median_seconds": med,
-                           "speedup_2_workers": med[1] / med[2], "overall_1_worker": overall[1],
+                           "speedup_2_workers": med[1] / med[2], "speedup_2_processes": med[1] / med["two_processes"],
+                           "workers_vs_processes": med["two_processes"] / med[2], "overall_1_worker": overall[1],
                            "overall_2_workers": overall[2]})
 
 

@@ -12,7 +12,18 @@ one sequence per task (the CPU default). Timed side by side in one run:
   before the clock (``worker_server_start_s``), as the command line starts it when it
   parses ``--workers`` while it imports torchhand itself (their fork included);
 - ``ray_1`` / ``ray_2``: a local Ray instance with 1 / 2 CPUs, started before the clock
-  (as a running cluster is), the workers' start and imports included.
+  (as a running cluster is), the workers' start and imports included;
+- what limits ``local_2``: ``task_slowdown_2_workers``, how much longer a task takes
+  while the other worker runs one than in the sequential run (the cores share caches,
+  memory and the host's load; the scale-out shares nothing else), and
+  ``speedup_2_workers_ideal`` = 2 / that slowdown, the speed-up of two workers that
+  lose no time outside their tasks and finish together; ``local_vs_ideal`` is the
+  measured speed-up over it (1: nothing lost to starting, dispatching and balancing).
+
+With ``--repeats R`` the sequential and ``local_2`` runs are made R times, alternating,
+so that a change of the machine's load falls on both: ``speedup_2_workers_local`` is the
+ratio of their medians (every wall time in ``wall_s_repeats``); the other figures are
+those of the first pair.
 
 Per task, the events the workers send (start, done, in this process's clock) give the
 time the task itself ran. ``ray_overhead_s_per_task`` is the wall time of the 1-CPU Ray
@@ -124,6 +135,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--sequences", type=int, default=8)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--no-ray", action="store_true")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="sequential and local_2 runs, alternating (their medians are reported)")
     ap.add_argument("--long", type=int, default=0, help="frames of the one long sequence tracked in chunks (0: none)")
     args = ap.parse_args(argv)
     set_threads(1)
@@ -136,6 +149,10 @@ def main(argv=None) -> dict:
         # when it parses --workers, while it imports torchhand itself (app.workers)
         result["worker_server_start_s"] = start_worker_server()
         runs["local_2"] = timed(seqs, tmp / "local2", workers=2)
+        walls = {"sequential": [runs["sequential"]["wall_s"]], "local_2": [runs["local_2"]["wall_s"]]}
+        for r in range(1, args.repeats):  # alternating, so that a change of load falls on both
+            for name, kw in (("sequential", {}), ("local_2", {"workers": 2})):
+                walls[name].append(timed(seqs, tmp / f"again_{name}_{r}", **kw)["wall_s"])
         if not args.no_ray:
             import ray
 
@@ -156,13 +173,17 @@ def main(argv=None) -> dict:
                                       np.load(OutputLayout(tmp / "seq" / s.name).theta))
                 assert same, f"{name}: {s.name} differs from the sequential run"
     result["runs"] = runs
+    result["wall_s_repeats"] = walls
     seq = runs["sequential"]
     result["seconds_per_frame"] = seq["wall_s"] / (args.sequences * args.frames)
     def steady(r):  # frames/s once the workers run
         return args.sequences * args.frames / (r["wall_s"] - r["first_start_s"])
 
-    result["speedup_2_workers_local"] = seq["wall_s"] / runs["local_2"]["wall_s"]
+    result["speedup_2_workers_local"] = statistics.median(walls["sequential"]) / statistics.median(walls["local_2"])
     result["speedup_2_workers_local_after_start"] = steady(runs["local_2"]) / steady(seq)
+    result["task_slowdown_2_workers"] = runs["local_2"]["task_s_mean"] / seq["task_s_mean"]
+    result["speedup_2_workers_ideal"] = 2 / result["task_slowdown_2_workers"]
+    result["local_vs_ideal"] = seq["wall_s"] / runs["local_2"]["wall_s"] / result["speedup_2_workers_ideal"]
     if "ray_2" in runs:
         r1, r2 = runs["ray_1"], runs["ray_2"]
         result["speedup_2_workers_ray"] = r1["wall_s"] / r2["wall_s"]
