@@ -343,7 +343,7 @@ def test_a_missing_optional_dependency_names_its_extra(synth_out, tmp_path, caps
 
 
 def test_an_import_of_an_extra_module_names_the_extra():
-    from torchhand.app.cli import user_error
+    from torchhand.core.errors import user_error
 
     assert "torchhand[physics]" in user_error(ModuleNotFoundError("No module named 'pybullet'", name="pybullet"))
     assert user_error(ImportError("cannot import name 'x' from 'torchhand.app.runner'", name="torchhand.app.runner")) \
@@ -365,3 +365,32 @@ def test_a_library_bug_is_not_reported_as_a_usage_error(bug, synth_out, tmp_path
     err = capsys.readouterr().err
     assert code == 1, err
     assert "Traceback" in err and "in broken" in err and "bug in torchhand, please report it" in err
+
+
+@pytest.mark.parametrize("error, bug", [("SegmentationError", False), ("KeyError", True)])
+def test_a_failed_sequence_says_why_in_one_line_unless_it_is_a_bug(error, bug, synth_out, tmp_path, capsys,
+                                                                   monkeypatch):
+    """A sequence that fails on its data (no hand in view) is one line naming the frame; a
+    bug inside the task keeps its traceback and asks to be reported. Either way the
+    sequence fails alone (exit status 1) and nothing is written for it."""
+    import torchhand.app.runner as runner
+    from torchhand.geometry.camera import kinect_camera
+    from torchhand.tracking.segmentation import segment_hands
+
+    def tracks(*args, **kwargs):
+        if bug:
+            {}["frames"]  # a library bug inside the task
+        segment_hands(np.zeros((480, 640), np.float32), kinect_camera(), frame="depth/000000.png")  # no depth
+
+    monkeypatch.setattr(runner, "track_sequences", tracks)  # the task imports it when it runs
+    code = main(["track", str(synth_out), "--out", str(tmp_path / "o")])
+    err = [line for line in _error_lines(capsys) if not line.startswith("track ")]  # the progress bar's
+    name = json.loads((synth_out / "sequence.json").read_text())["name"]
+    assert code == 1, err
+    assert err[0] == (f"torchhand track: error: {name}: KeyError: 'frames' (a bug in torchhand: please "
+                      "report it with this traceback); nothing written" if bug else
+                      f"torchhand track: error: {name}: depth/000000.png: no depth between 200 and 1500 mm; "
+                      "nothing written"), err
+    assert ("Traceback (most recent call last):" in err) == bug and any("in tracks" in line for line in err) == bug
+    assert err[-1] == "torchhand track: 1 of 1 sequences failed"
+    assert not (tmp_path / "o" / name).exists()

@@ -6,11 +6,11 @@ that are tracked as tasks of their own and written once all are in
 from __future__ import annotations
 
 import math
-import traceback
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from torchhand.app.options import TrackOptions
+from torchhand.core.errors import failure_text
 
 __all__ = ["CHUNK_OVERLAP", "chunk_windows", "plan_tasks", "task_length", "write_chunked"]
 
@@ -69,12 +69,12 @@ def write_chunked(root: Path, target: Path, options: TrackOptions, parts: list, 
                   name: str) -> dict:
     """Write a sequence from its tracked chunks
     (:func:`~torchhand.app.runner.write_chunks`); its summary. The write fails the
-    sequence alone, as a task's error fails its task (the error's type, message and
-    traceback in the summary); the others are written."""
+    sequence alone, as a task's error fails its task (its
+    :func:`~torchhand.core.errors.failure_text` in the summary); the others are written."""
     from torchhand.app.runner import write_chunks
 
     try:
         return write_chunks(root, target, options, parts, settings, force, name)
     except Exception as err:  # noqa: BLE001 - as a task's own error (scaleout._call)
-        error = f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}"
+        error = failure_text(err)
         return {"sequence": name, "status": "failed", "error": error, "frames": 0, "out": None}

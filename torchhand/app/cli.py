@@ -3,7 +3,7 @@ is in :mod:`torchhand.app.commands`, which calls the library.
 
 Exit status: 0 when everything worked, 1 when some sequence failed (its error is
 printed; the others are written), 2 for bad arguments or unusable input (one line
-naming it, :func:`user_error`), also for an optional dependency that is not installed
+naming it, :func:`torchhand.core.errors.user_error`), also for an optional dependency that is not installed
 (the line names the extra to install). Any other exception is a bug in torchhand: its
 traceback is printed with a line asking to report it, and the status is 1.
 """
@@ -14,14 +14,12 @@ import argparse
 import sys
 import traceback
 from pathlib import Path
-from typing import Optional
 
 from torchhand.app import commands
-from torchhand.core.errors import EXTRAS, MissingExtra, UsageError
+from torchhand.core.errors import UsageError, user_error
 
-__all__ = ["main", "build_parser", "user_error"]
+__all__ = ["main", "build_parser"]
 
-_PACKAGE = Path(__file__).resolve().parents[1]
 
 _Formatter = argparse.ArgumentDefaultsHelpFormatter
 
@@ -410,39 +408,6 @@ def main(argv=None) -> int:
             return 1
         print(f"torchhand {args.command}: error: {message}", file=sys.stderr)
         return 2
-
-
-def user_error(err: BaseException) -> Optional[str]:
-    """The one-line message of an error the user can fix, or None for a bug.
-
-    User errors: :class:`~torchhand.core.errors.UsageError` (a bad argument or input,
-    e.g. ``SequenceError``), a ``ValueError`` raised by torchhand's own checks (not one
-    from deep inside numpy or torch), an ``OSError`` (a path that is missing, taken or
-    unreadable; a cluster that does not answer), and an optional dependency that is not
-    installed (:class:`~torchhand.core.errors.MissingExtra`, the import of a module of
-    :data:`~torchhand.core.errors.EXTRAS`, or an ``ImportError`` whose message says what
-    to ``pip install``). Everything else (``TypeError``,
-    ``KeyError``, ``AttributeError``, an import of torchhand's own modules...) is a bug."""
-    if isinstance(err, (UsageError, OSError, MissingExtra)):
-        return str(err)
-    if isinstance(err, ImportError):
-        module = (err.name or "").split(".")[0]
-        if module in EXTRAS:
-            return str(MissingExtra("this command", module))
-        return str(err) if "pip install" in str(err) else None  # torchhand's own message naming the package
-    if isinstance(err, ValueError) and _raised_by_torchhand(err):
-        return str(err)
-    return None
-
-
-def _raised_by_torchhand(err: BaseException) -> bool:
-    """The innermost frame of the error's traceback is torchhand's code."""
-    tb = err.__traceback__
-    if tb is None:
-        return True
-    while tb.tb_next is not None:
-        tb = tb.tb_next
-    return Path(tb.tb_frame.f_code.co_filename).resolve().is_relative_to(_PACKAGE)
 
 
 if __name__ == "__main__":

@@ -259,7 +259,9 @@ def track(args) -> int:
             print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
                   f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: {fit} -> {s['out']}")
         else:
-            print(f"torchhand track: error: {s['sequence']}: {s['error'].rstrip()}; nothing written", file=sys.stderr)
+            first, _, rest = s["error"].rstrip().partition("\n")  # a bug's traceback after its first line
+            print(f"torchhand track: error: {s['sequence']}: {first}; nothing written" + (f"\n{rest}" if rest else ""),
+                  file=sys.stderr)
     if len(summaries) > 1:
         print(f"{len(summaries) - len(failed)} of {len(summaries)} sequences tracked ({run['resumed']} kept), "
               f"{run['frames']} frames in {run['seconds']:.1f} s; summary: {Path(args.out) / SUMMARY_NAME}")

@@ -168,7 +168,7 @@ def _sequence_task(spec: dict, report) -> dict:
         res = track_sequences([seq_dir], out / "track", options, names=[name], force=True, progress=False,
                               on_frames=lambda n: report("frames", n))[0]
         if res["status"] != "ok":
-            raise RuntimeError(f"tracking failed: {res.get('error')}")
+            raise UsageError(f"tracking failed: {res.get('error')}")  # the data's, as the runner found it
     result = evaluate_sequence(out / "track" / name, seq_dir, with_penetration=False)
     scores.parent.mkdir(parents=True, exist_ok=True)
     _write_atomic(scores, json.dumps(result))
@@ -177,7 +177,7 @@ def _sequence_task(spec: dict, report) -> dict:
 
 def _row(seq: DatasetSequence, result) -> dict:
     if isinstance(result, TaskFailure):
-        return {"sequence": seq.name, "source": str(seq.src), "status": "failed", "error": result.error.splitlines()[0]}
+        return {"sequence": seq.name, "source": str(seq.src), "status": "failed", "error": result.error}
     return {"sequence": seq.name, "source": str(seq.src), "status": "ok", "frames": result["frames"],
             **{k: result.get(k) for k in JOINT_KEYS}, "lost_frames": result.get("lost_frames")}
 

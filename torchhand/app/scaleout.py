@@ -37,7 +37,6 @@ import os
 import queue as queue_lib
 import socket
 import time
-import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -51,7 +50,7 @@ from torchhand.core.check import check_int
 from torchhand.app.chunks import CHUNK_OVERLAP, chunk_windows, plan_tasks, task_length, write_chunked
 from torchhand.app.options import TrackOptions
 from torchhand.app.workers import worker_context
-from torchhand.core.errors import MissingExtra
+from torchhand.core.errors import MissingExtra, failure_text
 from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
 from torchhand.io.output_dir import remove_partials
 from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
@@ -122,7 +121,7 @@ def _call(fn: Callable, arg, report: _Report, threads: int):
     try:
         result = fn(arg, report)
     except Exception as err:  # a task's own error is its result; the others go on
-        result = TaskFailure(f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
+        result = TaskFailure(failure_text(err))
     report("done", None, last=True)
     return result
 
