@@ -259,7 +259,6 @@ def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[t
         no pixel; distance (B, G, h, w) float32 px, inf there), on marks' device.
     """
     import numpy as np
-    from scipy.ndimage import distance_transform_edt
 
     B, H, W = marks.shape
     r0, r1, c0, c1 = (0, H, 0, W) if box is None else box
@@ -276,13 +275,9 @@ def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[t
                 nearest[b, g], distance[b, g] = -1, np.inf
                 continue
             lo = np.minimum(pix.min(0), [r0, c0])  # the box holding the group and the answers
-            hi = np.maximum(pix.max(0) + 1, [r1, c1])
-            feature = np.ones(hi - lo, bool)
-            feature[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = False  # zeros: the marked pixels
-            dist, (ri, ci) = distance_transform_edt(feature, return_indices=True)
+            dist, near = _feature_transform(pix, lo, np.maximum(pix.max(0) + 1, [r1, c1]))
             sr, sc = slice(r0 - lo[0], r1 - lo[0]), slice(c0 - lo[1], c1 - lo[1])
-            nearest[b, g, ..., 0], nearest[b, g, ..., 1] = ri[sr, sc] + lo[0], ci[sr, sc] + lo[1]
-            distance[b, g] = dist[sr, sc]
+            nearest[b, g], distance[b, g] = near[sr, sc], dist[sr, sc]
     return torch.as_tensor(nearest, device=marks.device), torch.as_tensor(distance, device=marks.device)
 
 
