@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import platform
 import subprocess
@@ -34,19 +35,24 @@ def run_together(commands: Sequence[Sequence[str]]) -> float:
     all of it, measure what two cores give a workload when the processes share nothing
     but the machine (its memory and caches, a neighbour's load): the reference for a
     scale-out's speed-up, apart from how the scale-out distributes the work."""
-    with tempfile.TemporaryDirectory() as tmp:
-        logs = [open(Path(tmp) / f"stderr{k}", "w+") for k in range(len(commands))]  # pipes could fill and block
-        t0 = time.perf_counter()
-        procs = [subprocess.Popen([str(c) for c in cmd], stdout=subprocess.DEVNULL, stderr=log)
-                 for cmd, log in zip(commands, logs)]
-        codes = [p.wait() for p in procs]
-        wall = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        logs = [stack.enter_context(open(Path(tmp) / f"stderr{k}", "w+")) for k in range(len(commands))]
+        procs = []  # stderr to files: pipes could fill and block
+        try:
+            t0 = time.perf_counter()
+            for cmd, log in zip(commands, logs):
+                procs.append(subprocess.Popen([str(c) for c in cmd], stdout=subprocess.DEVNULL, stderr=log))
+            codes = [p.wait() for p in procs]
+            wall = time.perf_counter() - t0
+        finally:  # an error or Ctrl-C leaves no process running
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
         for cmd, log, code in zip(commands, logs, codes):
-            log.seek(0)
-            err = log.read()
-            log.close()
             if code != 0:
-                raise RuntimeError(f"{' '.join(map(str, cmd))} exited {code}:\n{err[-2000:]}")
+                log.seek(0)
+                raise RuntimeError(f"{' '.join(map(str, cmd))} exited {code}:\n{log.read()[-2000:]}")
     return wall
 
 

@@ -29,7 +29,6 @@ import json
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
@@ -101,29 +100,32 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=2)
     args = ap.parse_args(argv)
+    if args.sequences < 2 or args.repeats < 1:
+        ap.error("--sequences must be 2 or more (two halves) and --repeats 1 or more")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         split = write_root(args.hia_root, args.motion, args.sequences, args.frames, tmp)
         parts = halves(split)
-        times = {1: [], 2: [], "two_processes": []}
+        times = {"1_worker": [], "2_workers": [], "two_processes": []}
         overall = {}
         for r in range(args.repeats):
-            for w in (1, 2):
+            for w, key in ((1, "1_worker"), (2, "2_workers")):
                 secs, res = run(tmp / "dexycb", split, tmp / f"out_{w}_{r}", w)
-                times[w].append(secs)
-                overall[w] = res["overall"]
+                times[key].append(secs)
+                overall[key] = res["overall"]
                 mpjpe = res["overall"].get("mpjpe_mm", float("nan"))
                 print(f"workers {w}, repeat {r}: {secs:.1f} s, MPJPE {mpjpe:.2f} mm", flush=True)
             secs = run_together([command(tmp / "dexycb", part, tmp / f"out_half{k}_{r}", 1)
                                  for k, part in enumerate(parts)])
             times["two_processes"].append(secs)
             print(f"two processes on half the split each, repeat {r}: {secs:.1f} s", flush=True)
-    med = {w: statistics.median(t) for w, t in times.items()}
+    med = {k: statistics.median(t) for k, t in times.items()}
     write_json(args.json, {"machine": machine(), "sequences": args.sequences, "frames": args.frames,
                            "motion": args.motion, "seconds": times, "median_seconds": med,
-                           "speedup_2_workers": med[1] / med[2], "speedup_2_processes": med[1] / med["two_processes"],
-                           "workers_vs_processes": med["two_processes"] / med[2], "overall_1_worker": overall[1],
-                           "overall_2_workers": overall[2]})
+                           "speedup_2_workers": med["1_worker"] / med["2_workers"],
+                           "speedup_2_processes": med["1_worker"] / med["two_processes"],
+                           "workers_vs_processes": med["two_processes"] / med["2_workers"],
+                           "overall_1_worker": overall["1_worker"], "overall_2_workers": overall["2_workers"]})
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ The sequences are the shipped demo motion's right hand from frame 7k, back and f
 over its 60 frames for as many frames as asked (kinect noise),
 one sequence per task (the CPU default). Timed side by side in one run:
 
-- ``sequential``: ``torchhand track`` with one worker (this process);
+- ``sequential``: ``torchhand track`` with one worker (this process, after one warm-up
+  sequence: its first tracking fills its caches);
 - ``local_2``: two worker processes forked from the workers' server, which is started
   before the clock (``worker_server_start_s``), as the command line starts it when it
   parses ``--workers`` while it imports torchhand itself (their fork included);
@@ -21,19 +22,20 @@ one sequence per task (the CPU default). Timed side by side in one run:
   measured speed-up over it (1: nothing lost to starting, dispatching and balancing).
 
 With ``--repeats R`` the sequential and ``local_2`` runs are made R times, alternating,
-so that a change of the machine's load falls on both: ``speedup_2_workers_local`` is the
-ratio of their medians (every wall time in ``wall_s_repeats``); the other figures are
-those of the first pair.
+so that a change of the machine's load falls on both: ``pairs`` holds each pair's
+figures, and ``speedup_2_workers_local``, ``task_slowdown_2_workers``,
+``speedup_2_workers_ideal`` and ``local_vs_ideal`` are their medians; the other figures
+are those of the first pair.
 
 Per task, the events the workers send (start, done, in this process's clock) give the
 time the task itself ran. ``ray_overhead_s_per_task`` is the wall time of the 1-CPU Ray
 run not spent inside a task, per task, once its worker runs (dispatch, results,
 scheduling); ``ray_worker_start_s`` the one-off start of a worker (process and
-imports); ``ray_task_slowdown`` how much longer a task takes under Ray than in the
+imports; ``ray_2_workers_start_s`` that of the 2-CPU run, two starting at once); ``ray_task_slowdown`` how much longer a task takes under Ray than in the
 sequential run (Ray's own processes share the cores); ``ray_overhead_of_100_frame_sequence``
 both as a fraction of a 100-frame sequence's time. ``*_after_start`` speedups count the
-frames/s once the workers run. Every run's θ is checked equal to the sequential run's
-to the last bit.
+frames/s once the workers run. Every run's θ, the repeats' too, is checked equal to the
+first sequential run's to the last bit.
 
 With ``--long N``, one more sequence of N frames is tracked in one pass by one worker
 and with ``--chunk N/2`` by two (``torchhand track --workers 2 --chunk``):
@@ -129,6 +131,36 @@ def start_worker_server() -> float:
     return time.perf_counter() - t0
 
 
+def local_pairs(seqs: list, tmp: Path, repeats: int) -> tuple:
+    """``repeats`` pairs of runs, the sequential one and ``local_2``, alternating so that a
+    change of the machine's load falls on both, after one warm-up sequence (this
+    process's first tracking fills its caches and loads its kernels, which a worker's
+    does too, within its tasks). The workers' server is started before the first
+    ``local_2``, as the command line starts it when it parses ``--workers``: ([(sequential,
+    local_2, their output folders)], the server's start in seconds)."""
+    timed(seqs[:1], tmp / "warmup")
+    pairs, server_s = [], None
+    for r in range(repeats):
+        a = timed(seqs, tmp / f"seq{r}")
+        if server_s is None:
+            server_s = start_worker_server()
+        pairs.append((a, timed(seqs, tmp / f"local2_{r}", workers=2), (f"seq{r}", f"local2_{r}")))
+    return pairs, server_s
+
+
+def pair_figures(pairs: list) -> dict:
+    """Per pair and their medians: the speed-up of two workers, a task's slowdown beside
+    another worker, the ideal speed-up that allows and the share of it reached."""
+    rows = [{"sequential_s": a["wall_s"], "local_2_s": b["wall_s"], "speedup": a["wall_s"] / b["wall_s"],
+             "task_slowdown": b["task_s_mean"] / a["task_s_mean"]} for a, b, _ in pairs]
+    for row in rows:
+        row["ideal"] = 2 / row["task_slowdown"]
+        row["local_vs_ideal"] = row["speedup"] / row["ideal"]
+    med = {k: statistics.median(row[k] for row in rows) for k in ("speedup", "task_slowdown", "ideal", "local_vs_ideal")}
+    return {"pairs": rows, "speedup_2_workers_local": med["speedup"], "task_slowdown_2_workers": med["task_slowdown"],
+            "speedup_2_workers_ideal": med["ideal"], "local_vs_ideal": med["local_vs_ideal"]}
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", type=Path, required=True)
@@ -136,23 +168,19 @@ def main(argv=None) -> dict:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--no-ray", action="store_true")
     ap.add_argument("--repeats", type=int, default=1,
-                    help="sequential and local_2 runs, alternating (their medians are reported)")
+                    help="pairs of sequential and local_2 runs, alternating (the medians of their figures are reported)")
     ap.add_argument("--long", type=int, default=0, help="frames of the one long sequence tracked in chunks (0: none)")
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats must be 1 or more, got {args.repeats}")
     set_threads(1)
     result = {"sequences": args.sequences, "frames_per_sequence": args.frames, **machine()}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         seqs = make_sequences(tmp / "data", args.sequences, args.frames)
-        runs = {"sequential": timed(seqs, tmp / "seq")}
-        # the workers' server, started before the clock as the command line starts it
-        # when it parses --workers, while it imports torchhand itself (app.workers)
-        result["worker_server_start_s"] = start_worker_server()
-        runs["local_2"] = timed(seqs, tmp / "local2", workers=2)
-        walls = {"sequential": [runs["sequential"]["wall_s"]], "local_2": [runs["local_2"]["wall_s"]]}
-        for r in range(1, args.repeats):  # alternating, so that a change of load falls on both
-            for name, kw in (("sequential", {}), ("local_2", {"workers": 2})):
-                walls[name].append(timed(seqs, tmp / f"again_{name}_{r}", **kw)["wall_s"])
+        pairs, result["worker_server_start_s"] = local_pairs(seqs, tmp, args.repeats)
+        runs = {"sequential": pairs[0][0], "local_2": pairs[0][1]}
+        folders = [f for _, _, fs in pairs for f in fs]
         if not args.no_ray:
             import ray
 
@@ -163,40 +191,42 @@ def main(argv=None) -> dict:
                 connect_ray("local", n)
                 result[f"ray_start_s_{n}"] = time.perf_counter() - t0
                 runs[f"ray_{n}"] = timed(seqs, tmp / f"ray{n}", ray="local")
+                folders.append(f"ray{n}")
                 ray.shutdown()
         if args.long:
             result.update(chunked(make_sequences(tmp / "long", 1, args.long), tmp))
-        folders = {"sequential": "seq", "local_2": "local2", "ray_1": "ray1", "ray_2": "ray2"}
-        for name in runs:
+        for folder in folders:  # every run, repeats included, against the first sequential one
             for s in seqs:
-                same = np.array_equal(np.load(OutputLayout(tmp / folders[name] / s.name).theta),
-                                      np.load(OutputLayout(tmp / "seq" / s.name).theta))
-                assert same, f"{name}: {s.name} differs from the sequential run"
+                same = np.array_equal(np.load(OutputLayout(tmp / folder / s.name).theta),
+                                      np.load(OutputLayout(tmp / "seq0" / s.name).theta))
+                assert same, f"{folder}: {s.name} differs from the sequential run"
     result["runs"] = runs
-    result["wall_s_repeats"] = walls
+    result.update(pair_figures(pairs))
     seq = runs["sequential"]
     result["seconds_per_frame"] = seq["wall_s"] / (args.sequences * args.frames)
+
     def steady(r):  # frames/s once the workers run
         return args.sequences * args.frames / (r["wall_s"] - r["first_start_s"])
 
-    result["speedup_2_workers_local"] = statistics.median(walls["sequential"]) / statistics.median(walls["local_2"])
     result["speedup_2_workers_local_after_start"] = steady(runs["local_2"]) / steady(seq)
-    result["task_slowdown_2_workers"] = runs["local_2"]["task_s_mean"] / seq["task_s_mean"]
-    result["speedup_2_workers_ideal"] = 2 / result["task_slowdown_2_workers"]
-    result["local_vs_ideal"] = seq["wall_s"] / runs["local_2"]["wall_s"] / result["speedup_2_workers_ideal"]
     if "ray_2" in runs:
-        r1, r2 = runs["ray_1"], runs["ray_2"]
-        result["speedup_2_workers_ray"] = r1["wall_s"] / r2["wall_s"]
-        result["speedup_2_workers_ray_after_start"] = steady(r2) / steady(r1)
-        result["speedup_ray_2_vs_sequential"] = seq["wall_s"] / r2["wall_s"]
-        result["ray_worker_start_s"] = r1["first_start_s"]
-        result["ray_overhead_s_per_task"] = r1["dispatch_s_per_task"]
-        result["ray_task_slowdown"] = r1["task_s_mean"] / seq["task_s_mean"] - 1  # Ray's own processes' CPU
-        hundred = 100 * result["seconds_per_frame"]
-        result["ray_overhead_of_100_frame_sequence"] = (r1["dispatch_s_per_task"] + result["ray_task_slowdown"]
-                                                        * hundred) / hundred
+        result.update(ray_figures(runs, result["seconds_per_frame"], steady))
     write_json(args.json, result)
     return result
+
+
+def ray_figures(runs: dict, seconds_per_frame: float, steady) -> dict:
+    """The Ray runs against each other and the (first) sequential run (module docstring)."""
+    seq, r1, r2 = runs["sequential"], runs["ray_1"], runs["ray_2"]
+    out = {"speedup_2_workers_ray": r1["wall_s"] / r2["wall_s"],
+           "speedup_2_workers_ray_after_start": steady(r2) / steady(r1),
+           "speedup_ray_2_vs_sequential": seq["wall_s"] / r2["wall_s"],
+           "ray_worker_start_s": r1["first_start_s"], "ray_2_workers_start_s": r2["first_start_s"],
+           "ray_overhead_s_per_task": r1["dispatch_s_per_task"],
+           "ray_task_slowdown": r1["task_s_mean"] / seq["task_s_mean"] - 1}  # Ray's own processes' CPU
+    hundred = 100 * seconds_per_frame
+    out["ray_overhead_of_100_frame_sequence"] = (r1["dispatch_s_per_task"] + out["ray_task_slowdown"] * hundred) / hundred
+    return out
 
 
 if __name__ == "__main__":

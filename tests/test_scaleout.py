@@ -329,3 +329,22 @@ def test_a_sequence_in_chunks_over_two_workers(tmp_path):
     assert [p.name for p in (tmp_path / "two" / "long" / "motion").iterdir()] == ["Model_Hand_R.MOTION"]
     with pytest.raises(ValueError, match="other settings"):  # the chunking is part of the settings
         track_many([root], tmp_path / "two", JOB, resume=True, progress=False)
+
+
+@pytest.mark.parametrize("bug", [False, True])
+def test_pairs_that_cannot_be_scored_are_the_datas_unless_a_task_hit_a_bug(bug, tmp_path, monkeypatch):
+    """No pair scored: an EvaluationError (a usage error, one line) when every failure is
+    the data's; a bug inside a task is not the user's to fix, so it stays a RuntimeError
+    whose message keeps the task's traceback."""
+    import torchhand.app.scaleout as scaleout
+    from torchhand.scoring.sequences import EvaluationError
+
+    if bug:
+        monkeypatch.setattr(scaleout, "evaluate_sequence", lambda *a, **k: {}["frames"])
+    (tmp_path / "pred").mkdir()
+    (tmp_path / "gt").mkdir()
+    with pytest.raises(RuntimeError if bug else EvaluationError) as err:
+        evaluate_pairs([(tmp_path / "pred", tmp_path / "gt")], progress=False)
+    assert isinstance(err.value, EvaluationError) != bug
+    assert ("Traceback (most recent call last)" in str(err.value)) == bug, str(err.value)
+    assert ("a bug in torchhand" in str(err.value)) == bug

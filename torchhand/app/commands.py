@@ -259,8 +259,8 @@ def track(args) -> int:
             print(f"{s['sequence']}: {s['frames']} frames, {s['seconds_per_frame']:.2f} s/frame, "
                   f"{s['flagged_frames']} flagged, {s['reinitialized_frames']} re-initialised, fit: {fit} -> {s['out']}")
         else:
-            first, _, rest = s["error"].rstrip().partition("\n")  # a bug's traceback after its first line
-            print(f"torchhand track: error: {s['sequence']}: {first}; nothing written" + (f"\n{rest}" if rest else ""),
+            text, tb, frames = s["error"].rstrip().partition("\nTraceback")  # a traceback goes last
+            print(f"torchhand track: error: {s['sequence']}: {text}; nothing written" + (f"{tb}{frames}" if tb else ""),
                   file=sys.stderr)
     if len(summaries) > 1:
         print(f"{len(summaries) - len(failed)} of {len(summaries)} sequences tracked ({run['resumed']} kept), "

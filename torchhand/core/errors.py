@@ -9,7 +9,7 @@ import traceback
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["UsageError", "UnknownName", "MissingExtra", "EXTRAS", "user_error", "failure_text"]
+__all__ = ["UsageError", "UnknownName", "MissingExtra", "EXTRAS", "user_error", "is_user_error", "failure_text"]
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 
@@ -58,15 +58,27 @@ def user_error(err: BaseException) -> Optional[str]:
     return None
 
 
+def is_user_error(err: BaseException) -> bool:
+    """An error that says it is the user's wherever it is raised: a :class:`UsageError`
+    (a bad argument or input, a frame without a hand in view), an ``OSError``, an
+    optional dependency not installed."""
+    return isinstance(err, (UsageError, OSError, MissingExtra)) or (
+        isinstance(err, ImportError) and user_error(err) is not None)
+
+
 def failure_text(err: BaseException) -> str:
     """What a run's summary and the console say of a sequence that failed with ``err``
-    (call it where the error is caught): a user error's message alone, as
-    :func:`user_error` words it; for a bug, its type and message, the request to report
-    it, and the innermost frames of its traceback."""
-    message = user_error(err)
-    if message is not None:
-        return message
+    (call it where the error is caught). Inside a task a ``ValueError`` of torchhand's
+    checks may be the data's fault or a broken invariant, so only the errors that say
+    they are the user's (:func:`is_user_error`) are one line, their message. Any other
+    ``ValueError`` raised by torchhand keeps its type and the innermost frames of its
+    traceback; anything else is a bug: its type and message, the request to report it,
+    and the traceback's innermost frames."""
+    if is_user_error(err):
+        return user_error(err)
     frames = "".join(traceback.format_exception(type(err), err, err.__traceback__, limit=-6))
+    if isinstance(err, ValueError) and _raised_by_torchhand(err):
+        return f"{type(err).__name__}: {err}\n{frames}"
     return f"{type(err).__name__}: {err} (a bug in torchhand: please report it with this traceback)\n{frames}"
 
 

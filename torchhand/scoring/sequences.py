@@ -46,6 +46,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from torchhand.core.errors import UsageError
 from torchhand.data.layout import (OutputLayout, Poses, PosesLayout, SequenceError, SequenceLayout, read_joints21,
                                    read_joints21_valid, read_poses)
 from torchhand.model.joints21 import STANDARD_JOINT_NAMES
@@ -64,8 +65,9 @@ GOOD_IOU = 0.8
 LOST_MM = 20.0
 
 
-class EvaluationError(ValueError):
-    """Prediction and ground truth cannot be compared; the message says why."""
+class EvaluationError(UsageError):
+    """Prediction and ground truth cannot be compared; the message says why (a
+    ``ValueError``)."""
 
 
 #: the five 21-joint figures, top-level keys of every result that has them

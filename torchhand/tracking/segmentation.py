@@ -56,6 +56,7 @@ import cv2
 import numpy as np
 import torch
 
+from torchhand.core.errors import UsageError
 from torchhand.geometry.camera import Camera
 
 __all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands", "locate_hands", "skin_mask",
@@ -67,8 +68,9 @@ __all__ = ["SegmentConfig", "Segmentation", "SegmentationError", "segment_hands"
 SEGMENT_MODES = ("none", "range", "auto", "blobs", "skin")
 
 
-class SegmentationError(ValueError):
-    """A frame has no hand-sized blob in range, or more blobs than hands asked for."""
+class SegmentationError(UsageError):
+    """A frame has no hand-sized blob in range, no hand the localiser finds, or more
+    blobs than hands asked for: the data's, not a bug (a ``ValueError``)."""
 
 
 @dataclass(frozen=True)
