@@ -181,9 +181,11 @@ def surround_in_context(fr) -> dict:
                                        SURROUND_PROBES)
     true, probes = np.array(true, float), np.array(probes, float)
     true, probes = true[np.isfinite(true)], probes[np.isfinite(probes)]  # NaN: no surround to measure
-    stats = lambda v, key: ({f"{key}_median": float(np.median(v)), f"{key}_p95": float(np.percentile(v, 95)),
-                             f"{key}_max": float(np.max(v)), f"{key}_flagged": float(np.mean(v > limit))}
-                            if len(v) else {})
+
+    def stats(v, key):  # none when nothing was measured
+        return ({f"{key}_median": float(np.median(v)), f"{key}_p95": float(np.percentile(v, 95)),
+                 f"{key}_max": float(np.max(v)), f"{key}_flagged": float(np.mean(v > limit))} if len(v) else {})
+
     return {"limit": limit, "true_hands": len(true), **stats(true, "true_hands"), "true_hands_above_0_3": high,
             "probes": len(probes), **stats(probes, "probes")}
 

@@ -331,20 +331,26 @@ def test_a_sequence_in_chunks_over_two_workers(tmp_path):
         track_many([root], tmp_path / "two", JOB, resume=True, progress=False)
 
 
-@pytest.mark.parametrize("bug", [False, True])
-def test_pairs_that_cannot_be_scored_are_the_datas_unless_a_task_hit_a_bug(bug, tmp_path, monkeypatch):
-    """No pair scored: an EvaluationError (a usage error, one line) when every failure is
-    the data's; a bug inside a task is not the user's to fix, so it stays a RuntimeError
-    whose message keeps the task's traceback."""
+@pytest.mark.parametrize("kind", ["data", "check", "bug"])
+def test_pairs_that_cannot_be_scored_are_the_datas_unless_a_task_hit_a_bug(kind, tmp_path, monkeypatch):
+    """No pair scored: an EvaluationError (a usage error) unless a task hit a bug, which is
+    not the user's to fix and stays a RuntimeError. The data's own error (empty folders)
+    is one line; a ValueError of torchhand's checks keeps its traceback without being
+    called a bug; a bug keeps its traceback and asks to be reported."""
     import torchhand.app.scaleout as scaleout
+    from torchhand.core.check import check_int
     from torchhand.scoring.sequences import EvaluationError
 
-    if bug:
+    if kind == "check":
+        monkeypatch.setattr(scaleout, "evaluate_sequence", lambda *a, **k: check_int(-1, "frames", low=0))
+    elif kind == "bug":
         monkeypatch.setattr(scaleout, "evaluate_sequence", lambda *a, **k: {}["frames"])
     (tmp_path / "pred").mkdir()
     (tmp_path / "gt").mkdir()
-    with pytest.raises(RuntimeError if bug else EvaluationError) as err:
+    with pytest.raises(RuntimeError if kind == "bug" else EvaluationError) as err:
         evaluate_pairs([(tmp_path / "pred", tmp_path / "gt")], progress=False)
-    assert isinstance(err.value, EvaluationError) != bug
-    assert ("Traceback (most recent call last)" in str(err.value)) == bug, str(err.value)
-    assert ("a bug in torchhand" in str(err.value)) == bug
+    text = str(err.value)
+    assert isinstance(err.value, EvaluationError) == (kind != "bug")
+    assert ("Traceback (most recent call last)" in text) == (kind != "data"), text
+    assert ("a bug in torchhand" in text) == (kind == "bug"), text
+    assert ("frames must be an int >= 0, got -1" in text) == (kind == "check"), text

@@ -50,7 +50,7 @@ from torchhand.core.check import check_int
 from torchhand.app.chunks import CHUNK_OVERLAP, chunk_windows, plan_tasks, task_length, write_chunked
 from torchhand.app.options import TrackOptions
 from torchhand.app.workers import worker_context
-from torchhand.core.errors import MissingExtra, failure_text, is_user_error
+from torchhand.core.errors import MissingExtra, failure_text, is_bug
 from torchhand.data.layout import TRACK_SUMMARY, OutputLayout, SequenceError, read_sequence_info
 from torchhand.io.output_dir import remove_partials
 from torchhand.scoring.sequences import EvaluationError, evaluate_sequence, summarize
@@ -80,12 +80,11 @@ class TrackJob:
 @dataclass(frozen=True)
 class TaskFailure:
     """A task that raised, or whose worker died more often than it was retried: ``error``
-    its :func:`~torchhand.core.errors.failure_text`; ``user`` False for a bug in
-    torchhand, True for the user's (:func:`~torchhand.core.errors.is_user_error`: one
-    line, no traceback) and for a worker that died (killed, out of memory)."""
+    its :func:`~torchhand.core.errors.failure_text`; ``bug`` True when the task raised a
+    bug in torchhand (:func:`~torchhand.core.errors.is_bug`; not a worker that died)."""
 
     error: str
-    user: bool = False
+    bug: bool = False
 
 
 def default_batch(device: str) -> int:
@@ -125,7 +124,7 @@ def _call(fn: Callable, arg, report: _Report, threads: int):
     try:
         result = fn(arg, report)
     except Exception as err:  # a task's own error is its result; the others go on
-        result = TaskFailure(failure_text(err), is_user_error(err))
+        result = TaskFailure(failure_text(err), is_bug(err))
     report("done", None, last=True)
     return result
 
@@ -199,7 +198,7 @@ def _run_processes(fn, args, workers, retries, threads, handle) -> List:
                     running = {}
                     for i in lost:
                         if attempts[i] > retries:
-                            results[i] = TaskFailure(f"its worker process died {attempts[i]} times", user=True)
+                            results[i] = TaskFailure(f"its worker process died {attempts[i]} times")
                         else:
                             running[pool.submit(_call, fn, args[i], _Report(q, i), threads)] = i
             _drain(q, handle)
@@ -260,7 +259,7 @@ def _run_ray(fn, args, workers, address, retries, threads, handle) -> List:
                 try:
                     results[refs[ref]] = ray.get(ref)
                 except ray.exceptions.RayError as err:  # retries exhausted, or the task could not run
-                    results[refs[ref]] = TaskFailure(f"{type(err).__name__}: {err}", user=True)
+                    results[refs[ref]] = TaskFailure(f"{type(err).__name__}: {err}")
         _drain_ray(log, handle)
         return [results[i] for i in range(len(args))]
     finally:
@@ -557,9 +556,9 @@ def evaluate_pairs(pairs: Sequence[tuple], workers: int = 1, ray: Optional[str] 
     """Score (prediction, ground truth) folder pairs as tasks (sequentially, over local
     processes or on Ray) and pool them (:func:`~torchhand.scoring.sequences.summarize`).
     Pairs that cannot be scored are listed in ``failed`` (prediction, error: a bug's with
-    its traceback); the others are scored. When none can be: :class:`EvaluationError`
-    when every failure is the data's (or a worker that died), else ``RuntimeError`` (a bug
-    in some task, whose traceback the message holds)."""
+    its traceback); the others are scored. When none can be: ``RuntimeError`` when some
+    task hit a bug in torchhand (its traceback in the message), else
+    :class:`EvaluationError`."""
     pairs = [(Path(p).resolve(), Path(g).resolve(), with_penetration) for p, g in pairs]
     bar = tqdm(total=len(pairs), desc="eval", unit="seq", disable=not progress)
     try:
@@ -572,9 +571,9 @@ def evaluate_pairs(pairs: Sequence[tuple], workers: int = 1, ray: Optional[str] 
     good = [r for r in results if not isinstance(r, TaskFailure)]
     if not good:
         text = "no prediction could be scored: " + "; ".join(f"{p}: {r.error}" for p, r in failures)
-        if all(r.user for _, r in failures):
-            raise EvaluationError(text)
-        raise RuntimeError(text)  # a bug in some task, or a worker that died: not the user's to fix
+        if any(r.bug for _, r in failures):
+            raise RuntimeError(text)  # not the user's to fix: the command line reports it as a bug
+        raise EvaluationError(text)
     result = summarize(good)
     result["failed"] = failed
     return result

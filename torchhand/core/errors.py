@@ -9,7 +9,7 @@ import traceback
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["UsageError", "UnknownName", "MissingExtra", "EXTRAS", "user_error", "is_user_error", "failure_text"]
+__all__ = ["UsageError", "UnknownName", "MissingExtra", "EXTRAS", "user_error", "is_user_error", "is_bug", "failure_text"]
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 
@@ -66,6 +66,13 @@ def is_user_error(err: BaseException) -> bool:
         isinstance(err, ImportError) and user_error(err) is not None)
 
 
+def is_bug(err: BaseException) -> bool:
+    """Neither the user's error (:func:`is_user_error`) nor a ``ValueError`` of
+    torchhand's own checks (which inside a task may be the data's or a broken invariant):
+    a bug in torchhand."""
+    return not is_user_error(err) and not (isinstance(err, ValueError) and _raised_by_torchhand(err))
+
+
 def failure_text(err: BaseException) -> str:
     """What a run's summary and the console say of a sequence that failed with ``err``
     (call it where the error is caught). Inside a task a ``ValueError`` of torchhand's
@@ -77,7 +84,7 @@ def failure_text(err: BaseException) -> str:
     if is_user_error(err):
         return user_error(err)
     frames = "".join(traceback.format_exception(type(err), err, err.__traceback__, limit=-6))
-    if isinstance(err, ValueError) and _raised_by_torchhand(err):
+    if not is_bug(err):
         return f"{type(err).__name__}: {err}\n{frames}"
     return f"{type(err).__name__}: {err} (a bug in torchhand: please report it with this traceback)\n{frames}"
 
