@@ -686,7 +686,7 @@ def test_proximity_labels_of_several_models_are_the_nearest_vertexs_model(scene_
     distance (Warp: in steps, each exact within its radius; the KD-tree: one search),
     for points on the surfaces, a few mm off, up to the cut-off and beyond it."""
     from torchhand.geometry.camera import kinect_camera
-    from torchhand.tracking.labels import label_by_proximity
+    from torchhand.tracking.labels import _model_boxes_holding, label_by_proximity
     from torchhand.tracking.preprocess import DepthFrame
 
     if backend == "warp":
@@ -713,3 +713,6 @@ def test_proximity_labels_of_several_models_are_the_nearest_vertexs_model(scene_
     assert (labels[0][~mask] == -1).all()
     counts = torch.bincount(want[mask] + 1)
     assert counts.numel() == 3 and bool((counts > 100).all())  # none, the hand, the ball
+    # pixels of both kinds: in one model's widened box (its found vertex's model) and in both (the search)
+    held = _model_boxes_holding(points.view(1, -1, 3), vertices, scene.vertex_model_id, 30.0)[0][mask.view(-1)]
+    assert int((held == 1).sum()) > 100 and int((held == 2).sum()) > 100

@@ -59,19 +59,34 @@ def label_data(frame: DepthFrame, model_id: torch.Tensor, radius: float) -> torc
     return torch.as_tensor(labels, device=model_id.device)
 
 
+def _model_boxes_holding(queries: torch.Tensor, vertices: torch.Tensor, vertex_model: torch.Tensor,
+                         distance: float) -> torch.Tensor:
+    """(B, n) int64 how many models' vertex boxes, widened by ``distance``, hold each
+    query (vertices (B, V, 3) of the B problems; vertex_model (V,)). A query held by one
+    box can have vertices of that model only within the distance. The boxes are widened
+    by 1e-3 mm more, so that the float32 search's rounding cannot leave out a model."""
+    M = int(vertex_model.max()) + 1
+    model = vertex_model.to(vertices.device)[None, :, None].expand_as(vertices)
+    big = torch.finfo(vertices.dtype).max
+    lo = vertices.new_full((vertices.shape[0], M, 3), big).scatter_reduce(1, model, vertices, "amin")
+    hi = vertices.new_full((vertices.shape[0], M, 3), -big).scatter_reduce(1, model, vertices, "amax")
+    count = torch.zeros(queries.shape[:2], dtype=torch.int64, device=queries.device)
+    for m in range(M):  # a few models: 3x faster than one broadcast over (B, n, M, 3)
+        count += torch.maximum(lo[:, m, None] - queries, queries - hi[:, m, None]).amax(-1) <= distance + 1e-3
+    return count
+
+
 def _nearest_in_steps(coarse: PointIndex, fine: PointIndex, queries: torch.Tensor, problems: torch.Tensor,
-                      groups: torch.Tensor, distance: float) -> torch.Tensor:
-    """The nearest vertex within ``distance`` of every query, in three steps that give
-    the same answer as one search at any cell size (each is exact within its radius):
-    whether any vertex lies within the distance (``coarse``, half-distance cells,
-    stopping at the first: a pixel far from every model, such as a wall behind the hands,
-    scans 5^3 cells at most); for those that have one, the nearest within a quarter of
-    the distance in ``fine``'s eighth-distance cells (a pixel on a model's surface ends
-    there, where a half-distance cell holds hundreds of vertices); the rest, the
-    nearest within the distance in ``coarse``."""
-    nearest = coarse.nearest(queries, problems, groups, distance, any_point=True)
-    near = fine.nearest(queries, problems, torch.where(nearest >= 0, groups, -1), distance / 4)
-    rest = torch.where((nearest >= 0) & (near < 0), groups, -1)
+                      groups: torch.Tensor, distance: float, found: torch.Tensor) -> torch.Tensor:
+    """The nearest vertex within ``distance`` of the queries whose ``found`` (a vertex
+    within the distance, from ``coarse``'s first-found search) is >= 0, -1 for the rest,
+    in two more steps that give the same answer as one search at any cell size (each is
+    exact within its radius): the nearest within a quarter of the distance in
+    ``fine``'s eighth-distance cells (a pixel on a model's surface ends there, where a
+    half-distance cell holds hundreds of vertices); the rest, the nearest within the
+    distance in ``coarse``."""
+    near = fine.nearest(queries, problems, torch.where(found >= 0, groups, -1), distance / 4)
+    rest = torch.where((found >= 0) & (near < 0), groups, -1)
     return torch.where(near >= 0, near, coarse.nearest(queries, problems, rest, distance))
 
 
@@ -93,7 +108,9 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     The vertices stand for the surface: the thesis meshes have a vertex every 2-5 mm,
     so the nearest vertex's model is the nearest surface's except within a few mm of
     where two models touch. One batched query for all problems, no host sync but the
-    frames' pixel counts.
+    frames' pixel counts. With Warp and several models, the nearest vertex is searched
+    only for the pixels that two models' widened vertex boxes hold; elsewhere the first
+    vertex found within the distance gives the label (the same model).
     """
     B, V = vertices.shape[:2]
     dev, dt = vertices.device, vertices.dtype
@@ -123,8 +140,13 @@ def label_by_proximity(frames: Sequence[DepthFrame], cameras: Sequence[Camera], 
     if one_model or index.backend != "warp":  # any vertex gives the label / the KD-tree's nearest is exact
         nearest = index.nearest(queries, problems, groups, distance, any_point=one_model)  # into B*V
     else:
-        nearest = _nearest_in_steps(index, PointIndex(flat_v, problem_v, zero_v, B, 1, distance, backend,
-                                                      cell=distance / 8), queries, problems, groups, distance)
+        # whether any vertex lies within the distance (stopping at the first found); where
+        # one model's widened box alone holds the query, that vertex's model is the label
+        found = index.nearest(queries, problems, groups, distance, any_point=True)
+        several = _model_boxes_holding(queries, vertices.detach(), vertex_model, distance) >= 2
+        fine = PointIndex(flat_v, problem_v, zero_v, B, 1, distance, backend, cell=distance / 8)
+        nearest = torch.where(several, _nearest_in_steps(index, fine, queries, problems, groups, distance,
+                                                         torch.where(several, found, -1)), found)
     model = torch.where(nearest >= 0, vertex_model.to(dev)[(nearest % V).clamp(min=0)], -1)
     flat = labels.view(B, -1)
     for b, s in enumerate(sel):
