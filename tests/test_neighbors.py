@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchhand.geometry.neighbors import (PointIndex, marked_boxes, marked_pixel_transform, nearest_marked_pixel,
+from torchhand.geometry.neighbors import (PointIndex, marked_boxes, nearest_marked_pixel,
                                           pixel_hash)
 from torchhand.tracking.energies.base import bone_inliers, stride_subsample
 
@@ -176,33 +176,6 @@ def test_nearest_marked_pixel_scipy_is_exact_too():
     found = want[..., 0] >= 0
     d = lambda p: ((p - queries) ** 2).sum(-1)  # noqa: E731
     assert torch.equal(d(got)[found], d(want)[found])  # the same distance; ties may differ
-
-
-def test_marked_pixel_transform_gives_every_pixel_of_a_box_its_nearest_marked_pixel():
-    """The feature transform on a box agrees in distance with the brute-force search for
-    every pixel of it, per group, also with marked pixels outside the box; a group
-    without pixels gives -1 and inf."""
-    marks, _, _, _ = _marks()
-    B, H, W = marks.shape
-    box = (10, H - 7, 5, W - 20)
-    nearest, distance = marked_pixel_transform(marks, 3, box)  # group 2 has no pixel
-    h, w = box[1] - box[0], box[3] - box[2]
-    assert nearest.shape == (B, 3, h, w, 2) and distance.shape == (B, 3, h, w)
-    rr, cc = torch.meshgrid(torch.arange(box[0], box[1]), torch.arange(box[2], box[3]), indexing="ij")
-    pix = torch.stack([rr, cc], -1).reshape(1, -1, 2).expand(B, -1, -1)
-    for g in range(2):
-        groups = torch.full(pix.shape[:2], g)
-        want = nearest_marked_pixel(marks, pix, groups, torch.full_like(groups, H + W), 3, "torch")
-        none = (want[..., 0] < 0).reshape(B, h, w)  # a problem without pixels of the group
-        assert (nearest[:, g][none] == -1).all() and torch.isinf(distance[:, g][none]).all()
-        d_want = (want - pix).double().norm(dim=-1).reshape(B, h, w)[~none]
-        d_got = (nearest[:, g] - pix.reshape(B, h, w, 2)).double().norm(dim=-1)[~none]
-        assert len(d_want) > 1000
-        assert torch.allclose(d_got, d_want) and torch.allclose(distance[:, g][~none].double(), d_want, atol=1e-4)
-        got = nearest[:, g][~none]
-        b = torch.arange(B)[:, None, None].expand(B, h, w)[~none]
-        assert (marks[b, got[:, 0], got[:, 1]] == g).all()
-    assert (nearest[:, 2] == -1).all() and torch.isinf(distance[:, 2]).all()
 
 
 def test_nearest_marked_pixel_is_the_exact_nearest():

@@ -36,7 +36,7 @@ import torch
 
 from torchhand.core.check import check_tensor
 
-__all__ = ["PointIndex", "nearest_marked_pixel", "marked_boxes", "marked_pixel_transform", "NEIGHBOR_BACKENDS",
+__all__ = ["PointIndex", "nearest_marked_pixel", "marked_boxes", "NEIGHBOR_BACKENDS",
            "default_neighbor_backend"]
 
 NEIGHBOR_BACKENDS = ("warp", "cpu", "torch")
@@ -240,45 +240,6 @@ def pixel_hash(row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
     row and column would pull every tied data-to-model pair the same way (along a rope's
     axis, say), a hash has no preferred direction and is the same on every device."""
     return ((row.long() * 40503) ^ (col.long() * 31337)) & 2147483647  # int32-safe below 32768 px, as in Warp
-
-
-def marked_pixel_transform(marks: torch.Tensor, num_groups: int, box: Optional[tuple] = None) -> tuple:
-    """For every pixel of a box, the nearest pixel marked with each group: a feature
-    transform (scipy's exact Euclidean distance transform with indices, on the CPU).
-
-    Use it where many queries read the same marks (every pixel of a model, at every
-    outer iteration of a frame); :func:`nearest_marked_pixel` answers a few queries on
-    the device without leaving it.
-
-    Args:
-        marks: (B, H, W) int64 group of each pixel in [0, num_groups), -1 unmarked.
-        box: (r0, r1, c0, c1) the pixels to answer for (None: the whole image); the
-            marked pixels outside it count too.
-    Returns:
-        (nearest (B, G, h, w, 2) int64 (row, col) in the image, -1 where the group has
-        no pixel; distance (B, G, h, w) float32 px, inf there), on marks' device.
-    """
-    import numpy as np
-
-    B, H, W = marks.shape
-    r0, r1, c0, c1 = (0, H, 0, W) if box is None else box
-    nearest = np.empty((B, num_groups, r1 - r0, c1 - c0, 2), np.int64)
-    distance = np.empty((B, num_groups, r1 - r0, c1 - c0), np.float32)
-    # the marked pixels, found in one pass over the images (row-major, as argwhere)
-    found = torch.nonzero(marks >= 0)
-    group = marks[found[:, 0], found[:, 1], found[:, 2]].cpu().numpy()
-    found = found.cpu().numpy()
-    for b in range(B):
-        for g in range(num_groups):
-            pix = found[(found[:, 0] == b) & (group == g), 1:]
-            if len(pix) == 0:
-                nearest[b, g], distance[b, g] = -1, np.inf
-                continue
-            lo = np.minimum(pix.min(0), [r0, c0])  # the box holding the group and the answers
-            dist, near = _feature_transform(pix, lo, np.maximum(pix.max(0) + 1, [r1, c1]))
-            sr, sc = slice(r0 - lo[0], r1 - lo[0]), slice(c0 - lo[1], c1 - lo[1])
-            nearest[b, g], distance[b, g] = near[sr, sc], dist[sr, sc]
-    return torch.as_tensor(nearest, device=marks.device), torch.as_tensor(distance, device=marks.device)
 
 
 def _feature_transform(pix, lo, hi) -> tuple:

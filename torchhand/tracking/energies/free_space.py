@@ -7,10 +7,9 @@ holes of the data (``DepthFrame.covered``): a structured-light sensor loses the 
 in the shadow beside an occluding finger, and a held rope seen through such shadows
 was pushed along its axis, away from the hands, by 100 mm over 40 frames. The vertex seen at such a
 pixel is paired with the nearest data pixel q labelled k within ``radius`` px (an
-exact Euclidean feature transform of the data labels,
-:func:`torchhand.geometry.neighbors.marked_pixel_transform`, computed once per frame
-on the CPU, since the labels stay for the frame; each outer iteration then reads it on
-the device), and its residual is the image distance from the vertex's projection to q, in mm
+exact ring search of the data labels at the pairs' pixels only,
+:func:`torchhand.geometry.neighbors.nearest_marked_pixel`, on the device; equidistant
+pixels are told apart by a pixel hash), and its residual is the image distance from the vertex's projection to q, in mm
 at the data's depth there: ``(pi(V) - q') z_q / f`` (2 rows), where q' is q moved
 ``tolerance`` px towards the free pixel. The model is pulled back to within
 ``tolerance`` px of its data silhouette along the image, whatever the depth there.
@@ -35,17 +34,18 @@ tracker wraps it in :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`
 (:func:`torchhand.tracking.energies.parse_energy`, ``F``).
 
 Every problem has ``max_pixels`` rows per model (a stride subsample of its free-space
-pixels in the solve's render box); no host synchronisation after the frame's transform.
+pixels in the solve's render box); no host synchronisation.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 
 from torchhand.core.check import check_int, check_number
-from torchhand.geometry.neighbors import marked_pixel_transform
+from torchhand.geometry.neighbors import nearest_marked_pixel
 from torchhand.geometry.render import window
 from torchhand.optim.robust_loss import Cauchy
 from torchhand.tracking.energies.base import (PixelPairs, PixelRows, TrackState, VertexPixelTerm, begin, capped,
@@ -64,13 +64,14 @@ DEFAULT_LOSS = Cauchy(scale=5.0)
 
 
 class _Data(NamedTuple):
-    """The data side of a solve, on the render box (h, w pixels from (r0, c0)): depth
-    (B, h, w) mm, 0 where nothing was seen, -1 in the data's small holes; nearest (B, K, h, w, 2) int64 the nearest
-    data pixel labelled k (row, col in the image); distance (B, K, h, w) px to it."""
+    """The data side of a solve: depth (B, h, w) mm on the render box (h, w pixels from
+    (r0, c0) = ``origin``), 0 where nothing was seen, -1 in the data's small holes;
+    labels (B, H, W) int64 the data labels of the whole images (the model of each data
+    pixel, -1 none); boxes (B x K, 4) int32 the search box of each image and model."""
 
     depth: torch.Tensor
-    nearest: torch.Tensor
-    distance: torch.Tensor
+    labels: torch.Tensor
+    boxes: torch.Tensor
     origin: tuple
 
 
@@ -108,8 +109,12 @@ class FreeSpace(VertexPixelTerm):
             return torch.where(mask, f.depth[r0:r1, c0:c1], torch.where(covered, -1.0, 0.0).to(f.depth))
 
         depth = torch.stack([seen(f) for f in state.frames]).to(dev)
-        nearest, distance = marked_pixel_transform(state.data_labels, len(state.scene.models), box)
-        return _Data(depth.float(), nearest, distance, (r0, c0))
+        labels = state.data_labels.to(dev)
+        K, P = len(state.scene.models), labels.shape[0]
+        # every group's search box the whole image: a bound, as the searches need, without a
+        # pass over every pixel and group (the rings stop at the radius or the first data)
+        boxes = torch.tensor([0, H - 1, 0, W - 1], dtype=torch.int32, device=dev).repeat(P * K, 1)
+        return _Data(depth.float(), labels, boxes, (r0, c0))
 
     def prepare(self, state: TrackState) -> PixelPairs:
         scene, B, dev, dt, data, p = begin(state, self, self._build)
@@ -127,9 +132,11 @@ class FreeSpace(VertexPixelTerm):
         model = torch.arange(K, device=dev).repeat_interleave(M)[None].expand(B, -1)
         b = torch.arange(B, device=dev)[:, None]
         pr, pc = pos // w, pos % w
-        q = data.nearest[p[:, None], model, pr, pc]  # (B, K M, 2) image (row, col)
-        dist = data.distance[p[:, None], model, pr, pc].to(dt)
         rc = torch.stack([pr + r0, pc + c0], -1)
+        R = torch.full_like(pos, int(math.ceil(self.radius)))
+        q = nearest_marked_pixel(data.labels, rc, torch.where(slot, model, -1), R, K, images=p,
+                                 boxes=data.boxes)  # (B, K M, 2) image (row, col), -1 none
+        dist = torch.where(q[..., 0] >= 0, (rc - q).to(dt).norm(dim=-1), torch.full_like(pos, 2 ** 20, dtype=dt))
         keep = slot & (dist <= self.radius) & (dist > self.tolerance)
         gap = (rc - q).to(dt)  # (row, col) from the data pixel to the free one
         target = q.to(dt) + gap * (self.tolerance / dist.clamp(min=1e-9))[..., None]  # q', tolerance px out
