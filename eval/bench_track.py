@@ -30,6 +30,11 @@ Measurements, side by side in one run:
   ``max(flops / GFLOP/s, bytes / GB/s)``. ``fused`` in the JSON when ``--fused`` is given:
   the same with ``TrackerConfig.fused`` on, side by side; the ms per frame of each are
   medians over ``--repeats`` further unprofiled runs, torch and fused alternating.
+  ``--hold-frames N`` (40 by default, 0 skips it): each scene tracked again at the
+  profile's cap over its first N frames, scored (``<scene>_held_px``,
+  ``<scene>_held_worst_mm``, ``<scene>_held_ms``): whether the cap's accuracy over the
+  short profiled window holds over a longer one (a cap too low for the motion drifts
+  off within a few dozen frames).
 Accuracy (mean keypoint error) is reported next to each timing. ``--device cuda`` runs
 the Warp backends on the GPU (open3d stays on the CPU).
 """
@@ -91,6 +96,8 @@ def main(argv=None) -> None:
     ap.add_argument("--scenes", default="one_hand,two_hands_object", help="scenes of --profile")
     ap.add_argument("--fused", action="store_true", help="--profile also with TrackerConfig.fused, side by side")
     ap.add_argument("--repeats", type=int, default=4, help="--profile: unprofiled runs per variant, alternating")
+    ap.add_argument("--hold-frames", type=int, default=40,
+                    help="--profile: also score each scene at the profile's cap over this many frames (0 skips it)")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     if args.profile:
@@ -197,9 +204,10 @@ def profile(args) -> dict:
     from torchhand.core.profiling import recording
 
     speed = throughput()
-    out = {"profile_cap": args.profile_cap, **speed, "scenes": {}}
+    out = {"profile_cap": args.profile_cap, "prediction": args.prediction, **speed, "scenes": {}}
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.profile_cap,
-                        first_frame_iterations=args.iterations)
+                        first_frame_iterations=args.iterations, prediction=args.prediction,
+                        prediction_limiter=args.prediction_limiter)
     variants = {"torch": cfg}
     if args.fused:
         variants["fused"] = replace(cfg, fused=True)
@@ -217,6 +225,11 @@ def profile(args) -> dict:
             alternate(scene, variants, root, tmp / f"{key}_again", args)
             t = scene["torch"]
             out[f"{key}_ms"], out[f"{key}_px"] = 1e3 * t["seconds_per_frame_after_first"], t["mean_px"]
+            if args.hold_frames > args.frames:
+                held = hold(args, key, cfg, tmp)
+                scene["torch"]["held"] = held
+                out[f"{key}_held_px"], out[f"{key}_held_worst_mm"] = held["mean_px"], held["worst_frame_mm"]
+                out[f"{key}_held_ms"] = 1e3 * held["seconds_per_frame_after_first"]
             if "fused" in scene:
                 f = scene["fused"]
                 out[f"{key}_ms_fused"], out[f"{key}_px_fused"] = 1e3 * f["seconds_per_frame_after_first"], f["mean_px"]
@@ -228,6 +241,16 @@ def profile(args) -> dict:
                 if key == "one_hand":
                     out["fused_speedup_vs_torch"] = scene["fused_speedup_vs_torch"]
     return out
+
+
+def hold(args, key: str, cfg: TrackerConfig, tmp: Path) -> dict:
+    """``--hold-frames``: scene ``key`` tracked at ``cfg``'s cap over its first
+    ``args.hold_frames`` frames and scored."""
+    root = render(args.hia_root, SCENES[key], 0, args.hold_frames, tmp / f"{key}_hold")
+    held = {"frames": args.hold_frames, **scored_run(root, tmp / f"{key}_hold_out", cfg, args.device)}
+    print(f"{key} over {args.hold_frames} frames at cap {args.profile_cap}: {held['mean_px']:.2f} px, "
+          f"worst frame {held['worst_frame_mm']:.1f} mm, {1e3 * held['seconds_per_frame_after_first']:.1f} ms/frame")
+    return held
 
 
 def alternate(scene: dict, variants: dict, root: Path, out: Path, args) -> None:
