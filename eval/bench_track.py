@@ -88,7 +88,9 @@ def main(argv=None) -> None:
     ap.add_argument("--device", default="cpu", help="torch device of the tracking (cpu or cuda)")
     ap.add_argument("--energies", default="LO,LO+F", help="energies compared at --iterations ('' skips it)")
     ap.add_argument("--only-energies", action="store_true", help="measure the energies comparison only")
-    ap.add_argument("--prediction", type=float, default=0.0, help="TrackerConfig.prediction (1: constant-velocity start)")
+    ap.add_argument("--prediction", type=float, default=None,
+                    help="TrackerConfig.prediction (0: the previous pose, 1: constant-velocity start; default: the "
+                         "tracker's, 1 for these scenes)")
     ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                     help="extrapolate the last step as it is (TrackerConfig.prediction_limiter=False)")
     ap.add_argument("--profile", action="store_true", help="time the tracker's stages against their floors")
@@ -105,7 +107,7 @@ def main(argv=None) -> None:
         return
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.iterations, first_frame_iterations=args.iterations,
                         prediction=args.prediction, prediction_limiter=args.prediction_limiter)
-    result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, "prediction": cfg.prediction,
+    result = {"frames": args.frames, "iterations": args.iterations, "metric": cfg.metric, "prediction": cfg.motion_prediction(),
               "prediction_limiter": cfg.prediction_limiter, "device": args.device, "backend": cfg.render_backend,
               **machine()}
     if args.device.startswith("cuda"):
@@ -204,10 +206,10 @@ def profile(args) -> dict:
     from torchhand.core.profiling import recording
 
     speed = throughput()
-    out = {"profile_cap": args.profile_cap, "prediction": args.prediction, **speed, "scenes": {}}
     cfg = TrackerConfig(metric="point-to-plane", max_iterations=args.profile_cap,
                         first_frame_iterations=args.iterations, prediction=args.prediction,
                         prediction_limiter=args.prediction_limiter)
+    out = {"profile_cap": args.profile_cap, "prediction": cfg.motion_prediction(), **speed, "scenes": {}}
     variants = {"torch": cfg}
     if args.fused:
         variants["fused"] = replace(cfg, fused=True)

@@ -302,11 +302,14 @@ def test_the_swarm_never_returns_worse_than_its_start(ring):
         TrackerConfig(solver="hope")
 
 
-def test_the_default_prediction_follows_the_energy():
-    assert TrackerConfig().motion_prediction == 0.0  # depth: the thesis starts from the previous pose
-    assert TrackerConfig(energy="E+C+O+S").motion_prediction == 1.0  # colour views: constant velocity
-    assert TrackerConfig(energy="LO+E").motion_prediction == 0.0
-    assert TrackerConfig(energy="E+C", prediction=0.5).motion_prediction == 0.5
+def test_the_default_prediction_follows_the_energy_and_the_scene():
+    assert TrackerConfig().motion_prediction() == 1.0  # hands and rigid objects: constant velocity
+    assert TrackerConfig().motion_prediction(chains=True) == 0.0  # depth on a rope: the previous pose
+    assert TrackerConfig(energy="E+C+O+S").motion_prediction(chains=True) == 1.0  # colour views
+    assert TrackerConfig(energy="LO+E").motion_prediction(chains=True) == 0.0
+    assert TrackerConfig(energy="E+C", prediction=0.5).motion_prediction(chains=True) == 0.5
+    assert Tracker(Scene.from_names(["hand_right", "hand_left", "rope"])).has_chains
+    assert not Tracker(Scene.from_names(["hand_right", "hand_left", "ball", "pipe"])).has_chains
     with pytest.raises(ValueError, match="prediction"):
         TrackerConfig(prediction=-1.0)
 

@@ -299,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prediction", type=float, default=None,
                    help="start each frame from the previous pose + P x its last step (minmod-limited, see "
                         "--no-prediction-limiter): 0 = the previous pose (the thesis), 1 = constant velocity; "
-                        "default: 0 with depth terms (LO), 1 for colour views (E, O, S without LO)")
+                        "default: 1, except 0 for a scene with a rope tracked with depth terms (LO)")
     p.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                    help="with --prediction, extrapolate the last step as it is (default: per DoF the smaller of the "
                         "last two steps, 0 where they disagree in sign)")

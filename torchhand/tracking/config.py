@@ -43,9 +43,10 @@ class TrackerConfig:
             model in 3D within ``label_distance`` mm) or ``"rendered"`` (the nearest
             rendered model within ``label_radius`` px).
         prediction: a frame starts from the previous pose plus this times the last step
-            (0: none, 1: constant velocity; None: 0 with depth terms, 1 for colour views
-            only); prediction_limiter: the step per DoF is the smaller of the last two
-            when they agree in sign, else 0 (minmod).
+            (0: none, 1: constant velocity; None: 1, except 0 for a scene with a chain
+            of like bones, the rope, tracked with depth terms: :meth:`motion_prediction`);
+            prediction_limiter: the step per DoF is the smaller of the last two when
+            they agree in sign, else 0 (minmod).
         preprocess, colour: depth and colour preprocessing.
         backend: of the renders and with it of the neighbour searches (``"warp"``,
             ``"warp-raycast"``, ``"open3d"``; None: Warp when installed).
@@ -134,13 +135,17 @@ class TrackerConfig:
         if self.threads is not None:
             check_int(self.threads, "threads", low=1)
 
-    @property
-    def motion_prediction(self) -> float:
-        """The prediction a run uses: ``prediction``, or when None, 1 (constant velocity)
-        for an energy of colour views only (no ``LO``) and 0 (the thesis) otherwise."""
+    def motion_prediction(self, chains: bool = False) -> float:
+        """The prediction a run uses: ``prediction``, or when None, 1 (constant velocity),
+        except 0 (the thesis' previous pose) where the scene has a chain of like bones
+        (``chains``: the rope, :func:`~torchhand.tracking.energies.chain_smoothness.chain_pairs`)
+        and the energy has depth terms (``LO``): with the minmod limiter it tracks hands
+        and rigid objects closer and in fewer iterations, and loses a rope whose noisy
+        estimates do not move smoothly (docs/results.md, "Starting a frame from a
+        constant-velocity prediction")."""
         if self.prediction is not None:
             return float(self.prediction)
-        return 0.0 if "LO" in self.energy.replace(" ", "").split("+") else 1.0
+        return 0.0 if chains and "LO" in self.energy.replace(" ", "").split("+") else 1.0
 
     @property
     def render_backend(self) -> str:

@@ -31,6 +31,7 @@ from torchhand.geometry.render import Renderer
 from torchhand.model.scene import Scene
 from torchhand.tracking.config import TrackerConfig
 from torchhand.tracking.energies import EnergyTerm, parse_energy
+from torchhand.tracking.energies.chain_smoothness import chain_pairs
 from torchhand.tracking.prediction import predicted_start
 from torchhand.tracking.preprocess import ColourFrame, DepthFrame, EmptyFrameError, preprocess_depth
 from torchhand.tracking.recovery import recover
@@ -119,6 +120,9 @@ class Tracker:
         # initial pose (reset)
         self._slack = math.inf if config.limit_slack is None else float(config.limit_slack)
         self._grown: Optional[tuple] = None
+        #: whether the scene has a chain of like bones (the rope): the default motion
+        #: prediction is off for it (TrackerConfig.motion_prediction)
+        self.has_chains = len(chain_pairs(scene)) > 0
 
     @property
     def lower(self) -> torch.Tensor:
@@ -353,7 +357,8 @@ class Tracker:
                 re-initialisation of badly fitting frames).
         Yields:
             one :class:`FrameResult` per frame. The starts follow
-            ``config.motion_prediction``; the recovery perturbations are drawn from a
+            ``config.motion_prediction`` (of :attr:`has_chains`; no velocity is taken
+            across a pose that ``revise`` replaced); the recovery perturbations are drawn from a
             generator seeded with ``config.seed``, so a run is repeatable.
         """
         cfg = self.config
@@ -372,12 +377,17 @@ class Tracker:
                     colour = None if colour_frames is None else next(colour_frames)
                 except StopIteration:
                     return
-                start = predicted_start(list(history), cfg.motion_prediction, cfg.prediction_limiter)
+                start = predicted_start(list(history), cfg.motion_prediction(self.has_chains), cfg.prediction_limiter)
                 with stage("frame"):
                     res = self.track_frame(frame, cameras, theta, first=(f == 0), generator=generator, start=start,
                                            colours=colour)
                 if revise is not None:
-                    res = revise(f, res)
+                    revised = revise(f, res)
+                    # a pose the caller replaced (a re-initialisation) starts a new motion:
+                    # the frames before it give it no velocity
+                    replaced = (revised.theta != res.theta).any(1).to(theta.device)
+                    history = collections.deque([(th, ok & ~replaced) for th, ok in history], maxlen=3)
+                    res = revised
             theta = res.theta
             history.append((theta, res.valid.to(theta.device)))
             yield res
