@@ -227,7 +227,7 @@ def profile(args) -> dict:
             alternate(scene, variants, root, tmp / f"{key}_again", args)
             t = scene["torch"]
             out[f"{key}_ms"], out[f"{key}_px"] = 1e3 * t["seconds_per_frame_after_first"], t["mean_px"]
-            if args.hold_frames > args.frames:
+            if args.hold_frames > 0:
                 held = hold(args, key, cfg, tmp)
                 scene["torch"]["held"] = held
                 out[f"{key}_held_px"], out[f"{key}_held_worst_mm"] = held["mean_px"], held["worst_frame_mm"]

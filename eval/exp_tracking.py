@@ -438,7 +438,8 @@ def run_detector_quality(args) -> dict:
             table.update(ballan_detections(f, rate, seed=k))
         det = simulated_detector(lambda d: table.get(_depth_key(d)))
         cfg = TrackerConfig(energy="LO+S", metric=args.metric, max_iterations=args.iterations,
-                            first_frame_iterations=args.iterations)
+                            first_frame_iterations=args.iterations, prediction=args.prediction,
+                            prediction_limiter=args.prediction_limiter)
         out = args.work / f"tracked_s_rate{rate:g}"
         track_sequences(list(folders.values()), out, TrackOptions(cfg), force=True,
                         make_terms=lambda: [ModelToData(metric=args.metric), default_data_to_model(),
@@ -460,7 +461,8 @@ def run_m2d(args) -> dict:
     for metric in ("point-to-point", "point-to-plane"):
         for iters in (5, 10, 15, 20, 30):
             cfg = TrackerConfig(energy="LO", metric=metric, max_iterations=iters, first_frame_iterations=iters,
-                                min_joint_motion=0.0)
+                                min_joint_motion=0.0, prediction=args.prediction,
+                                prediction_limiter=args.prediction_limiter)
             out = args.work / f"tracked_m2d_{metric}_{iters}"
             summaries = track_sequences(list(folders.values()), out, TrackOptions(cfg), force=True, progress=False,
                                         make_terms=lambda: [ModelToData(metric=metric), *default_priors()])
@@ -504,7 +506,9 @@ def main(argv=None) -> int:
                          "hands of --sequences bending by a travelling sine")
     ap.add_argument("--bend", type=float, default=0.25, help="rope, sine: bending amplitude (fraction of the limits)")
     ap.add_argument("--prediction", type=float, default=0.0,
-                    help="TrackerConfig.prediction: start each frame from the extrapolated pose (1 = constant velocity)")
+                    help="TrackerConfig.prediction: start each frame from the extrapolated pose (1 = constant velocity; "
+                         "default 0, the previous pose, as the experiments in docs/results.md were run; the "
+                         "tracker's own default is 1 for hands and rigid objects)")
     ap.add_argument("--no-prediction-limiter", dest="prediction_limiter", action="store_false",
                     help="extrapolate the last step as it is (TrackerConfig.prediction_limiter=False)")
     ap.add_argument("--salient-min-score", type=float, default=None,

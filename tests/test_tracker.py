@@ -438,7 +438,8 @@ def test_prediction_starts_frames_from_the_extrapolated_pose(tmp_path, monkeypat
 
 def test_a_pose_the_caller_replaced_gives_no_velocity(monkeypatch):
     """No velocity is taken across a pose that ``revise`` replaced (the runner's
-    re-initialisation): the next frame starts from that pose, not from it plus the jump;
+    re-initialisation), for that problem only: the next frame starts it from that pose,
+    not from it plus the jump, while the other problem of the batch keeps its prediction;
     from the frame after it on, the prediction resumes from the replaced pose."""
     from torchhand.tracking.tracker import FrameResult
 
@@ -449,26 +450,25 @@ def test_a_pose_the_caller_replaced_gives_no_velocity(monkeypatch):
     def fake(self, depths, cameras, previous, first=False, generator=None, start=None, colours=None):
         starts.append(None if start is None else start.clone())
         theta = (previous if start is None else start).clone()
-        theta[:, 0] += 1.0  # every frame's solve moves the first DoF by 1
-        one = torch.ones(1, dtype=torch.bool)
-        return FrameResult(theta, one, one.long(), torch.zeros(1), ~one, one.long(), [""], 0.0)
+        theta[:, 0] += torch.tensor([1.0, 2.0])  # every frame's solve moves the first DoF by 1 and 2
+        one = torch.ones(2, dtype=torch.bool)
+        return FrameResult(theta, one, one.long(), torch.zeros(2), ~one, one.long(), ["", ""], 0.0)
 
     def revise(f, res):
         if f != 2:
             return res
         theta = res.theta.clone()
-        theta[:, 0] += 10.0  # a re-initialisation jumps
+        theta[0, 0] += 10.0  # a re-initialisation of problem 0 jumps
         return res._replace(theta=theta)
 
     monkeypatch.setattr(Tracker, "track_frame", fake)
-    theta0 = scene.zero_pose(1)
-    results = list(tracker.track([None] * 6, [kinect_camera()], theta0, revise=revise))
-    x = [float(r.theta[0, 0]) for r in results]
+    results = list(tracker.track([None] * 6, [kinect_camera()] * 2, scene.zero_pose(2), revise=revise))
+    x = torch.stack([r.theta[:, 0] for r in results])  # (frames, 2)
     assert starts[0] is None and starts[1] is None  # two tracked frames are needed
-    assert float(starts[2][0, 0]) == x[1] + (x[1] - x[0])  # constant velocity
-    assert starts[3] is None  # frame 2's pose was replaced: no velocity through it
-    assert float(starts[4][0, 0]) == x[3] + (x[3] - x[2])  # from the replaced pose on
-    assert float(starts[5][0, 0]) == x[4] + (x[4] - x[3])
+    torch.testing.assert_close(starts[2][:, 0], x[1] + (x[1] - x[0]))  # constant velocity
+    torch.testing.assert_close(starts[3][:, 0], torch.stack([x[2, 0], x[2, 1] + (x[2, 1] - x[1, 1])]))
+    torch.testing.assert_close(starts[4][:, 0], x[3] + (x[3] - x[2]))  # from the replaced pose on
+    torch.testing.assert_close(starts[5][:, 0], x[4] + (x[4] - x[3]))
 
 
 def test_predicted_start_limits_the_step_per_dof():

@@ -385,7 +385,8 @@ class Tracker:
                     revised = revise(f, res)
                     # a pose the caller replaced (a re-initialisation) starts a new motion:
                     # the frames before it give it no velocity
-                    replaced = (revised.theta != res.theta).any(1).to(theta.device)
+                    same = (revised.theta == res.theta) | (revised.theta.isnan() & res.theta.isnan())
+                    replaced = (~same).any(1).to(theta.device)
                     history = collections.deque([(th, ok & ~replaced) for th, ok in history], maxlen=3)
                     res = revised
             theta = res.theta
