@@ -57,6 +57,22 @@ def test_a_model_moved_off_its_data_is_pulled_back(hand_and_ball):
         assert float(hand_rows.abs().max()) == 0.0  # the hand did not move: no pull on it
 
 
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_every_neighbour_backend_pairs_free_space_pixels_alike(hand_and_ball, backend):
+    """The nearest data pixel of each free-space pixel is exact with every backend: the
+    same pixels are kept (their distance to the data lies within the tolerance and the
+    radius alike), with the same vertices; only ties between equidistant data pixels
+    may pick another pixel."""
+    pytest.importorskip("warp")
+    scene, theta, cam, depth = hand_and_ball
+    moved = theta.clone()
+    moved[0, scene.slices["ball"].start] += 8.0
+    rows = [_prepared(scene, moved, cam, depth, FreeSpace(backend=b))[1].rows for b in ("warp", backend)]
+    assert int(sum(r.mask.sum() for r in rows[0])) > 20
+    for a, b in zip(*rows):
+        assert torch.equal(a.mask, b.mask) and torch.equal(a.ids, b.ids)
+
+
 def test_a_model_behind_data_is_occluded_not_in_free_space(hand_and_ball):
     """Data in front of the model is an occluder, no evidence against it: with a board
     300 mm from the camera in front of the ball, the ball moved 8 mm sideways gets no

@@ -101,7 +101,7 @@ def parse_energy(spec: str, metric: str = "point-to-plane", backend: Optional[st
     if "S" in extra:  # fingertips in depth with the depth terms, else the nails of colour views
         terms.append(Salient() if lo else Weighted(Robust(Nails(), nails.DEFAULT_LOSS), nails.DEFAULT_WEIGHT))
     if "F" in extra:
-        terms.append(default_free_space())
+        terms.append(default_free_space(backend=backend))
     if "P" in extra:
         terms.append(Weighted(Physics(), physics.DEFAULT_WEIGHT))
     if "K" in extra:

@@ -34,13 +34,14 @@ tracker wraps it in :data:`DEFAULT_LOSS` and :data:`DEFAULT_WEIGHT`
 (:func:`torchhand.tracking.energies.parse_energy`, ``F``).
 
 Every problem has ``max_pixels`` rows per model (a stride subsample of its free-space
-pixels in the solve's render box); no host synchronisation.
+pixels in the solve's render box); no host synchronisation with Warp (the ``"cpu"``
+backend's distance transform runs on the host).
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import torch
 
@@ -84,18 +85,22 @@ class FreeSpace(VertexPixelTerm):
             pixel has no pair: a model lost as a whole is not dragged across the image).
         tolerance: px, free-space pixels this near their data are not pulled.
         max_pixels: free-space pixels used per model and problem (a stride subsample).
+        backend: of the nearest-data-pixel search (``"warp"``, ``"cpu"`` or ``"torch"``;
+            None: Warp when installed).
     """
 
     name = "free"
     needs = "depth"
 
-    def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400):
+    def __init__(self, margin: float = 10.0, radius: float = 40.0, tolerance: float = 2.0, max_pixels: int = 400,
+                 backend: Optional[str] = None):
         check_number(tolerance, "tolerance", low=0, inclusive=True, unit="px")
         check_number(margin, "margin", low=0, inclusive=True, unit="mm")
         check_number(radius, "radius", low=0, unit="px")
         check_int(max_pixels, "max_pixels", low=1)
         self.margin, self.radius, self.max_pixels = float(margin), float(radius), max_pixels
         self.tolerance = float(tolerance)
+        self.backend = backend
 
     def _build(self, state: TrackState) -> _Data:
         dev = state.theta.device
@@ -134,7 +139,7 @@ class FreeSpace(VertexPixelTerm):
         pr, pc = pos // w, pos % w
         rc = torch.stack([pr + r0, pc + c0], -1)
         R = torch.full_like(pos, int(math.ceil(self.radius)))
-        q = nearest_marked_pixel(data.labels, rc, torch.where(slot, model, -1), R, K, images=p,
+        q = nearest_marked_pixel(data.labels, rc, torch.where(slot, model, -1), R, K, self.backend, images=p,
                                  boxes=data.boxes)  # (B, K M, 2) image (row, col), -1 none
         dist = torch.where(q[..., 0] >= 0, (rc - q).to(dt).norm(dim=-1), torch.full_like(pos, 2 ** 20, dtype=dt))
         keep = slot & (dist <= self.radius) & (dist > self.tolerance)
